@@ -1,0 +1,1 @@
+"""File-facing edge of greybox: loaders, writers, video readers. The core never imports this."""

@@ -1,0 +1,59 @@
+"""`Experiment`: one recorded run in SI units (arrays only; loading files is `greybox.io`)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from greybox.simulate import check_times
+from greybox.waveforms import PiecewiseConstant
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+    """One run: the input waveform and the camera readings.
+
+    - `name`: label used in reports.
+    - `t_s`: frame timestamps [s], shape (N,), strictly increasing, any spacing.
+    - `y`: readings in SI (m for displacement, K or degC for temperatures), shape (N,) or
+      (N, n_y); NaN marks a dropped or untrackable frame (masked out, never interpolated).
+    - `inputs`: input waveform in the device's SI input units (W for laser power).
+    - `t_start_s`: time [s] at which the device is in its initial state.
+    - `role`: "estimation" or "validation".
+    """
+
+    name: str
+    t_s: np.ndarray
+    y: np.ndarray
+    inputs: PiecewiseConstant
+    t_start_s: float = 0.0
+    role: str = "estimation"
+
+    def __post_init__(self):
+        t = check_times(self.t_s, name=f"{self.name}: t_s")
+        y = np.asarray(self.y, dtype=float)
+        if y.ndim == 1:
+            y = y[:, None]
+        if y.shape[0] != t.size:
+            raise ValueError(f"{self.name}: y has {y.shape[0]} samples but t_s has {t.size}; "
+                             "lengths must match")
+        finite = np.isfinite(y)
+        if not finite.any():
+            raise ValueError(f"{self.name}: y is NaN in every frame; nothing to fit")
+        if np.isinf(y).any():
+            raise ValueError(f"{self.name}: y contains infinite values; mark bad frames as NaN")
+        if self.role not in ("estimation", "validation"):
+            raise ValueError(f"{self.name}: role {self.role!r} must be 'estimation' or 'validation'")
+        if np.any(np.asarray(self.inputs.values) < 0):
+            raise ValueError(f"{self.name}: inputs contain negative power; laser power is >= 0")
+        object.__setattr__(self, "t_s", t)
+        object.__setattr__(self, "y", y)
+
+    @property
+    def n_frames(self) -> int:
+        return self.t_s.size
+
+    @property
+    def mask(self) -> np.ndarray:
+        return np.isfinite(self.y)

@@ -1,0 +1,116 @@
+"""What the data can and cannot identify, from the weighted Jacobian at the optimum.
+
+Work in raw (transformed) coordinates, where log-parameters make "sd 0.5" mean "about +-50 %":
+
+- data Fisher information F_d = J_d^T J_d (rows = residuals / sigma), prior information
+  F_p = J_p^T J_p, posterior covariance (F_d + F_p)^-1 (the Gauss-Newton Hessian);
+- singular values of J_d: a direction with data-only standard deviation 1/s_i > 0.5 (or a
+  numerically zero s_i) is a parameter combination the data do not pin down; it is reported as
+  a signed combination of raw coordinates (e.g. +0.71 log(A) + 0.71 log(R): only A/R is known);
+- per parameter: "identifiable" when the data alone give sd < 0.5 in raw units (and the prior
+  is not what constrains it), "prior-dominated" when a prior is present and the posterior sd is
+  more than half the prior sd (the data shrank it less than 2x), else "not identifiable".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+
+WEAK_SD = 0.5  # raw-unit sd above which a direction or parameter counts as not identified
+PRIOR_SHRINK = 0.25  # posterior var / prior var above this => prior-dominated
+TINY = 1e-10  # relative singular value treated as exactly zero
+
+
+@dataclasses.dataclass(frozen=True)
+class WeakDirection:
+    sd_raw: float  # data-only standard deviation along this direction (inf if singular)
+    combination: dict  # raw-coordinate label -> coefficient (unit vector, small terms dropped)
+
+    def describe(self) -> str:
+        terms = " ".join(f"{c:+.2f}*{name}" for name, c in self.combination.items())
+        sd = "unbounded" if not np.isfinite(self.sd_raw) else f"sd {self.sd_raw:.2g}"
+        return f"{terms} ({sd})"
+
+
+@dataclasses.dataclass(frozen=True)
+class IdentifiabilityReport:
+    singular_values: np.ndarray  # of the weighted data Jacobian in raw coordinates
+    condition_number: float
+    weak_directions: tuple
+    verdicts: tuple  # one per raw coordinate
+    data_sd_raw: np.ndarray  # sd from the data alone (inf where unconstrained)
+    covariance_raw: np.ndarray  # posterior (data + priors)
+    raw_labels: tuple
+
+    def summary(self) -> list[str]:
+        lines = [f"singular values of the weighted Jacobian: "
+                 f"{', '.join(f'{s:.3g}' for s in self.singular_values)} "
+                 f"(condition number {self.condition_number:.3g})"]
+        if self.weak_directions:
+            lines.append("parameter combinations the data do not determine:")
+            lines += [f"  {w.describe()}" for w in self.weak_directions]
+        else:
+            lines.append("every freed parameter combination is determined by the data")
+        return lines
+
+
+def _inverse_with_inf(matrix: np.ndarray) -> np.ndarray:
+    """Inverse of a PSD matrix; directions with ~zero eigenvalue get huge (not zero) variance."""
+    vals, vecs = np.linalg.eigh(matrix)
+    floor = max(vals.max(), 1e-300) * TINY
+    inv_vals = 1.0 / np.maximum(vals, floor)
+    inv_vals[vals <= floor] = 1e300
+    return (vecs * inv_vals) @ vecs.T
+
+
+def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, problem, raw: np.ndarray,
+            labels) -> IdentifiabilityReport:
+    n = raw.size
+    raw_labels = tuple(_raw_labels(problem, labels))
+    if not np.all(np.isfinite(jac_data)):
+        nan = np.full(n, np.nan)
+        return IdentifiabilityReport(nan, float("nan"), (), ("not identifiable",) * n, nan,
+                                     np.full((n, n), np.nan), raw_labels)
+    _, s, vt = np.linalg.svd(jac_data, full_matrices=False)
+    s_max = s.max() if s.size else 0.0
+    safe_s = np.where(s > s_max * TINY, s, 0.0)
+    with np.errstate(divide="ignore"):
+        inv_s = np.where(safe_s > 0, 1.0 / np.where(safe_s > 0, safe_s, 1.0), np.inf)
+    weak = []
+    for i in range(s.size):
+        if inv_s[i] > WEAK_SD:
+            comb = {raw_labels[j]: float(vt[i, j]) for j in np.argsort(-np.abs(vt[i]))
+                    if abs(vt[i, j]) > 0.1}
+            weak.append(WeakDirection(float(inv_s[i]), comb))
+    with np.errstate(invalid="ignore"):
+        data_var = np.sum((vt.T**2) * np.where(np.isfinite(inv_s), inv_s**2, np.inf), axis=1)
+        # a parameter with no weight on singular directions has finite variance
+        data_var = np.where(np.isnan(data_var), np.inf, data_var)
+    fisher = jac_data.T @ jac_data + (jac_prior.T @ jac_prior if jac_prior.size else 0.0)
+    cov = _inverse_with_inf(fisher)
+
+    flat_free = [*problem.shared] + [p for _ in range(problem.n_exp) for p in problem.per_exp]
+    verdicts = []
+    for k, p in enumerate(flat_free):
+        post_var = cov[k, k]
+        if p.has_prior:
+            value = float(p.to_value(raw[k]))
+            dlog = float(jax.grad(lambda r, p=p: p.to_value(r))(raw[k])) / value
+            prior_var_raw = (p.prior_log_sd / abs(dlog)) ** 2
+            verdict = "prior-dominated" if post_var > PRIOR_SHRINK * prior_var_raw else "identifiable"
+        else:
+            verdict = "identifiable" if np.sqrt(data_var[k]) < WEAK_SD and post_var < 1e100 \
+                else "not identifiable"
+        verdicts.append(verdict)
+    cond = float(s_max / s.min()) if s.size and s.min() > 0 else float("inf")
+    return IdentifiabilityReport(s, cond, tuple(weak), tuple(verdicts), np.sqrt(data_var), cov,
+                                 raw_labels)
+
+
+def _raw_labels(problem, labels):
+    flat_free = [*problem.shared] + [p for _ in range(problem.n_exp) for p in problem.per_exp]
+    for p, label in zip(flat_free, labels):
+        yield p.raw_label().replace(p.path, label, 1)

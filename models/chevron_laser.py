@@ -1,0 +1,161 @@
+"""The laser-heated chevron actuator of Yelike (2012), composed from greybox blocks.
+
+laser P(t) [W] -> Gaussian spot on the heated pad -> absorbed q = A F P -> one-node (or
+n-node) thermal RC -> mean beam rise kappa theta -> elongation alpha L kappa theta ->
+rigid-link chevron kinematics (3.5 mm beams, 2 deg pre-bend) -> quasi-static shuttle ->
+camera (exposure average, offset, drift).
+
+Nominal values and ranges: PHYSICS.md §4, §6, §12 (thesis geometry, Si at 800 nm).
+What shuttle video identifies (PHYSICS.md §13): the time constant tau (when sampled fast
+enough) and the static gain K ∝ A F R kappa alpha L / sin(a); A, F, R, kappa and a enter only
+as a product, so a fit frees at most one of them unless priors say more.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from greybox.blocks.camera import Camera
+from greybox.blocks.mechanics import ChevronExact, ChevronLinear, QuasiStaticShuttle, ThermalElongation
+from greybox.blocks.spot import GaussianSpot, RectangularFrame
+from greybox.blocks.thermal import AbstractThermal, FirstOrderThermal
+from greybox.device import AbstractDevice
+from greybox.freeparams import FreeParameter
+from greybox.parameters import ParameterInfo
+
+NAME = "chevron_laser"
+INPUTS = ("laser_W",)
+OUTPUTS = ("y_m",)
+
+# Geometry and material of the thesis device [SI]
+BEAM_LENGTH_M = 3.5e-3
+BEAM_WIDTH_M = 20e-6
+BEAM_THICKNESS_M = 100e-6
+PAD_SIZE_M = 200e-6
+RHO_CP_J_PER_M3K = 1.64e6  # silicon
+CTE_SI_PER_K = 2.6e-6
+
+
+def _nominal_heat_capacity() -> float:
+    beams = 2 * BEAM_LENGTH_M * BEAM_WIDTH_M * BEAM_THICKNESS_M
+    pad = PAD_SIZE_M**2 * BEAM_THICKNESS_M
+    return RHO_CP_J_PER_M3K * (beams + pad)  # ≈ 2.95e-5 J/K
+
+
+NOMINAL_TAU_S = 0.040
+NOMINAL_RESISTANCE_K_PER_W = NOMINAL_TAU_S / _nominal_heat_capacity()
+
+
+class LaserChevron(AbstractDevice):
+    """A chevron actuator heated by a laser spot on its pad; output = shuttle displacement [m]."""
+
+    spot: GaussianSpot
+    target: RectangularFrame
+    absorptance: float
+    thermal: AbstractThermal
+    elongation: ThermalElongation
+    kinematics: ChevronExact | ChevronLinear
+    shuttle: QuasiStaticShuttle
+    camera: Camera
+    initial_rise_K: float = 0.0
+    heated_node: int = eqx.field(static=True, default=0)
+
+    @property
+    def n_states(self) -> int:
+        return self.thermal.n_states
+
+    @property
+    def n_inputs(self) -> int:
+        return 1
+
+    @property
+    def n_outputs(self) -> int:
+        return 1
+
+    @property
+    def is_linear(self) -> bool:
+        return self.thermal.is_linear
+
+    def absorbed_fraction(self):
+        """Absorbed watts per watt of laser at the sample: A F."""
+        return self.absorptance * self.target.fraction(self.spot)
+
+    def initial_state(self):
+        return jnp.full((self.n_states,), self.initial_rise_K, dtype=float)
+
+    def vector_field(self, t, x, u):
+        q = self.absorbed_fraction() * u
+        return self.thermal.derivative(x, jnp.broadcast_to(q, (self.thermal.n_inputs,)))
+
+    def linear_dynamics(self):
+        a, b = self.thermal.linear_matrices()
+        return a, b * self.absorbed_fraction()
+
+    def stroke(self, theta_node_K):
+        """Shuttle displacement [m] for a heated-node rise [K] (the static nonlinearity)."""
+        return self.shuttle(self.kinematics(self.elongation(theta_node_K)))
+
+    def output(self, x):
+        return jnp.reshape(self.stroke(x[self.heated_node]), (1,))
+
+    def static_gain_m_per_W(self):
+        """Small-signal steady-state displacement per watt of laser [m/W] (linearised at 0)."""
+        import jax
+
+        a, b = self.linear_dynamics()
+        theta_per_w = -jnp.linalg.solve(a, b)[self.heated_node, 0]
+        return jax.grad(self.stroke)(0.0) * theta_per_w
+
+
+def default_model(*, exact: bool = True, exposure_s: float = 0.010, m_per_px: float = 0.645e-6,
+                  **overrides) -> LaserChevron:
+    """The thesis chevron at nominal values; keyword `overrides` replace dotted-path fields
+    given with '__' (e.g. ``thermal__tau_s=0.05``)."""
+    angle = np.deg2rad(2.0)
+    model = LaserChevron(
+        spot=GaussianSpot(waist_m=150e-6),
+        target=RectangularFrame.square(0.0, 0.0, PAD_SIZE_M),
+        absorptance=0.67,  # Si >= 100 um at 800 nm
+        thermal=FirstOrderThermal(tau_s=NOMINAL_TAU_S, resistance_K_per_W=NOMINAL_RESISTANCE_K_PER_W),
+        elongation=ThermalElongation(cte_per_K=CTE_SI_PER_K, length_m=BEAM_LENGTH_M, beam_fraction=0.5),
+        kinematics=ChevronExact(length_m=BEAM_LENGTH_M, angle_rad=angle) if exact else ChevronLinear(angle),
+        shuttle=QuasiStaticShuttle(stiffness_N_per_m=241.5),
+        camera=Camera(m_per_px=m_per_px, exposure_s=exposure_s),
+    )
+    if overrides:
+        from greybox.parameters import set_values
+
+        model = set_values(model, [k.replace("__", ".") for k in overrides], list(overrides.values()))
+    return model
+
+
+PARAMETERS = (
+    ParameterInfo("absorptance", "1", 0.67, 0.40, 0.70, "absorptance of the heated Si pad at 800 nm",
+                  "product with spot fraction and thermal resistance only"),
+    ParameterInfo("spot.waist_m", "m", 150e-6, 25e-6, 500e-6, "1/e^2 spot radius", "not identifiable"),
+    ParameterInfo("thermal.tau_s", "s", NOMINAL_TAU_S, 1e-3, 0.2, "thermal time constant C/G",
+                  "identifiable if frames are faster than tau or tau >~ 20-50 ms"),
+    ParameterInfo("thermal.resistance_K_per_W", "K/W", NOMINAL_RESISTANCE_K_PER_W, 200.0, 1e4,
+                  "thermal resistance 1/G", "product with absorptance only"),
+    ParameterInfo("elongation.beam_fraction", "1", 0.5, 0.3, 1.0, "mean beam rise / pad rise",
+                  "product only"),
+    ParameterInfo("elongation.cte_per_K", "1/K", CTE_SI_PER_K, 2.5e-6, 3.3e-6, "CTE of Si", "fixed"),
+    ParameterInfo("kinematics.angle_rad", "rad", float(np.deg2rad(2.0)), float(np.deg2rad(0.5)),
+                  float(np.deg2rad(5.0)), "chevron pre-bend angle", "weak (curvature only)"),
+    ParameterInfo("camera.offset_m", "m", 0.0, None, None, "image position of zero displacement",
+                  "identifiable, one per run"),
+    ParameterInfo("camera.drift_m_per_s", "m/s", 0.0, None, None, "stage/focus drift",
+                  "only with long laser-off segments"),
+)
+
+
+def default_free_parameters() -> list[FreeParameter]:
+    """The standard fit: tau and the gain carrier (absorptance) shared, one offset per run,
+    thermal resistance freed with a log-normal prior so the report shows it is prior-dominated."""
+    return [
+        FreeParameter("absorptance", unit="1", lower=0.05, upper=1.0),
+        FreeParameter("thermal.tau_s", unit="s", lower=1e-4, upper=2.0),
+        FreeParameter("camera.offset_m", unit="m", per_experiment=True, scale=1e-6),
+    ]

@@ -1,0 +1,126 @@
+"""`greybox track` end to end on rendered videos, and its bad-input contract (exit 2)."""
+
+import numpy as np
+import pytest
+
+from greybox.cli import main
+from greybox.io.video import probe, read_frames, write_image_stack, write_video
+from greybox.render import render_markers, render_shuttle
+
+REST = 8
+
+
+@pytest.fixture(scope="module")
+def shuttle():
+    traj = np.concatenate([np.zeros(REST), np.linspace(0.0, 3.3, 16)])
+    return render_shuttle(traj, seed=21, bad_frames={15: "glare"})
+
+
+def _read_csv(path):
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    rows = [line.split(",") for line in lines[1:]]
+    return header, {h: [r[i] for r in rows] for i, h in enumerate(header)}
+
+
+@pytest.mark.parametrize("suffix", [".avi", ".mp4", "stack"])
+def test_track_video_and_stack_end_to_end(tmp_path, shuttle, suffix, capsys):
+    if suffix == "stack":
+        src = tmp_path / "frames"
+        write_image_stack(src, shuttle.frames)
+        fps_args = ["--fps", "20"]
+    else:
+        src = write_video(tmp_path / f"run{suffix}", shuttle.frames, fps=20.0)
+        fps_args = []  # the container's timestamps
+    out = tmp_path / "runs" / "run1.csv"
+    rc = main(["track", str(src), "--roi", "32,16,64,64", "--um-per-px", "0.645",
+               "--ref-frames", str(REST), "--out", str(out), *fps_args])
+    assert rc == 0
+    header, cols = _read_csv(out)
+    assert header == ["t_s", "y_px", "y_um", "quality", "reason", "sigma_px", "sigma_um"]
+    t = np.array(cols["t_s"], float)
+    np.testing.assert_allclose(t, np.arange(len(t)) / 20.0, atol=1e-6)
+    y = np.array(cols["y_px"], float)
+    good = np.array(cols["reason"]) == ""
+    assert list(np.flatnonzero(~good)) == [15] and cols["reason"][15] == "glare"
+    assert np.isnan(y[15]) and cols["y_um"][15] == "nan"
+    err = (y - shuttle.truth_px)[good]
+    assert np.sqrt(np.mean(err**2)) <= 0.05
+    np.testing.assert_allclose(np.array(cols["y_um"], float)[good], 0.645 * y[good], atol=1e-4)
+    assert "1 flagged (glare 1)" in capsys.readouterr().out
+
+
+def test_without_scale_writes_px_columns_only(tmp_path, shuttle):
+    src = write_video(tmp_path / "run.avi", shuttle.frames[:12], fps=10.0)
+    out = tmp_path / "o.csv"
+    assert main(["track", str(src), "--roi", "32,16,64,64", "--out", str(out)]) == 0
+    assert out.read_text().splitlines()[0] == "t_s,y_px,quality,reason,sigma_px"
+
+
+def test_two_features_cli(tmp_path):
+    n = 16
+    k = np.arange(n)
+    heading = 0.01 * np.clip(k - REST, 0, None)
+    centre = np.stack([80 + 0.5 * np.clip(k - REST, 0, None), np.full(n, 60.0)], 1)
+    d = np.stack([np.cos(heading), np.sin(heading)], 1) * 30.0
+    seq = render_markers(np.stack([centre - d, centre + d], 1), seed=22)
+    src = write_video(tmp_path / "robot.mkv", seq.frames, fps=25.0)
+    out = tmp_path / "robot.csv"
+    rc = main(["track", str(src), "--roi", "34,44,32,32", "--roi2", "94,44,32,32",
+               "--um-per-px", "0.5", "--ref-frames", str(REST), "--out", str(out)])
+    assert rc == 0
+    header, cols = _read_csv(out)
+    assert header == ["t_s", "f1_x_px", "f1_y_px", "f2_x_px", "f2_y_px", "x_um", "y_um",
+                      "heading_rad", "quality", "reason", "sigma_px"]
+    np.testing.assert_allclose(np.array(cols["heading_rad"], float), heading, atol=0.002)
+    np.testing.assert_allclose(np.array(cols["x_um"], float),
+                               0.5 * (centre[:, 0] - 80.0), atol=0.025)
+
+
+def _bad(tmp_path, capsys, argv, *names):
+    out = tmp_path / "bad.csv"
+    rc = main(["track", *argv, "--out", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2
+    assert len(err.splitlines()) == 1 and err.startswith("greybox track: error:")
+    for name in names:
+        assert name in err, err
+    assert not out.exists()
+    assert not list(tmp_path.glob(".bad.csv.partial-*"))
+    return err
+
+
+def test_bad_inputs_exit_2_without_csv(tmp_path, shuttle, capsys):
+    video = str(write_video(tmp_path / "ok.avi", shuttle.frames[:6], fps=10.0))
+    missing = str(tmp_path / "missing.avi")
+    _bad(tmp_path, capsys, [missing, "--roi", "32,16,64,64"], missing, "no such file")
+    junk = tmp_path / "junk.mp4"
+    junk.write_text("not a video")
+    _bad(tmp_path, capsys, [str(junk), "--roi", "32,16,64,64"], str(junk), "cannot be read")
+    _bad(tmp_path, capsys, [video, "--roi", "100,16,64,64"], video, "--roi", "outside")
+    _bad(tmp_path, capsys, [video, "--roi", "1,2,3"], "--roi", "X,Y,W,H")
+    for scale in ("0", "-0.645"):
+        _bad(tmp_path, capsys, [video, "--roi", "32,16,64,64", "--um-per-px", scale],
+             "--um-per-px", "positive")
+    one = str(write_video(tmp_path / "one.avi", shuttle.frames[:1], fps=10.0))
+    _bad(tmp_path, capsys, [one, "--roi", "32,16,64,64"], one, "at least two")
+    stack = tmp_path / "stack"
+    write_image_stack(stack, shuttle.frames[:4])
+    _bad(tmp_path, capsys, [str(stack), "--roi", "32,16,64,64"], "--fps", str(stack))
+
+
+def test_video_io_round_trip_is_lossless(tmp_path):
+    frames16 = np.random.default_rng(0).integers(0, 65535, (5, 24, 40)).astype(np.uint16)
+    frames8 = (frames16 >> 8).astype(np.uint8)
+    for path, frames, raw in ((tmp_path / "a.mkv", frames16, False),
+                              (tmp_path / "a.mp4", frames8, False),
+                              (tmp_path / "raw.avi", frames8, True)):
+        write_video(path, frames, fps=12.5, raw=raw)
+        got, info = read_frames(path)
+        np.testing.assert_array_equal(got, frames)
+        assert info.dtype == frames.dtype and info.fps == 12.5
+        np.testing.assert_allclose(info.timestamps_s, np.arange(5) / 12.5, atol=1e-3)
+    write_image_stack(tmp_path / "tif", frames16, suffix=".tif")
+    got, info = read_frames(tmp_path / "tif")
+    np.testing.assert_array_equal(got, frames16)
+    assert probe(tmp_path / "tif").kind == "stack"

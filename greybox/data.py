@@ -21,6 +21,8 @@ class Experiment:
     - `inputs`: input waveform in the device's SI input units (W for laser power).
     - `t_start_s`: time [s] at which the device is in its initial state.
     - `role`: "estimation" or "validation".
+    - `settings`: known per-run model values {dotted path: SI value} applied on top of the
+      model for this run only (e.g. an initial temperature, a spot position); never fitted.
     """
 
     name: str
@@ -29,6 +31,7 @@ class Experiment:
     inputs: PiecewiseConstant
     t_start_s: float = 0.0
     role: str = "estimation"
+    settings: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         t = check_times(self.t_s, name=f"{self.name}: t_s")
@@ -47,12 +50,21 @@ class Experiment:
             raise ValueError(f"{self.name}: role {self.role!r} must be 'estimation' or 'validation'")
         if np.any(np.asarray(self.inputs.values) < 0):
             raise ValueError(f"{self.name}: inputs contain negative power; laser power is >= 0")
+        for path, value in self.settings.items():
+            if not np.all(np.isfinite(np.asarray(value, dtype=float))):
+                raise ValueError(f"{self.name}: setting {path} = {value!r} is not a finite number")
         object.__setattr__(self, "t_s", t)
         object.__setattr__(self, "y", y)
 
     @property
     def n_frames(self) -> int:
         return self.t_s.size
+
+    def apply_settings(self, model):
+        """`model` with this run's known settings applied."""
+        from greybox.parameters import set_values
+
+        return set_values(model, list(self.settings), list(self.settings.values()))
 
     @property
     def mask(self) -> np.ndarray:

@@ -50,3 +50,16 @@ class AbstractDevice(eqx.Module):
     @abc.abstractmethod
     def output(self, x):
         """Physical output (n_outputs,) in SI for state `x`."""
+
+
+class AbstractSteppedDevice(AbstractDevice):
+    """A device whose simulation is not an ODE (e.g. per-step quasi-static contact maps).
+
+    It implements `observe_schedule(sched, method)` itself, returning the camera readings
+    (N, n_y) and a success flag from one row of `greybox.simulate.pad_schedules`; `fit`,
+    `simulate` and `validate` then work unchanged (masks, robust loss, covariance).
+    """
+
+    @abc.abstractmethod
+    def observe_schedule(self, sched: dict, method: str):
+        """(readings (N, n_y) in SI, success flag) for one padded schedule row."""

@@ -29,6 +29,7 @@ import numpy as np
 import optimistix as optx
 
 from greybox.data import Experiment
+from greybox.device import AbstractSteppedDevice
 from greybox.freeparams import FreeParameter
 from greybox.identifiability import IdentifiabilityReport, analyse
 from greybox.metrics import fit_percent
@@ -136,6 +137,8 @@ class _Problem(eqx.Module):
     sched: dict
     y: jnp.ndarray
     w: jnp.ndarray
+    settings: jnp.ndarray  # (E, K) known per-run values for `setting_paths`
+    setting_paths: tuple = eqx.field(static=True)
     shared: tuple = eqx.field(static=True)
     per_exp: tuple = eqx.field(static=True)
     n_exp: int = eqx.field(static=True)
@@ -159,8 +162,17 @@ class _Problem(eqx.Module):
                 raise ValueError(f"{e.name}: has {e.y.shape[1]} output columns, others {n_y}")
             y[i, : e.n_frames] = np.nan_to_num(e.y)
             w[i, : e.n_frames] = e.mask
+        setting_paths = tuple(sorted({k for e in experiments for k in e.settings}))
+        settings = np.array([[e.settings.get(k, np.asarray(get_value(model, k), dtype=float))
+                              for k in setting_paths] for e in experiments], dtype=float)
+        free_paths = {p.path for p in free}
+        if free_paths & set(setting_paths):
+            raise ValueError(f"settings: {sorted(free_paths & set(setting_paths))} are both "
+                             "fitted and given as known per-run settings; choose one")
         return _Problem(
             model=as_arrays(model), sched=sched, y=jnp.asarray(y), w=jnp.asarray(w),
+            settings=jnp.asarray(settings.reshape(n_exp, len(setting_paths))),
+            setting_paths=setting_paths,
             shared=tuple(p for p in free if not p.per_experiment),
             per_exp=tuple(p for p in free if p.per_experiment), n_exp=n_exp, method=method,
             loss=loss, huber_c=float(huber_c), student_nu=float(student_nu),
@@ -188,20 +200,21 @@ class _Problem(eqx.Module):
         base = set_values(self.model, [p.path for p in self.shared], shared_vals)
         return base, raw[ns:].reshape(self.n_exp, len(self.per_exp))
 
-    def experiment_model(self, base, per_raw_row):
+    def experiment_model(self, base, per_raw_row, settings_row):
+        model = set_values(base, list(self.setting_paths), list(settings_row))
         vals = [p.to_value(per_raw_row[j]) for j, p in enumerate(self.per_exp)]
-        return set_values(base, [p.path for p in self.per_exp], vals)
+        return set_values(model, [p.path for p in self.per_exp], vals)
 
     def predictions(self, raw):
         """Camera readings (E, N, n_y) and per-experiment success flags."""
         base, per = self.models(raw)
         opts = dict(self.solver_opts)
 
-        def one(per_row, sched):
-            return observe_schedule(self.experiment_model(base, per_row), sched,
+        def one(per_row, settings_row, sched):
+            return observe_schedule(self.experiment_model(base, per_row, settings_row), sched,
                                     method=self.method, **opts)
 
-        return jax.vmap(one)(per, self.sched)
+        return jax.vmap(one)(per, self.settings, self.sched)
 
     def data_residuals(self, raw, sigma):
         z, ok = self.predictions(raw)
@@ -306,7 +319,7 @@ def fit(model, experiments: Sequence[Experiment], free: Sequence[FreeParameter],
         raise ValueError(f"method: {method!r} is unknown; use one of {METHODS}")
     if loss not in LOSSES:
         raise ValueError(f"loss: {loss!r} is unknown; use one of {LOSSES}")
-    if method == "zoh" and not model.is_linear:
+    if method == "zoh" and not model.is_linear and not isinstance(model, AbstractSteppedDevice):
         raise ValueError("method: the ZOH path needs a linear device; use method='adaptive'")
     paths = [p.path for p in free]
     if len(set(paths)) != len(paths):
@@ -406,16 +419,12 @@ def _assemble(problem, best, sig, steps, runs, experiments, free, say) -> FitRes
                                         owners[k], prior))
 
     base, per = problem.models(raw_j)
-    exp_models = tuple(problem.experiment_model(base, per[i]) for i in range(problem.n_exp))
+    exp_models = tuple(problem.experiment_model(base, per[i], problem.settings[i])
+                       for i in range(problem.n_exp))
     z, solved = np.asarray(best["predictions"]), np.asarray(best["solved"])
     fits, outliers = {}, {}
     for i, e in enumerate(experiments):
-        zi = z[i, : e.n_frames]
-        resid = (e.y - zi) / sig
-        flagged = np.abs(resid) > OUTLIER_SIGMAS
-        keep = np.where(flagged, np.nan, e.y)
-        fits[e.name] = fit_percent(keep, zi) if np.isfinite(keep).sum() > 1 else float("nan")
-        outliers[e.name] = int(np.sum(flagged & e.mask))
+        fits[e.name], outliers[e.name] = _scored(e, z[i, : e.n_frames], sig)
     if not bool(np.all(np.asarray(solved))):
         ok, message = False, "an experiment's simulation failed at the final parameters"
     return FitResult(
@@ -439,3 +448,51 @@ def _labels(problem, experiments):
             units.append(p.unit)
             owners.append(e.name)
     return labels, units, owners
+
+
+@dataclasses.dataclass(frozen=True)
+class ValidationResult:
+    """Free-run simulation of runs not used for fitting (physical parameters held fixed).
+
+    Only per-run nuisance parameters (offsets, drift, initial state) are re-estimated on each
+    validation run, as MATLAB `compare` estimates initial conditions; `fit_percent` is
+    simulation fit %, never one-step prediction.
+    """
+
+    experiments: tuple
+    predictions: tuple  # (N, n_y) SI per run
+    fit_percent: dict
+    n_outliers: dict
+    horizon: str = "simulation"
+
+
+def validate(result: FitResult, experiments: Sequence[Experiment], **fit_kwargs) -> ValidationResult:
+    """Score fitted physics on new runs: re-fit only per-experiment parameters, then simulate."""
+    per_exp = [p for p in result.free if p.per_experiment]
+    experiments = tuple(experiments)
+    if not experiments:
+        raise ValueError("experiments: no validation runs given")
+    if not per_exp:
+        preds, fits, outl = [], {}, {}
+        for e in experiments:
+            from greybox.simulate import simulate
+
+            z = np.asarray(simulate(e.apply_settings(result.model), e.inputs, e.t_s,
+                                    method=result.method, t_start_s=e.t_start_s)).reshape(e.n_frames, -1)
+            preds.append(z)
+            fits[e.name], outl[e.name] = _scored(e, z, result.sigma)
+        return ValidationResult(experiments, tuple(preds), fits, outl)
+    fit_kwargs.setdefault("method", result.method)
+    fit_kwargs.setdefault("loss", result.loss)
+    fit_kwargs.setdefault("sigma", result.sigma)
+    nuisance = fit(result.model, experiments, per_exp, **fit_kwargs)
+    preds = tuple(nuisance.predict(i) for i in range(len(experiments)))
+    return ValidationResult(experiments, preds, nuisance.fit_percent, nuisance.n_outliers)
+
+
+def _scored(e: Experiment, z: np.ndarray, sigma) -> tuple[float, int]:
+    """Simulation fit % on finite, non-outlier frames, and the outlier count."""
+    flagged = np.abs((e.y - z) / sigma) > OUTLIER_SIGMAS
+    keep = np.where(flagged, np.nan, e.y)
+    score = fit_percent(keep, z) if np.isfinite(keep).sum() > 1 else float("nan")
+    return score, int(np.sum(flagged & e.mask))

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from greybox.device import AbstractDevice
+from greybox.device import AbstractDevice, AbstractSteppedDevice
 from greybox.waveforms import PiecewiseConstant
 
 METHODS = ("zoh", "adaptive")
@@ -220,6 +220,8 @@ def observe_schedule(model: AbstractDevice, sched: dict, *, method: str = "zoh",
 
     Pure and jit/vmap-able: `sched` holds the arrays of one row of `pad_schedules`.
     """
+    if isinstance(model, AbstractSteppedDevice):
+        return model.observe_schedule(sched, method)
     x0 = jnp.asarray(model.initial_state(), dtype=float)
     n_frames = sched["t_s"].shape[0]
     if method == "zoh":
@@ -264,7 +266,7 @@ def simulate(model: AbstractDevice, inputs, t_s, *, method: str = "zoh", t_start
     require_x64("simulate")
     if method not in METHODS:
         raise ValueError(f"method: {method!r} is unknown; use one of {METHODS}")
-    if method == "zoh" and not model.is_linear:
+    if method == "zoh" and not model.is_linear and not isinstance(model, AbstractSteppedDevice):
         raise ValueError("method: the ZOH path needs a linear device; use method='adaptive'")
     sched = pad_schedules([schedule_for(model, inputs, t_s, t_start_s=t_start_s)])
     row = {k: v[0] for k, v in sched.items()}

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from greybox.blocks.camera import Camera
+from greybox.channels import DISPLACEMENT, LASER_POWER
 from greybox.blocks.mechanics import ChevronExact, ChevronLinear, QuasiStaticShuttle, ThermalElongation
 from greybox.blocks.spot import GaussianSpot, RectangularFrame
 from greybox.blocks.thermal import AbstractThermal, FirstOrderThermal
@@ -26,8 +27,8 @@ from greybox.freeparams import FreeParameter
 from greybox.parameters import ParameterInfo
 
 NAME = "chevron_laser"
-INPUTS = ("laser_W",)
-OUTPUTS = ("y_m",)
+INPUTS = (LASER_POWER,)
+OUTPUTS = (DISPLACEMENT,)
 
 # Geometry and material of the thesis device [SI]
 BEAM_LENGTH_M = 3.5e-3

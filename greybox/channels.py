@@ -1,0 +1,53 @@
+"""How a device names its input and output signals and which units files may use for them.
+
+A CSV column is ``<name>_<unit>`` (``laser_mW``, ``y_um``, ``T1_C``). Each unit maps to SI by
+``si = scale * value + offset``; the unit ``px`` is special: it is converted with the
+experiment's camera scale (um per pixel).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+PIXELS = "px"
+
+
+@dataclasses.dataclass(frozen=True)
+class Channel:
+    """- `name`: signal name used in column headers (``laser``, ``y``, ``T1``).
+    - `si_unit`: unit inside the library (``W``, ``m``, ``K``, ``%``).
+    - `units`: {file unit: (scale, offset)} with si = scale * value + offset; include
+      ``"px": None`` for camera positions converted with um-per-pixel.
+    - `description`: what the signal is, for help texts and reports.
+    """
+
+    name: str
+    si_unit: str
+    units: dict
+    description: str = ""
+
+    def column_names(self) -> list[str]:
+        return [f"{self.name}_{u}" for u in self.units]
+
+    def to_si(self, values, unit: str, m_per_px: float | None = None):
+        if unit not in self.units:
+            raise ValueError(f"{self.name}_{unit}: unknown unit {unit!r}; use one of "
+                             f"{', '.join(self.column_names())}")
+        if self.units[unit] is None:
+            if m_per_px is None:
+                raise ValueError(f"{self.name}_{unit}: pixel values need the camera scale "
+                                 "(um_per_px) in the experiment description")
+            return values * m_per_px
+        scale, offset = self.units[unit]
+        return values * scale + offset
+
+    def from_si(self, values, unit: str, m_per_px: float | None = None):
+        if self.units.get(unit, 0) is None:
+            return values / m_per_px
+        scale, offset = self.units[unit]
+        return (values - offset) / scale
+
+
+LASER_POWER = Channel("laser", "W", {"mW": (1e-3, 0.0), "W": (1.0, 0.0)}, "laser power at the sample")
+DISPLACEMENT = Channel("y", "m", {"um": (1e-6, 0.0), "nm": (1e-9, 0.0), PIXELS: None},
+                       "shuttle displacement along its axis")

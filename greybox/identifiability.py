@@ -42,7 +42,7 @@ class IdentifiabilityReport:
     weak_directions: tuple
     verdicts: tuple  # one per raw coordinate
     data_sd_raw: np.ndarray  # sd from the data alone (inf where unconstrained)
-    covariance_raw: np.ndarray  # posterior (data + priors)
+    covariance_raw: np.ndarray  # posterior (data + priors); NaN where undetermined
     raw_labels: tuple
 
     def summary(self) -> list[str]:
@@ -57,13 +57,21 @@ class IdentifiabilityReport:
         return lines
 
 
-def _inverse_with_inf(matrix: np.ndarray) -> np.ndarray:
-    """Inverse of a PSD matrix; directions with ~zero eigenvalue get huge (not zero) variance."""
+def _pseudo_inverse(matrix: np.ndarray) -> np.ndarray:
+    """Inverse of a PSD information matrix on its determined subspace.
+
+    Coordinates with real weight on a (numerically) zero-information direction get NaN
+    variance and covariance: the data and priors say nothing about them. Rounding-level
+    weights (< 1e-6) on such directions are ignored, so an identifiable parameter that merely
+    sits next to an unidentifiable pair keeps its proper variance.
+    """
     vals, vecs = np.linalg.eigh(matrix)
-    floor = max(vals.max(), 1e-300) * TINY
-    inv_vals = 1.0 / np.maximum(vals, floor)
-    inv_vals[vals <= floor] = 1e300
-    return (vecs * inv_vals) @ vecs.T
+    keep = vals > max(vals.max(), 1e-300) * TINY
+    inv = (vecs[:, keep] / vals[keep]) @ vecs[:, keep].T
+    lost = np.sum(vecs[:, ~keep] ** 2, axis=1) > 1e-6
+    inv[lost, :] = np.nan
+    inv[:, lost] = np.nan
+    return inv
 
 
 def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, problem, raw: np.ndarray,
@@ -85,12 +93,15 @@ def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, problem, raw: np.ndarra
             comb = {raw_labels[j]: float(vt[i, j]) for j in np.argsort(-np.abs(vt[i]))
                     if abs(vt[i, j]) > 0.1}
             weak.append(WeakDirection(float(inv_s[i]), comb))
-    with np.errstate(invalid="ignore"):
-        data_var = np.sum((vt.T**2) * np.where(np.isfinite(inv_s), inv_s**2, np.inf), axis=1)
-        # a parameter with no weight on singular directions has finite variance
-        data_var = np.where(np.isnan(data_var), np.inf, data_var)
+    # Data-only variance per coordinate from the determined directions; a coordinate with real
+    # weight on an exactly singular direction is unbounded. Rounding leaves ~1e-9 weights on
+    # null directions for coordinates orthogonal to them, which must not count.
+    null = ~np.isfinite(inv_s)
+    null_weight = np.sum(vt[null].T ** 2, axis=1) if null.any() else np.zeros(n)
+    data_var = np.sum(vt[~null].T ** 2 * inv_s[~null] ** 2, axis=1)
+    data_var = np.where(null_weight > 1e-6, np.inf, data_var)
     fisher = jac_data.T @ jac_data + (jac_prior.T @ jac_prior if jac_prior.size else 0.0)
-    cov = _inverse_with_inf(fisher)
+    cov = _pseudo_inverse(fisher)
 
     flat_free = [*problem.shared] + [p for _ in range(problem.n_exp) for p in problem.per_exp]
     verdicts = []
@@ -100,10 +111,10 @@ def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, problem, raw: np.ndarra
             value = float(p.to_value(raw[k]))
             dlog = float(jax.grad(lambda r, p=p: p.to_value(r))(raw[k])) / value
             prior_var_raw = (p.prior_log_sd / abs(dlog)) ** 2
-            verdict = "prior-dominated" if post_var > PRIOR_SHRINK * prior_var_raw else "identifiable"
+            verdict = ("prior-dominated" if not post_var <= PRIOR_SHRINK * prior_var_raw
+                       else "identifiable")
         else:
-            verdict = "identifiable" if np.sqrt(data_var[k]) < WEAK_SD and post_var < 1e100 \
-                else "not identifiable"
+            verdict = "identifiable" if np.sqrt(data_var[k]) < WEAK_SD else "not identifiable"
         verdicts.append(verdict)
     cond = float(s_max / s.min()) if s.size and s.min() > 0 else float("inf")
     return IdentifiabilityReport(s, cond, tuple(weak), tuple(verdicts), np.sqrt(data_var), cov,

@@ -26,7 +26,10 @@ def fit_percent(y, y_hat) -> float:
     100 is a perfect fit, 0 is no better than the mean, and it is unbounded below.
     """
     y, y_hat = _valid(y, y_hat)
-    return float(100.0 * (1.0 - np.linalg.norm(y - y_hat) / np.linalg.norm(y - y.mean())))
+    spread = np.linalg.norm(y - y.mean())
+    if spread == 0:
+        return float("nan")  # a constant signal has no variation to explain
+    return float(100.0 * (1.0 - np.linalg.norm(y - y_hat) / spread))
 
 
 def rmse(y, y_hat) -> float:

@@ -199,8 +199,11 @@ def input_at(breaks, levels, t):
     return jnp.where(idx >= 0, levels[jnp.clip(idx, 0)], 0.0)
 
 
+ADJOINTS = {"forward": dfx.ForwardMode, "reverse": dfx.RecursiveCheckpointAdjoint}
+
+
 def _adaptive_states(model: AbstractDevice, x0, t_start, eval_t, breaks, levels, jump_ts,
-                     rtol, atol, max_steps):
+                     rtol, atol, max_steps, adjoint="forward"):
     """States at the (sorted) evaluation instants, and whether the solve succeeded."""
 
     def vector_field(t, x, args):
@@ -210,15 +213,18 @@ def _adaptive_states(model: AbstractDevice, x0, t_start, eval_t, breaks, levels,
     sol = dfx.diffeqsolve(
         dfx.ODETerm(vector_field), dfx.Tsit5(), t_start, eval_t[-1], None, x0,
         saveat=dfx.SaveAt(ts=eval_t), stepsize_controller=controller,
-        adjoint=dfx.ForwardMode(), max_steps=max_steps, throw=False)
+        adjoint=ADJOINTS[adjoint](), max_steps=max_steps, throw=False)
     return sol.ys, sol.result == dfx.RESULTS.successful
 
 
 def observe_schedule(model: AbstractDevice, sched: dict, *, method: str = "zoh",
-                     rtol: float = 1e-8, atol: float = 1e-10, max_steps: int = 16384):
+                     rtol: float = 1e-8, atol: float = 1e-10, max_steps: int = 16384,
+                     adjoint: str = "forward"):
     """Camera readings (N, n_y) [SI] and a success flag for one (padded) schedule dict.
 
     Pure and jit/vmap-able: `sched` holds the arrays of one row of `pad_schedules`.
+    `adjoint` (adaptive path only): "forward" (ForwardMode; what Levenberg-Marquardt's jvp
+    Jacobians need) or "reverse" (RecursiveCheckpointAdjoint, for `jax.grad`/`jacrev`).
     """
     if isinstance(model, AbstractSteppedDevice):
         return model.observe_schedule(sched, method)
@@ -230,7 +236,7 @@ def observe_schedule(model: AbstractDevice, sched: dict, *, method: str = "zoh",
     elif method == "adaptive":
         sorted_states, ok = _adaptive_states(
             model, x0, sched["t_start"], sched["eval_t"], sched["breaks"], sched["levels"],
-            sched["jump_ts"], rtol, atol, max_steps)
+            sched["jump_ts"], rtol, atol, max_steps, adjoint)
         states = sorted_states[sched["unsort"]]
     else:
         raise ValueError(f"method: {method!r} is unknown; use one of {METHODS}")

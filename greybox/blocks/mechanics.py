@@ -45,7 +45,9 @@ class ChevronExact(eqx.Module):
 
     def __call__(self, elongation_m):
         ls = self.length_m * jnp.sin(self.angle_rad)
-        return jnp.sqrt(ls**2 + 2.0 * self.length_m * elongation_m + elongation_m**2) - ls
+        growth = 2.0 * self.length_m * elongation_m + elongation_m**2
+        # (sqrt(ls^2 + g) - ls) rewritten as g / (sqrt(ls^2 + g) + ls): no cancellation at tiny dL
+        return growth / (jnp.sqrt(ls**2 + growth) + ls)
 
 
 class ChevronLinear(eqx.Module):

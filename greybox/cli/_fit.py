@@ -1,0 +1,184 @@
+"""`greybox fit`: experiment folder -> params.json, report.md and figures (written atomically)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+HELP = """\
+Fit the physical parameters of a device model to an experiment folder and write the
+result: params.json (every fitted value in SI with its unit, standard error, 95 %
+interval and identifiability verdict), report.md (tables, simulation fit % per run for the
+estimation and validation runs, the identifiability verdict) and figures/*.png (measured vs
+model per run with the laser waveform beneath, residuals, parameter correlation).
+
+EXPERIMENT_DIR holds experiment.toml and one CSV per run (format: experiments/README.md):
+  [camera]  fps [frames/s], exposure_ms [ms], um_per_px [um per pixel]
+  runs      t_s [s], y_um [um] or y_px [pixels, converted with um_per_px], optional
+            laser_mW [mW] when the laser is logged rather than described
+  laser     described per run: power_mW [mW], period_ms [ms], duty [0-1], n_pulses
+
+Units in the output: params.json holds SI values (m, s, W, K/W) with each unit named;
+report.md and the figures show um, ms and mW. Every fit % is free-run simulation (the
+model driven by the laser alone), never one-step prediction.
+
+The result folder is written atomically: it appears complete or not at all (an error, a
+bad input or Ctrl-C leaves no partial result, and an earlier result stays as it was).
+Exit status: 0 done; 1 written but the fit did not converge (see report.md); 2 bad input
+(one line naming the file, line and field); 130 interrupted.
+"""
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "fit", help="fit physical parameters to an experiment folder (TOML + CSV runs)",
+        description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("experiment_dir", metavar="EXPERIMENT_DIR",
+                   help="folder with experiment.toml and the run CSVs")
+    p.add_argument("--out", metavar="DIR",
+                   help="result folder (default results/<experiment folder name>); replaced "
+                        "as a whole when the new result is complete")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.set_defaults(func=run)
+    return p
+
+
+class Progress:
+    """Progress lines with elapsed seconds, on stderr (stdout stays for results)."""
+
+    def __init__(self, quiet: bool = False):
+        self.t0 = time.perf_counter()
+        self.quiet = quiet
+
+    def __call__(self, message: str) -> None:
+        if not self.quiet:
+            print(f"[{time.perf_counter() - self.t0:6.1f} s] {message}", file=sys.stderr,
+                  flush=True)
+
+    @property
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.t0
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOutcome:
+    fitset: object
+    result: object
+    validation: object
+    out: Path
+    document: dict
+
+
+def default_out(experiment_dir) -> Path:
+    return Path("results") / Path(experiment_dir).resolve().name
+
+
+def fit_experiment_dir(experiment_dir, out, say) -> FitOutcome:
+    """Load, fit, validate and write the result folder atomically (the work of `greybox fit`)."""
+    from greybox.fit import fit, validate
+    from greybox.io.atomic import atomic_output_dir
+    from greybox.io.experiment_files import load_experiment_set
+    from greybox.io.params_file import params_document, write_params
+
+    say(f"loading {experiment_dir}")
+    fs = load_experiment_set(experiment_dir)
+    n_est = sum(e.n_frames for e in fs.estimation)
+    n_val = sum(e.n_frames for e in fs.validation)
+    say(f"{fs.device_name}: {len(fs.estimation)} estimation runs ({n_est} frames), "
+        f"{len(fs.validation)} validation runs ({n_val} frames); fitting "
+        f"{', '.join(p.path + (' (per run)' if p.per_experiment else '') for p in fs.free)}")
+    say("fitting (the first solve includes compiling the model, a few seconds)")
+    result = fit(fs.model, fs.estimation, fs.free, progress=say, **fs.fit_options)
+    validation = None
+    if fs.validation:
+        say(f"validating on {len(fs.validation)} runs (physics fixed, offsets re-fitted)")
+        validation = validate(result, fs.validation)
+    document = params_document(fs, result, validation)
+    say(f"writing {out}")
+    with atomic_output_dir(out) as tmp:
+        figures = write_figures(tmp, fs, result, validation)
+        write_params(tmp / "params.json", document)
+        (tmp / "report.md").write_text(render_report(fs, result, validation, figures))
+    return FitOutcome(fs, result, validation, Path(out), document)
+
+
+def render_report(fs, result, validation, figures) -> str:
+    from greybox.report import fit_report
+
+    notes = {p.path: p.identifiability for p in getattr(fs.device, "PARAMETERS", ())}
+    source = fs.description + (f" Data: `{fs.directory}`." if fs.description else "")
+    return fit_report(result, validation, title=fs.name, device_name=fs.device_name,
+                      runs=fs.runs, parameter_notes=notes, figures=figures, source=source,
+                      output_unit=fs.device.OUTPUTS[0].si_unit)
+
+
+def write_figures(folder: Path, fs, result, validation) -> list[str]:
+    """Per-run fit figures, residuals and correlation under `folder`/figures; relative paths."""
+    from greybox import plots
+
+    out_ch, in_ch = fs.device.OUTPUTS[0], fs.device.INPUTS[0]
+    output = (out_ch.description or out_ch.name, out_ch.si_unit)
+    inp = (in_ch.description or in_ch.name, in_ch.si_unit)
+    (folder / "figures").mkdir()
+    sigma = float(result.sigma[0])
+    runs = [(e, "estimation", result.predict(i), result.fit_percent[e.name])
+            for i, e in enumerate(result.experiments)]
+    if validation is not None:
+        runs += [(e, "validation", z, validation.fit_percent[e.name])
+                 for e, z in zip(validation.experiments, validation.predictions)]
+    names = []
+    for e, role, z, pct in runs:
+        name = f"figures/fit_{e.name}.png"
+        plots.run_figure(folder / name, name=e.name, role=role, t_s=e.t_s, y=e.y[:, 0],
+                         y_model=z[:, 0], inputs=e.inputs, sigma=sigma, fit_percent=pct,
+                         output=output, input=inp)
+        names.append(name)
+    plots.residuals_figure(folder / "figures/residuals.png",
+                           [(e.name, role, e.t_s, e.y[:, 0], z[:, 0]) for e, role, z, _ in runs],
+                           sigma=sigma, output=output)
+    plots.correlation_figure(folder / "figures/correlation.png",
+                             [p.name for p in result.parameters], result.correlation)
+    return names + ["figures/residuals.png", "figures/correlation.png"]
+
+
+def summary_lines(outcome: FitOutcome) -> list[str]:
+    """Short text summary for the terminal: shared parameters and fit % per run."""
+    from greybox.report import display_unit, fmt
+
+    r, v = outcome.result, outcome.validation
+    lines = ["parameter                  value        95 % interval               verdict"]
+    for p in r.parameters:
+        if p.experiment is not None:
+            continue
+        f, unit = display_unit(p.unit)
+        ci = f"[{fmt(p.ci95[0] * f, 5)}, {fmt(p.ci95[1] * f, 5)}]"
+        lines.append(f"{p.name:<26} {fmt(p.value * f, 5):>8} {unit if unit != '1' else '':<3} "
+                     f"{ci:<27} {p.verdict}")
+    fits = [f"{k} {fmt(x, 3)}" for k, x in r.fit_percent.items()]
+    lines.append("simulation fit % (estimation): " + ", ".join(fits))
+    if v is not None:
+        lines.append("simulation fit % (validation): "
+                     + ", ".join(f"{k} {fmt(x, 3)}" for k, x in v.fit_percent.items()))
+    lines.append(f"sigma {fmt(float(r.sigma[0]) * 1e6, 3)} um (estimated), "
+                 f"{sum(r.n_outliers.values())} outliers flagged, "
+                 f"{'converged' if r.converged else 'NOT CONVERGED: ' + r.message}")
+    return lines
+
+
+def run(args) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    say = Progress(args.quiet)
+    out = Path(args.out) if args.out else default_out(args.experiment_dir)
+    outcome = fit_experiment_dir(args.experiment_dir, out, say)
+    print("\n".join(summary_lines(outcome)))
+    print(f"wrote {out}/ (params.json, report.md, figures/) in {say.elapsed:.1f} s")
+    if not outcome.result.converged:
+        print(f"greybox fit: warning: the fit did not converge ({outcome.result.message}); "
+              "the result is written but its numbers are not trustworthy", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,197 @@
+"""`params.json`: what a fit established, enough to rebuild the fitted model without the data.
+
+Written by `greybox fit`, read by `greybox simulate`. All values are SI, in the unit named
+by each entry. Non-finite numbers (a "not identifiable" parameter's interval) are `null`.
+
+Schema (``"schema": "greybox.params/1"``):
+
+- ``device``: device module name; ``model``: what rebuilds the fitted model:
+  ``camera`` (m_per_px, exposure_s), ``fixed`` ({path: SI value} from [device.settings]),
+  ``fitted`` ({path: SI value} for every shared free parameter), ``method``.
+- ``parameters``: one entry per fitted value: name, path, unit, value, se, ci95 [lo, hi],
+  verdict ("identifiable" | "prior-dominated" | "not identifiable"), experiment (the run
+  that owns a per-run value, else null), prior ({median, log_sd} or null).
+- ``free``: the free-parameter specs (path, unit, bounds, per_experiment, prior, initial,
+  scale) in the order of ``raw``; ``raw`` and ``covariance_raw``: the optimiser's
+  transformed coordinates and their posterior covariance (shared parameters first, then one
+  block per estimation run), from which `greybox.prediction` rebuilds a band.
+- ``sigma``: noise scale per output [SI] and whether it was estimated.
+- ``fit_percent``: ``{"horizon": "simulation", "estimation": {run: %}, "validation":
+  {run: %}}``; ``runs``: frames, valid frames, outliers flagged per run.
+- ``convergence``: converged, message, steps, cost, loss, multi-start costs.
+- ``identifiability``: singular values, condition number, weak directions, summary lines.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from greybox.errors import InputError
+from greybox.freeparams import FreeParameter
+
+SCHEMA = "greybox.params/1"
+_FREE_FIELDS = [f.name for f in dataclasses.fields(FreeParameter)]
+
+
+def _num(x):
+    """JSON-safe float: NaN and infinities become None."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _nums(a):
+    return [_num(v) if np.ndim(v) == 0 else _nums(v) for v in np.asarray(a, dtype=float)]
+
+
+def params_document(fitset, result, validation=None) -> dict:
+    """The `params.json` content (a plain dict) for a fit of `fitset` (an `ExperimentSet`)."""
+    import greybox
+
+    shared = [p for p in result.free if not p.per_experiment]
+    fitted = {p.path: _num(result.estimate(p.path).value) for p in shared}
+    runs = {}
+    for e in result.experiments:
+        runs[e.name] = {"role": "estimation", "frames": e.n_frames,
+                        "valid_frames": int(e.mask.all(axis=1).sum()),
+                        "outliers_flagged": int(result.n_outliers[e.name])}
+    if validation is not None:
+        for e in validation.experiments:
+            runs[e.name] = {"role": "validation", "frames": e.n_frames,
+                            "valid_frames": int(e.mask.all(axis=1).sum()),
+                            "outliers_flagged": int(validation.n_outliers[e.name])}
+    ident = result.identifiability
+    return {
+        "schema": SCHEMA,
+        "greybox_version": greybox.__version__,
+        "experiment": {"name": fitset.name, "description": fitset.description},
+        "device": fitset.device_name,
+        "model": {
+            "camera": {"m_per_px": fitset.camera["m_per_px"],
+                       "exposure_s": fitset.camera["exposure_s"], "fps": fitset.camera["fps"]},
+            "fixed": dict(fitset.fixed),
+            "fitted": fitted,
+            "method": result.method,
+        },
+        "parameters": [
+            {"name": p.name, "path": p.path, "unit": p.unit, "value": _num(p.value),
+             "se": _num(p.se), "ci95": [_num(p.ci95[0]), _num(p.ci95[1])],
+             "verdict": p.verdict, "experiment": p.experiment,
+             "prior": None if p.prior is None else {"median": p.prior[0], "log_sd": p.prior[1]}}
+            for p in result.parameters],
+        "free": [{k: getattr(p, k) for k in _FREE_FIELDS} for p in result.free],
+        "raw": _nums(result.raw),
+        "raw_labels": list(ident.raw_labels),
+        "covariance_raw": _nums(result.covariance_raw),
+        "sigma": {"value": _nums(result.sigma),
+                  "unit": [c.si_unit for c in fitset.device.OUTPUTS],
+                  "estimated": True, "how": "robust (MAD) scale of the residuals"},
+        "fit_percent": {
+            "horizon": "simulation",
+            "estimation": {k: _num(v) for k, v in result.fit_percent.items()},
+            "validation": ({k: _num(v) for k, v in validation.fit_percent.items()}
+                           if validation is not None else {}),
+        },
+        "runs": runs,
+        "n_data": int(result.n_data),
+        "convergence": {
+            "converged": bool(result.converged), "message": result.message,
+            "steps": int(result.n_steps), "cost": _num(result.cost), "loss": result.loss,
+            "multistart": [{"cost": _num(c), "converged": bool(ok)}
+                           for c, ok in result.multistart_costs],
+        },
+        "identifiability": {
+            "singular_values": _nums(ident.singular_values),
+            "condition_number": _num(ident.condition_number),
+            "weak_directions": [{"combination": w.combination, "sd_raw": _num(w.sd_raw),
+                                 "text": w.describe()} for w in ident.weak_directions],
+            "summary": ident.summary(),
+        },
+    }
+
+
+def write_params(path, document: dict) -> None:
+    """Write `document` as strict JSON (no NaN) to `path`."""
+    Path(path).write_text(json.dumps(document, indent=2, allow_nan=False) + "\n")
+
+
+@dataclasses.dataclass(frozen=True)
+class FittedModel:
+    """A fitted model rebuilt from `params.json`.
+
+    - `model`: the device model with the fitted shared values, the fixed settings and the
+      camera; per-run nuisance values (camera offset, drift) stay at the device default (0).
+    - `free`: the free-parameter specs; `raw`, `covariance_raw`: as fitted (all parameters).
+    - `sigma`: noise scale per output [SI]; `method`: simulation path used by the fit.
+    """
+
+    device_name: str
+    device: object
+    model: object
+    free: tuple
+    raw: np.ndarray
+    covariance_raw: np.ndarray
+    sigma: np.ndarray
+    method: str
+    document: dict
+
+
+def load_params(path) -> FittedModel:
+    """Read `params.json` and rebuild the fitted model. Raises `InputError` naming the field."""
+    import models
+    from greybox.io.experiment_files import configure_model
+    from greybox.parameters import set_values
+
+    path = Path(path)
+    file = str(path)
+    if not path.is_file():
+        raise InputError("does not exist; give the params.json written by `greybox fit`",
+                         file=file, field="--params")
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        line = getattr(err, "lineno", None)
+        raise InputError(f"not valid JSON ({err}); use the file `greybox fit` wrote",
+                         file=file, line=line, field="--params") from None
+
+    def need(obj, key, kind, where):
+        if not isinstance(obj, dict) or key not in obj or not isinstance(obj[key], kind):
+            raise InputError(f"missing or malformed; this is not a {SCHEMA} file written by "
+                             "`greybox fit`", file=file, field=f"{where}{key}")
+        return obj[key]
+
+    schema = need(doc, "schema", str, "")
+    if schema != SCHEMA:
+        raise InputError(f"{schema!r}: this greybox reads {SCHEMA}", file=file, field="schema")
+    device_name = need(doc, "device", str, "")
+    try:
+        device = models.load(device_name)
+    except ValueError as err:
+        raise InputError(str(err).split(": ", 1)[-1], file=file, field="device") from None
+    spec = need(doc, "model", dict, "")
+    camera = need(spec, "camera", dict, "model.")
+    fixed = need(spec, "fixed", dict, "model.")
+    fitted = need(spec, "fitted", dict, "model.")
+    method = need(spec, "method", str, "model.")
+    free_docs = need(doc, "free", list, "")
+    raw = np.asarray(need(doc, "raw", list, ""), dtype=float)
+    cov_list = need(doc, "covariance_raw", list, "")
+    sigma = np.asarray(need(need(doc, "sigma", dict, ""), "value", list, "sigma."), dtype=float)
+    try:
+        free = tuple(FreeParameter(**{k: f[k] for k in _FREE_FIELDS if k in f})
+                     for f in free_docs)
+        cov = np.array([[np.nan if v is None else v for v in row] for row in cov_list],
+                       dtype=float)
+        model = configure_model(device, camera, fixed)
+        model = set_values(model, list(fitted), [float(v) for v in fitted.values()])
+    except (TypeError, ValueError, KeyError) as err:
+        raise InputError(f"cannot rebuild the fitted model ({err}); regenerate it with "
+                         "`greybox fit`", file=file, field="model") from None
+    if cov.shape != (raw.size, raw.size):
+        raise InputError(f"covariance_raw is {cov.shape}, raw has {raw.size} entries",
+                         file=file, field="covariance_raw")
+    return FittedModel(device_name, device, model, free, raw, cov, sigma, method, doc)

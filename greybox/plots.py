@@ -1,0 +1,158 @@
+"""PNG figures for fits and simulations (matplotlib, imported lazily inside each function).
+
+Figures are built with `matplotlib.figure.Figure` directly (no pyplot, no global backend or
+rcParams changes), so importing greybox never imports matplotlib and plotting never touches
+the caller's matplotlib state. Every axis is labelled with its unit.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from greybox.fit import OUTLIER_SIGMAS
+from greybox.report import display_unit
+
+DPI = 110
+
+
+def _figure(width: float, height: float):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(width, height), layout="constrained")
+
+
+def _steps(wave, t0: float, t1: float):
+    """(t, level) arrays that draw a piecewise-constant waveform over [t0, t1] with `step`."""
+    times = np.asarray(wave.times_s, dtype=float)
+    levels = np.asarray(wave.values, dtype=float).reshape(times.size, -1)[:, 0]
+    t = np.concatenate([[min(t0, times[0])], times, [max(t1, wave.end_s)]])
+    v = np.concatenate([[0.0], levels, [levels[-1]]])
+    return t, v
+
+
+def _rest_reference(model_y: np.ndarray) -> float:
+    finite = model_y[np.isfinite(model_y)]
+    return float(finite[0]) if finite.size else 0.0
+
+
+def run_figure(path, *, name: str, role: str, t_s, y, y_model, inputs, sigma: float,
+               fit_percent: float, output: tuple = ("shuttle displacement", "m"),
+               input: tuple = ("laser power", "W")) -> None:
+    """Measured vs model for one run, with the input waveform in a panel beneath.
+
+    `y`, `y_model`: camera readings (N,) in SI; displayed relative to the model's reading at
+    the first frame (the rest position, which absorbs the camera offset). Frames further
+    than the outlier threshold from the model are marked.
+    """
+    fy, uy = display_unit(output[1])
+    fu, uu = display_unit(input[1])
+    t = np.asarray(t_s)
+    ref = _rest_reference(np.asarray(y_model))
+    meas = (np.asarray(y) - ref) * fy
+    model = (np.asarray(y_model) - ref) * fy
+    outlier = np.abs(np.asarray(y) - np.asarray(y_model)) > OUTLIER_SIGMAS * sigma
+    fig = _figure(9.0, 5.2)
+    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[3, 1])
+    top.plot(t, meas, ".", ms=3.5, color="0.35", label="measured (camera)")
+    top.plot(t, model, "-", lw=1.3, color="C0", label="model (free-run simulation)")
+    if outlier.any():
+        top.plot(t[outlier], meas[outlier], "x", ms=6, color="C3",
+                 label=f"outliers (> {OUTLIER_SIGMAS:g} sigma)")
+    top.set_ylabel(f"{output[0]} [{uy}]\n(relative to rest)")
+    top.set_title(f"{name} ({role}): simulation fit {fit_percent:.1f} %")
+    top.legend(loc="upper right", fontsize=8)
+    top.grid(alpha=0.3)
+    tt, vv = _steps(inputs, float(t.min()), float(t.max()))
+    bottom.step(tt, vv * fu, where="post", color="C1", lw=1.0)
+    bottom.set_ylabel(f"{input[0]}\n[{uu}]")
+    bottom.set_xlabel("time [s]")
+    bottom.grid(alpha=0.3)
+    bottom.set_xlim(float(t.min()), float(t.max()))
+    fig.savefig(Path(path), dpi=DPI)
+
+
+def residuals_figure(path, runs, *, sigma: float, output: tuple = ("shuttle displacement", "m")
+                     ) -> None:
+    """Residuals (measured - model) per run, with +-sigma and the outlier threshold.
+
+    `runs`: sequence of (name, role, t_s, y, y_model) in SI.
+    """
+    fy, uy = display_unit(output[1])
+    n = len(runs)
+    cols = 3 if n > 4 else max(n, 1)
+    rows = int(np.ceil(n / cols))
+    fig = _figure(4.0 * cols, 2.3 * rows + 0.6)
+    axes = np.atleast_1d(fig.subplots(rows, cols, sharey=True, squeeze=False)).reshape(-1)
+    s = sigma * fy
+    for ax, (name, role, t, y, y_model) in zip(axes, runs):
+        r = (np.asarray(y) - np.asarray(y_model)) * fy
+        out = np.abs(r) > OUTLIER_SIGMAS * s
+        ax.plot(np.asarray(t)[~out], r[~out], ".", ms=2.5, color="0.3")
+        ax.plot(np.asarray(t)[out], np.clip(r[out], -8 * s, 8 * s), "x", ms=5, color="C3")
+        for k, style in ((1, ":"), (OUTLIER_SIGMAS, "--")):
+            ax.axhline(k * s, color="C0", ls=style, lw=0.8)
+            ax.axhline(-k * s, color="C0", ls=style, lw=0.8)
+        ax.set_title(f"{name} ({role})", fontsize=9)
+        ax.set_ylim(-8 * s, 8 * s)
+        ax.grid(alpha=0.3)
+    for ax in axes[n:]:
+        ax.set_visible(False)
+    for ax in axes[:n]:
+        ax.set_xlabel("time [s]", fontsize=8)
+    for ax in axes[::cols]:
+        ax.set_ylabel(f"residual [{uy}]", fontsize=8)
+    fig.suptitle(f"Residuals, measured - model (dotted: +-sigma = {s:.3g} {uy}; dashed: "
+                 f"outlier threshold {OUTLIER_SIGMAS:g} sigma; clipped at 8 sigma)", fontsize=9)
+    fig.savefig(Path(path), dpi=DPI)
+
+
+def correlation_figure(path, labels, correlation) -> None:
+    """Heatmap of the parameter correlation matrix (raw coordinates), values annotated."""
+    corr = np.asarray(correlation, dtype=float)
+    k = corr.shape[0]
+    size = min(max(3.5, 0.55 * k + 2.0), 12.0)
+    fig = _figure(size + 1.2, size)
+    ax = fig.subplots()
+    im = ax.imshow(np.nan_to_num(corr), vmin=-1, vmax=1, cmap="RdBu_r")
+    ax.set_xticks(range(k), labels, rotation=60, ha="right", fontsize=7)
+    ax.set_yticks(range(k), labels, fontsize=7)
+    if k <= 16:
+        for i in range(k):
+            for j in range(k):
+                v = corr[i, j]
+                ax.text(j, i, "n/a" if not np.isfinite(v) else f"{v:.2f}", ha="center",
+                        va="center", fontsize=6, color="white" if abs(v) > 0.6 else "black")
+    fig.colorbar(im, ax=ax, label="correlation (dimensionless, -1 to 1)")
+    ax.set_title("Parameter correlation (posterior, transformed coordinates)", fontsize=9)
+    fig.savefig(Path(path), dpi=DPI)
+
+
+def band_figure(path, band, inputs, *, title: str = "",
+                output: tuple = ("shuttle displacement", "m"),
+                input: tuple = ("laser power", "W")) -> None:
+    """Simulated response with its band, and the input waveform beneath."""
+    fy, uy = display_unit(output[1])
+    fu, uu = display_unit(input[1])
+    t = np.asarray(band.t_s)
+    fig = _figure(9.0, 5.2)
+    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[3, 1])
+    lo, hi = band.lower[:, 0] * fy, band.upper[:, 0] * fy
+    finite = np.isfinite(lo) & np.isfinite(hi)
+    top.fill_between(t, np.where(finite, lo, np.nan), np.where(finite, hi, np.nan),
+                     color="C0", alpha=0.25, lw=0,
+                     label=f"{band.level * 100:g} % "
+                           f"{'prediction interval' if band.includes_noise else 'confidence band'}")
+    top.plot(t, band.y[:, 0] * fy, "-", color="C0", lw=1.3, label="model (simulation)")
+    top.set_ylabel(f"{output[0]} [{uy}]\n(from rest)")
+    top.set_title(title or "Simulated response", fontsize=10)
+    top.legend(loc="upper right", fontsize=8)
+    top.grid(alpha=0.3)
+    tt, vv = _steps(inputs, float(t.min()), float(t.max()))
+    bottom.step(tt, vv * fu, where="post", color="C1", lw=1.0)
+    bottom.set_ylabel(f"{input[0]}\n[{uu}]")
+    bottom.set_xlabel("time [s]")
+    bottom.set_xlim(float(t.min()), float(t.max()))
+    bottom.grid(alpha=0.3)
+    fig.savefig(Path(path), dpi=DPI)

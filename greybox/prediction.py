@@ -1,0 +1,138 @@
+"""Uncertainty bands for simulating a new input waveform with fitted parameters (pure).
+
+Delta method: with raw (transformed) shared parameters r and their posterior covariance C
+(from `greybox.fit`), the simulated camera reading y(t) = f(r) has variance
+J C J^T, J = dy/dr computed by forward-mode autodiff through the same simulation code
+`greybox.simulate` uses. Per-run nuisance parameters (camera offset, drift) belong to the
+recorded runs, not to a new waveform: they are left out of J and C, and the model keeps its
+own values for them (0 for the device defaults), so the output is the displacement from rest.
+
+Two kinds of band, and `Band.kind` says which one a result is:
+
+- confidence band (default): parameter uncertainty only; where the model's response is
+  expected to lie.
+- prediction interval (`sigma` given): adds the measurement noise sigma^2; where new camera
+  readings are expected to fall.
+
+Directions of C that the data left unbounded (a "not identifiable" combination) do not
+widen the band when the output does not depend on them (e.g. only a product of two
+parameters matters); when it does, the band is infinite rather than falsely narrow.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from greybox.parameters import set_values
+from greybox.simulate import (
+    METHODS,
+    as_arrays,
+    observe_schedule,
+    pad_schedules,
+    require_x64,
+    schedule_for,
+)
+
+UNBOUNDED_VARIANCE = 1e100  # identifiability marks unconstrained directions with 1e300
+NEGLIGIBLE_SENSITIVITY = 1e-6  # relative |dy/d direction| treated as "does not depend"
+
+
+@dataclasses.dataclass(frozen=True)
+class Band:
+    """A simulated response with a pointwise band (SI units of the outputs).
+
+    `y`, `lower`, `upper`, `sd_model`, `sd`: shape (N, n_y). `sd_model` is the parameter
+    part, `sd` what the band uses (with noise for a prediction interval).
+    """
+
+    t_s: np.ndarray
+    y: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    sd_model: np.ndarray
+    sd: np.ndarray
+    level: float
+    includes_noise: bool
+
+    @property
+    def kind(self) -> str:
+        pct = f"{self.level * 100:g} %"
+        if self.includes_noise:
+            return (f"{pct} prediction interval for new camera readings: parameter "
+                    "uncertainty (delta method) plus measurement noise sigma")
+        return (f"{pct} confidence band of the model response: parameter uncertainty only "
+                "(delta method); single camera readings scatter further by the noise sigma")
+
+
+def prediction_band(model, free, raw, covariance_raw, inputs, t_s, *, sigma=None,
+                    level: float = 0.95, method: str = "zoh", t_start_s: float = 0.0) -> Band:
+    """Simulate `inputs` at times `t_s` with a pointwise band from the parameter covariance.
+
+    **Arguments:**
+    - `model`: the fitted model (shared parameters at their fitted values).
+    - `free`: the fit's `FreeParameter`s, in the order of `raw` (shared ones first).
+    - `raw`, `covariance_raw`: the fit's raw vector and its covariance (all parameters;
+      only the leading shared block is used).
+    - `inputs`: waveform in SI (W for laser power); `t_s`: output times [s], increasing.
+    - `sigma`: measurement noise per output [SI]; given, the band is a prediction interval.
+    - `level`: coverage of the pointwise band (default 0.95).
+
+    **Returns:** a `Band`. **Raises:** `ValueError` for a non-finite covariance (a fit that
+    did not converge) or a failed simulation.
+    """
+    require_x64("prediction_band")
+    if method not in METHODS:
+        raise ValueError(f"method: {method!r} is unknown; use one of {METHODS}")
+    if not 0 < level < 1:
+        raise ValueError(f"level: {level} must be in (0, 1)")
+    shared = tuple(p for p in free if not p.per_experiment)
+    n_shared = len(shared)
+    raw = np.asarray(raw, dtype=float)
+    cov = np.asarray(covariance_raw, dtype=float)[:n_shared, :n_shared]
+    if not np.all(np.isfinite(cov)) or not np.all(np.isfinite(raw[:n_shared])):
+        raise ValueError("covariance_raw: not finite (the fit did not converge); no band can "
+                         "be computed")
+    t = np.asarray(t_s, dtype=float)
+    sched = pad_schedules([schedule_for(model, inputs, t, t_start_s=t_start_s)])
+    row = {k: v[0] for k, v in sched.items()}
+    base = as_arrays(model)
+    paths = [p.path for p in shared]
+
+    def observe(r):
+        values = [p.to_value(r[i]) for i, p in enumerate(shared)]
+        return observe_schedule(set_values(base, paths, values), row, method=method)
+
+    @jax.jit
+    def response_and_jacobian(r):
+        z, ok = observe(r)
+        jac = jax.jacfwd(lambda rr: observe(rr)[0])(r) if n_shared else None
+        return z, ok, jac
+
+    z, ok, jac = response_and_jacobian(jnp.asarray(raw[:n_shared]))
+    if not bool(ok):
+        raise ValueError("simulation failed for this waveform (adaptive solver); check the "
+                         "waveform and the fitted parameters")
+    n = t.size
+    y = np.asarray(z)[:n]
+    var = np.zeros_like(y)
+    if n_shared:
+        g = np.asarray(jac)[:n]  # (N, n_y, P)
+        vals, vecs = np.linalg.eigh((cov + cov.T) / 2)
+        proj = g @ vecs  # sensitivity along each covariance direction
+        bounded = vals < UNBOUNDED_VARIANCE
+        var = np.sum(proj[..., bounded] ** 2 * np.clip(vals[bounded], 0, None), axis=-1)
+        scale = np.linalg.norm(g, axis=-1) + 1e-300
+        depends = np.any(np.abs(proj[..., ~bounded]) > NEGLIGIBLE_SENSITIVITY * scale[..., None],
+                         axis=-1)
+        var = np.where(depends, np.inf, var)
+    sd_model = np.sqrt(var)
+    includes_noise = sigma is not None
+    total = var + (np.broadcast_to(np.asarray(sigma, dtype=float), y.shape[1:]) ** 2
+                   if includes_noise else 0.0)
+    sd = np.sqrt(total)
+    zq = float(jax.scipy.special.ndtri((1.0 + level) / 2.0))
+    return Band(t, y, y - zq * sd, y + zq * sd, sd_model, sd, float(level), includes_noise)

@@ -1,0 +1,216 @@
+"""The electro-thermal chevron of Yelike (2012) ch. 5, composed from greybox blocks.
+
+voltage V(t) [V] -> Joule power V^2 / (R0 (1 + tcr theta)) -> one-node (or n-node) thermal RC
+-> mean beam rise kappa theta -> elongation alpha L kappa theta -> rigid-link chevron kinematics
+-> quasi-static shuttle -> (interferometer / camera) displacement [m].
+
+The thesis (ch. 5) drove "large" chevrons with a 0-25 V square wave at 0-400 Hz, measured the
+shuttle with a Veeco Wyko NT1100 interferometer and the force with a piezoresistive sensor; it
+gives no geometry for them. Nominal values (tags as in PHYSICS.md):
+
+- geometry of the thesis chevron, L = 3.5 mm, a = 2 deg, w = 20 um, h = 100 um, one pair
+  [assumed: the ch. 5 devices are taken to share the ch. 1-3 layout];
+- the thermal node is the mean beam temperature, kappa = 1: the beams are heated directly [derived];
+- tau = 7 ms: air-gap-dominated cooling over a 2 um gap (PHYSICS.md §4 table, 7.3 ms) [derived];
+- R_th = 300 K/W = tau / C with C = rho c_p V_beams = 2.3e-5 J/K [derived];
+- R0 = 2 kOhm (doped Si, rho_e ~ 0.05 Ohm cm over 2 x 3.5 mm x 20 x 100 um) [assumed];
+- TCR = 1e-3 /K (moderately doped Si) [assumed];
+- E = 169 GPa, alpha = 2.6e-6 /K (PHYSICS.md §12) [recalled/published].
+
+At 24 V DC this gives a ~80 K mean beam rise and a ~19 um stroke; at 400 Hz the swing is ~10 %
+of that (tau = 7 ms against a 2.5 ms period).
+
+What an amplitude-frequency table of peak-to-peak strokes identifies: tau (from the roll-off in
+frequency), the gain R_th alpha L / (R0 sin a) (the stroke scale), and the TCR (the curvature in
+V^2 beyond the known chevron kinematics). R_th, R0, alpha and kappa enter only as a product, so a
+fit frees R_th and holds R0 (measured) and the material values fixed.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from greybox.blocks.camera import Camera
+from greybox.blocks.joule import JouleHeating
+from greybox.blocks.mechanics import (
+    ChevronExact,
+    ChevronLinear,
+    QuasiStaticShuttle,
+    ThermalElongation,
+    chevron_blocked_force_N,
+    chevron_stiffness_N_per_m,
+)
+from greybox.blocks.thermal import AbstractThermal, FirstOrderThermal
+from greybox.channels import DISPLACEMENT, Channel
+from greybox.device import AbstractDevice
+from greybox.freeparams import FreeParameter
+from greybox.parameters import ParameterInfo
+
+NAME = "electrothermal_chevron"
+VOLTAGE = Channel("V", "V", {"V": (1.0, 0.0), "mV": (1e-3, 0.0)}, "voltage across the chevron")
+INPUTS = (VOLTAGE,)
+OUTPUTS = (DISPLACEMENT,)
+
+BEAM_LENGTH_M = 3.5e-3
+BEAM_WIDTH_M = 20e-6
+BEAM_THICKNESS_M = 100e-6
+ANGLE_RAD = float(np.deg2rad(2.0))
+RHO_CP_J_PER_M3K = 1.64e6
+CTE_SI_PER_K = 2.6e-6
+YOUNGS_SI_PA = 169e9
+NOMINAL_TAU_S = 0.007
+NOMINAL_RESISTANCE_K_PER_W = 300.0
+NOMINAL_R0_OHM = 2000.0
+NOMINAL_TCR_PER_K = 1e-3
+
+
+class ElectrothermalChevron(AbstractDevice):
+    """A Joule-heated chevron; input = voltage [V], output = shuttle displacement [m].
+
+    Never `is_linear` in the `simulate` sense (the input enters as V^2); when the TCR is 0 and the
+    thermal block is linear, `state_affine_form()` gives dx/dt = A x + B g(u) with g(V) = V^2/R0,
+    which `greybox.periodic` uses for the closed-form periodic steady state.
+    """
+
+    joule: JouleHeating
+    thermal: AbstractThermal
+    elongation: ThermalElongation
+    kinematics: ChevronExact | ChevronLinear
+    shuttle: QuasiStaticShuttle
+    camera: Camera
+    youngs_Pa: float = YOUNGS_SI_PA
+    beam_width_m: float = BEAM_WIDTH_M
+    beam_thickness_m: float = BEAM_THICKNESS_M
+    initial_rise_K: float = 0.0
+    n_pairs: int = eqx.field(static=True, default=1)
+    heated_node: int = eqx.field(static=True, default=0)
+
+    @property
+    def n_states(self) -> int:
+        return self.thermal.n_states
+
+    @property
+    def n_inputs(self) -> int:
+        return 1
+
+    @property
+    def n_outputs(self) -> int:
+        return 1
+
+    @property
+    def is_linear(self) -> bool:
+        return False  # the heat input is V^2 / R: nonlinear in the input even at tcr = 0
+
+    @property
+    def is_state_affine(self) -> bool:
+        """True when dx/dt = A x + B g(u) (constant resistance, linear thermal block)."""
+        return self.thermal.is_linear and self.joule.is_state_independent
+
+    def initial_state(self):
+        return jnp.full((self.n_states,), self.initial_rise_K, dtype=float)
+
+    def heat_W(self, u, x):
+        """Heat input (thermal.n_inputs,) [W] for input `u` (1,) [V] and state `x`."""
+        q = self.joule.power_W(jnp.reshape(u, (-1,))[0], x[self.heated_node])
+        return jnp.broadcast_to(q, (self.thermal.n_inputs,))
+
+    def vector_field(self, t, x, u):
+        return self.thermal.derivative(x, self.heat_W(u, x))
+
+    def linear_dynamics(self):
+        raise ValueError("method: the electro-thermal chevron is nonlinear in its input (V^2); "
+                         "use method='adaptive' (greybox.periodic has the closed-form cycle)")
+
+    def state_affine_form(self):
+        """(A, B, g) with dx/dt = A x + B g(u); only when `is_state_affine` (tcr = 0)."""
+        a, b = self.thermal.linear_matrices()
+
+        def heat(u):
+            return self.heat_W(u, jnp.zeros(self.n_states))
+
+        return a, b, heat
+
+    def stroke(self, theta_node_K):
+        """Shuttle displacement [m] for a heated-node rise [K] (the static nonlinearity)."""
+        return self.shuttle(self.kinematics(self.elongation(theta_node_K)))
+
+    def output(self, x):
+        return jnp.reshape(self.stroke(x[self.heated_node]), (1,))
+
+    def dc_rise_K(self, voltage_V):
+        """Steady heated-node rise [K] under a constant voltage (closed form, one-node model)."""
+        if not isinstance(self.thermal, FirstOrderThermal):
+            from greybox.periodic import steady_state
+
+            return steady_state(self, jnp.reshape(voltage_V, (1,)))[self.heated_node]
+        return self.joule.steady_rise_K(voltage_V, self.thermal.resistance_K_per_W)
+
+    def stiffness_N_per_m(self):
+        """Shuttle-direction stiffness of the beam pairs [N/m] (PHYSICS.md §6)."""
+        return chevron_stiffness_N_per_m(self.youngs_Pa, self.beam_width_m, self.beam_thickness_m,
+                                         self.kinematics.length_m, self.kinematics.angle_rad,
+                                         self.n_pairs)
+
+    def blocked_force_N(self, voltage_V):
+        """Blocked force 2 n E A alpha dT sin a [N] at a DC voltage, dT = mean beam rise."""
+        rise = self.elongation.beam_fraction * self.dc_rise_K(voltage_V)
+        return chevron_blocked_force_N(self.youngs_Pa, self.beam_width_m, self.beam_thickness_m,
+                                       self.elongation.cte_per_K, rise, self.kinematics.angle_rad,
+                                       self.n_pairs)
+
+    def sensor_force_N(self, voltage_V, sensor_stiffness_N_per_m):
+        """Force on a sensor of stiffness C [N/m] touching the shuttle: F_block C / (C + k_y).
+
+        The chevron acts as a force source with internal stiffness k_y in series with the sensor
+        spring, so a compliant sensor reads less than the blocked force [derived].
+        """
+        k = self.stiffness_N_per_m()
+        return self.blocked_force_N(voltage_V) * sensor_stiffness_N_per_m / (
+            sensor_stiffness_N_per_m + k)
+
+
+def default_model(*, exact: bool = True, **overrides) -> ElectrothermalChevron:
+    """The nominal electro-thermal chevron; `overrides` use '__' for dots
+    (e.g. ``joule__tcr_per_K=0.0``)."""
+    stiffness = float(chevron_stiffness_N_per_m(YOUNGS_SI_PA, BEAM_WIDTH_M, BEAM_THICKNESS_M,
+                                                BEAM_LENGTH_M, ANGLE_RAD))
+    model = ElectrothermalChevron(
+        joule=JouleHeating(resistance_ohm=NOMINAL_R0_OHM, tcr_per_K=NOMINAL_TCR_PER_K),
+        thermal=FirstOrderThermal(tau_s=NOMINAL_TAU_S, resistance_K_per_W=NOMINAL_RESISTANCE_K_PER_W),
+        elongation=ThermalElongation(cte_per_K=CTE_SI_PER_K, length_m=BEAM_LENGTH_M, beam_fraction=1.0),
+        kinematics=ChevronExact(BEAM_LENGTH_M, ANGLE_RAD) if exact else ChevronLinear(ANGLE_RAD),
+        shuttle=QuasiStaticShuttle(stiffness_N_per_m=stiffness),
+        camera=Camera(m_per_px=1e-6, exposure_s=0.0),
+    )
+    if overrides:
+        from greybox.parameters import set_values
+
+        model = set_values(model, [k.replace("__", ".") for k in overrides], list(overrides.values()))
+    return model
+
+
+PARAMETERS = (
+    ParameterInfo("thermal.tau_s", "s", NOMINAL_TAU_S, 5e-4, 0.1, "thermal time constant C/G",
+                  "identifiable from the frequency roll-off (0-400 Hz)"),
+    ParameterInfo("thermal.resistance_K_per_W", "K/W", NOMINAL_RESISTANCE_K_PER_W, 30.0, 3000.0,
+                  "mean beam rise per watt", "product with 1/R0, alpha, kappa only"),
+    ParameterInfo("joule.resistance_ohm", "ohm", NOMINAL_R0_OHM, 100.0, 1e5,
+                  "electrical resistance at ambient", "fixed (measured)"),
+    ParameterInfo("joule.tcr_per_K", "1/K", NOMINAL_TCR_PER_K, -2e-3, 5e-3,
+                  "temperature coefficient of resistance", "identifiable from curvature in V^2"),
+    ParameterInfo("elongation.cte_per_K", "1/K", CTE_SI_PER_K, 2.5e-6, 3.3e-6, "CTE of Si", "fixed"),
+    ParameterInfo("kinematics.angle_rad", "rad", ANGLE_RAD, float(np.deg2rad(0.5)),
+                  float(np.deg2rad(5.0)), "chevron pre-bend angle", "fixed from layout"),
+    ParameterInfo("youngs_Pa", "Pa", YOUNGS_SI_PA, 130e9, 169e9, "Young's modulus of Si", "fixed"),
+)
+
+
+def default_free_parameters() -> list[FreeParameter]:
+    """The amplitude-frequency table fit: tau, R_th and the TCR (R0 measured, geometry known)."""
+    return [
+        FreeParameter("thermal.tau_s", unit="s", lower=1e-4, upper=1.0),
+        FreeParameter("thermal.resistance_K_per_W", unit="K/W", lower=1.0, upper=1e4),
+        FreeParameter("joule.tcr_per_K", unit="1/K", scale=1e-3),
+    ]

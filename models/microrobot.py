@@ -1,0 +1,256 @@
+"""The untethered 3-DOF stick-slip micro-robot steered by differential laser heating.
+
+laser P(t) [W], world-fixed Gaussian spot -> spot in body coordinates at the current pose ->
+absorbed q_i = A_i(lambda) F_i P on the left (bare Si) and right (gold) frames -> two-node RC
+per side with side coupling (exact ZOH sub-steps) -> beam elongation -> exact chevron
+kinematics -> free foot strokes s_L, s_R -> stick-slip contacts (play surrogate or
+quasi-static friction balance, `Locomotion.model`) -> pose (X, Y, psi) -> two tracked body
+features in the camera (exposure averaged, per-run image offsets).
+
+Simulation is a per-step map, not an ODE, so the device is an `AbstractSteppedDevice`: each
+ZOH interval of the schedule (laser edges and camera instants) is split into `substeps` equal
+sub-steps (static). `method` ("zoh" or "adaptive") does not change anything here: the thermal
+step is always exact ZOH and the contact model is chosen by the device field
+`locomotion.model` ("play": fast surrogate for fitting; "friction": detailed balance).
+
+Nominal values: PHYSICS.md §3, §4, §12, §14 (robot geometry [assumed]). What pose video
+identifies (PHYSICS.md §13.6): the per-side play width W = (F_a + F_b)/k (not friction and
+stiffness separately), the thermal gain carried by the left absorptance (with G fixed) and the
+thermal time constant through step size against period, and the turning gain.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from greybox.blocks.camera import Camera
+from greybox.blocks.mechanics import ChevronExact, ThermalElongation
+from greybox.blocks.optics import material_absorptance
+from greybox.blocks.robot import BodyGeometry, Locomotion, TwoSidedThermal, absorbed_fractions
+from greybox.blocks.spot import GaussianSpot, RectangularFrame
+from greybox.channels import LASER_POWER, PIXELS, Channel
+from greybox.device import AbstractSteppedDevice
+from greybox.freeparams import FreeParameter
+from greybox.parameters import ParameterInfo, set_values
+from greybox.simulate import METHODS, zoh_matrices
+
+NAME = "microrobot"
+INPUTS = (LASER_POWER,)
+
+
+def _feature_channel(name: str, what: str) -> Channel:
+    return Channel(name, "m", {"um": (1e-6, 0.0), "nm": (1e-9, 0.0), PIXELS: None}, what)
+
+
+OUTPUTS = (
+    _feature_channel("f1_x", "image x of tracked feature 1 (front, near the dimple)"),
+    _feature_channel("f1_y", "image y of tracked feature 1"),
+    _feature_channel("f2_x", "image x of tracked feature 2 (rear, between the feet)"),
+    _feature_channel("f2_y", "image y of tracked feature 2"),
+)
+
+FRAME_OUTER_M = 150e-6
+FRAME_HOLE_M = 90e-6
+FRAME_LATERAL_M = 110e-6  # frame centres at body y = +-110 um (left = +y)
+BEAM_LENGTH_M = 300e-6
+BEAM_ANGLE_RAD = float(np.deg2rad(2.0))
+CTE_PER_K = 2.8e-6
+N_STATES = 14  # 4 thermal rises [K], X, Y, psi, u_L, u_R, 5 contact velocities
+
+
+class MicroRobot(AbstractSteppedDevice):
+    """Laser-steered stick-slip robot; outputs the two features' image positions [m].
+
+    State (14,): thermal rises [f_L, b_L, f_R, b_R] [K], pose X, Y [m], psi [rad], foot
+    offsets u_L, u_R [m], the last step's generalised velocities (5,) (Newton warm start).
+    Per-run known settings: `spot.x_m`, `spot.y_m` (beam centre in world/start-body frame).
+    """
+
+    spot: GaussianSpot
+    frame_left: RectangularFrame
+    frame_right: RectangularFrame
+    absorptance_left: float
+    absorptance_right: float
+    thermal: TwoSidedThermal
+    elongation: ThermalElongation
+    kinematics: ChevronExact
+    locomotion: Locomotion
+    geometry: BodyGeometry
+    camera: Camera
+    leg_gain: float = 1.0
+    image_offset_x_m: float = 0.0
+    image_offset_y_m: float = 0.0
+    substeps: int = eqx.field(static=True, default=16)
+
+    @property
+    def n_states(self) -> int:
+        return N_STATES
+
+    @property
+    def n_inputs(self) -> int:
+        return 1
+
+    @property
+    def n_outputs(self) -> int:
+        return 4
+
+    @property
+    def is_linear(self) -> bool:
+        return False
+
+    def initial_state(self):
+        return jnp.zeros(N_STATES)
+
+    def vector_field(self, t, x, u):
+        raise ValueError("microrobot: a stepped device (quasi-static contacts); it has no ODE "
+                         "vector field, simulate it with greybox.simulate.simulate")
+
+    def linear_dynamics(self):
+        raise ValueError("microrobot: not a linear device")
+
+    def absorbed_fractions(self, pose):
+        """Absorbed W per W of laser (left, right) at body pose (X, Y, psi)."""
+        return absorbed_fractions(self.spot, (self.frame_left, self.frame_right),
+                                  (self.absorptance_left, self.absorptance_right), pose)
+
+    def strokes_m(self, theta_K):
+        """Free foot strokes (s_L, s_R) [m] from the beam-node rises."""
+        beams = jnp.stack([theta_K[1], theta_K[3]])
+        return self.leg_gain * self.kinematics(self.elongation(beams))
+
+    def thermal_matrices(self, h_s):
+        """Exact ZOH (Phi (L, 4, 4), Gamma (L, 4, 2)) for sub-steps `h_s` (L,) [s]."""
+        a, b = self.thermal.network().linear_matrices()
+        return zoh_matrices(a, b, h_s)
+
+    def step(self, x, power_W, phi, gamma, h_s):
+        """One sub-step: heat at the pose of the step start, exact thermal step, contact step."""
+        theta, mech = x[:4], x[4:]
+        q = self.absorbed_fractions(mech[:3]) * power_W
+        theta = phi @ theta + gamma @ q
+        mech = self.locomotion.step(mech, self.strokes_m(theta), self.geometry, h_s)
+        return jnp.concatenate([theta, mech])
+
+    def grid_states(self, x0, dt_s, power_W):
+        """States (L+1, 14) at the ends of ZOH intervals `dt_s` (L,) with laser `power_W` (L,)."""
+        h = dt_s / self.substeps
+        phi, gamma = self.thermal_matrices(h)
+
+        def interval(x, inp):
+            p, g, hh, u = inp
+            x = jax.lax.fori_loop(0, self.substeps, lambda _, xx: self.step(xx, u, p, g, hh), x)
+            return x, x
+
+        _, xs = jax.lax.scan(interval, x0, (phi, gamma, h, power_W))
+        return jnp.concatenate([x0[None], xs])
+
+    def output(self, x):
+        offset = jnp.stack([self.image_offset_x_m, self.image_offset_y_m] * 2)
+        return self.geometry.features_m(x[4:7]) + offset
+
+    def observe_schedule(self, sched, method):
+        if method not in METHODS:
+            raise ValueError(f"method: {method!r} is unknown; use one of {METHODS}")
+        grid = self.grid_states(self.initial_state(), sched["dt"], sched["u_grid"][:, 0])
+        outputs = jax.vmap(self.output)(grid[sched["eval_index"]])
+        n_frames = sched["t_s"].shape[0]
+        z = self.camera.observe(outputs.reshape(n_frames, -1, 4), sched["t_s"], sched["t_start"])
+        return z, jnp.all(jnp.isfinite(z))
+
+
+def default_model(*, contacts: str = "play", wavelength_m: float = 800e-9, substeps: int = 16,
+                  exposure_s: float = 0.010, m_per_px: float = 0.645e-6, **overrides) -> MicroRobot:
+    """The robot at nominal values (PHYSICS.md §14); `contacts` = "play" or "friction";
+    keyword `overrides` replace dotted-path fields given with '__' (``spot__y_m=60e-6``)."""
+    model = MicroRobot(
+        spot=GaussianSpot(waist_m=150e-6, x_m=0.0, y_m=60e-6),
+        frame_left=RectangularFrame.square(0.0, FRAME_LATERAL_M, FRAME_OUTER_M, FRAME_HOLE_M),
+        frame_right=RectangularFrame.square(0.0, -FRAME_LATERAL_M, FRAME_OUTER_M, FRAME_HOLE_M),
+        absorptance_left=float(material_absorptance("Si", wavelength_m, 10e-6)),
+        absorptance_right=float(material_absorptance("Au", wavelength_m)),
+        thermal=TwoSidedThermal(),
+        elongation=ThermalElongation(cte_per_K=CTE_PER_K, length_m=BEAM_LENGTH_M, beam_fraction=1.0),
+        kinematics=ChevronExact(length_m=BEAM_LENGTH_M, angle_rad=BEAM_ANGLE_RAD),
+        locomotion=Locomotion(model=contacts),
+        geometry=BodyGeometry(),
+        camera=Camera(m_per_px=m_per_px, exposure_s=exposure_s),
+        substeps=substeps,
+    )
+    if overrides:
+        model = set_values(model, [k.replace("__", ".") for k in overrides], list(overrides.values()))
+    return model
+
+
+PARAMETERS = (
+    ParameterInfo("absorptance_left", "1", 0.448, 0.40, 0.70, "bare-Si frame absorptance (800 nm, 10 um)",
+                  "product with spot fraction and 1/G: the thermal gain carrier"),
+    ParameterInfo("absorptance_right", "1", 0.024, 0.02, 0.06, "gold-coated frame absorptance (800 nm)",
+                  "weak: the gold side barely moves"),
+    ParameterInfo("spot.waist_m", "m", 150e-6, 25e-6, 500e-6, "1/e^2 spot radius", "not identifiable"),
+    ParameterInfo("spot.x_m", "m", 0.0, -300e-6, 300e-6, "beam centre, world x", "known per-run setting"),
+    ParameterInfo("spot.y_m", "m", 60e-6, -300e-6, 300e-6, "beam centre, world y", "known per-run setting"),
+    ParameterInfo("thermal.frame_capacitance_J_per_K", "J/K", 1.9e-7, 5e-8, 1e-6, "frame heat capacity C_f",
+                  "sets tau: identified through step size against period"),
+    ParameterInfo("thermal.frame_ground_W_per_K", "W/K", 6e-5, 1e-5, 3e-4, "frame -> substrate G_f0",
+                  "product with absorptance only"),
+    ParameterInfo("thermal.beam_capacitance_J_per_K", "J/K", 4e-8, 1e-8, 1e-7, "beam heat capacity C_b",
+                  "not identifiable (2nd node)"),
+    ParameterInfo("thermal.frame_beam_W_per_K", "W/K", 3e-5, 1e-5, 1e-4, "frame -> beams G_fb", "no"),
+    ParameterInfo("thermal.beam_ground_W_per_K", "W/K", 2e-5, 1e-5, 1e-4, "beams -> anchor G_b0", "no"),
+    ParameterInfo("thermal.side_coupling_W_per_K", "W/K", 5e-6, 0.0, 3e-5, "left-right coupling G_LR", "no"),
+    ParameterInfo("locomotion.foot_forward_N", "N", 0.3e-6, 0.05e-6, 10e-6, "foot forward capacity F_f+",
+                  "only through W = (F_a + F_b)/k"),
+    ParameterInfo("locomotion.foot_backward_N", "N", 1.5e-6, 0.05e-6, 10e-6, "foot backward capacity F_f-",
+                  "only whether the gait exists"),
+    ParameterInfo("locomotion.dimple_forward_N", "N", 0.8e-6, 0.05e-6, 10e-6, "dimple forward capacity F_d+",
+                  "only through W"),
+    ParameterInfo("locomotion.dimple_backward_N", "N", 0.8e-6, 0.05e-6, 10e-6, "dimple backward capacity F_d-",
+                  "only whether the gait exists"),
+    ParameterInfo("locomotion.stiffness_N_per_m", "N/m", 5.0, 1.0, 2000.0, "actuator-plus-leg stiffness k",
+                  "only through W"),
+    ParameterInfo("locomotion.turn_gain", "1", 1.0, 0.0, 1.0, "play-surrogate turning gain kappa_psi",
+                  "identifiable from two tracked features"),
+    ParameterInfo("image_offset_x_m", "m", 0.0, None, None, "image x of the start-body origin", "one per run"),
+    ParameterInfo("image_offset_y_m", "m", 0.0, None, None, "image y of the start-body origin", "one per run"),
+)
+
+
+def default_free_parameters() -> list[FreeParameter]:
+    """Thermal gain and time constant, friction via foot capacity and stiffness with log-normal
+    priors (the data fix only their ratio W), turning gain, and per-run image offsets."""
+    return [
+        FreeParameter("absorptance_left", unit="1", lower=0.05, upper=1.0),
+        FreeParameter("thermal.frame_capacitance_J_per_K", unit="J/K", lower=1e-9,
+                      prior_median=1.9e-7, prior_log_sd=1.0),
+        FreeParameter("locomotion.foot_forward_N", unit="N", lower=1e-9,
+                      prior_median=0.3e-6, prior_log_sd=1.0),
+        FreeParameter("locomotion.stiffness_N_per_m", unit="N/m", lower=1e-3,
+                      prior_median=5.0, prior_log_sd=0.3),
+        FreeParameter("locomotion.turn_gain", unit="1", lower=0.0, upper=3.0),
+        FreeParameter("image_offset_x_m", unit="m", per_experiment=True, scale=1e-6),
+        FreeParameter("image_offset_y_m", unit="m", per_experiment=True, scale=1e-6),
+    ]
+
+
+def play_width_estimate(result) -> tuple[float, float]:
+    """(W [m], standard error [m]) of the per-side play width at a fit's shared parameters.
+
+    Delta method on the fit's raw covariance: W is what pose data identify even when the
+    friction capacities and the stiffness are each prior-dominated."""
+    shared = [p for p in result.free if not p.per_experiment]
+    raw_shared = jnp.asarray(result.raw[: len(shared)])
+
+    def width(raw):
+        m = set_values(result.model, [p.path for p in shared], [p.to_value(raw[k]) for k, p in enumerate(shared)])
+        return m.locomotion.play_width_m()
+
+    grad = np.asarray(jax.grad(width)(raw_shared))
+    cov = np.asarray(result.covariance_raw)[: len(shared), : len(shared)]
+    return float(width(raw_shared)), float(np.sqrt(grad @ cov @ grad))
+
+
+__all__ = ["MicroRobot", "default_model", "default_free_parameters", "play_width_estimate",
+           "PARAMETERS", "NAME", "INPUTS", "OUTPUTS"]

@@ -1,0 +1,164 @@
+"""The TCLab temperature-control board (Park et al. 2020), composed from greybox's thermal blocks.
+
+Two transistor heaters (nodes 0 and 1) with a TMP36 sensor on each: a 2-node
+`ThermalNetwork` with convection U A and radiation eps sigma A to ambient per node, conduction
+Us As and radiation eps sigma As between the heaters, and a first-order sensor lag tau on
+each node:
+
+    m cp dTH1/dt = U A (Ta - TH1) + eps sigma A (Ta^4 - TH1^4) + Us As (TH2 - TH1)
+                   + eps sigma As (TH2^4 - TH1^4) + alpha1 Q1          (and symmetric for TH2)
+    tau dTC_i/dt = TH_i - TC_i                                          (measured TC_i)
+
+Fixed constants are the paper's (Ta = 23 C, m = 4 g, cp = 500 J/(kg K), A = 10 cm^2,
+As = 2 cm^2, eps = 0.9); U, Us, alpha1, alpha2 and tau are fitted. Inputs are heater levels
+in % of full scale; outputs are the two sensor temperatures in K. The initial heater and
+sensor temperatures are per-run known settings (the first measurement, as in the paper).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from greybox.blocks.camera import Camera
+from greybox.blocks.thermal import STEFAN_BOLTZMANN, ThermalNetwork
+from greybox.channels import Channel
+from greybox.device import AbstractDevice
+from greybox.freeparams import FreeParameter
+from greybox.parameters import ParameterInfo
+
+NAME = "tclab"
+_PCT = {"pct": (1.0, 0.0)}
+_TEMP = {"C": (1.0, 273.15), "K": (1.0, 0.0)}
+INPUTS = (Channel("H1", "%", _PCT, "heater 1 level, % of full scale"),
+          Channel("H2", "%", _PCT, "heater 2 level, % of full scale"))
+OUTPUTS = (Channel("T1", "K", _TEMP, "sensor 1 temperature (TMP36 on heater 1)"),
+           Channel("T2", "K", _TEMP, "sensor 2 temperature (TMP36 on heater 2)"))
+
+# Park et al. (2020) fixed constants [SI]
+AMBIENT_K = 273.15 + 23.0
+MASS_KG = 0.004
+CP_J_PER_KGK = 500.0
+AREA_M2 = 10e-4
+AREA_BETWEEN_M2 = 2e-4
+EMISSIVITY = 0.9
+
+# The paper's estimates (tclab_estimate.txt), used as starting values
+PUBLISHED = {"U_W_per_m2K": 5.5992939361, "Us_W_per_m2K": 20.378532582,
+             "alpha1_W_per_pct": 0.01295874691, "alpha2_W_per_pct": 0.0060915026081,
+             "tau_s": 20.679715136}
+
+
+class TCLab(AbstractDevice):
+    """Two heaters, two lagged sensors; input u = (Q1, Q2) [%], output (TC1, TC2) [K].
+
+    - `U_W_per_m2K`: convection coefficient to ambient; `Us_W_per_m2K`: heater-to-heater
+      conductance per area.
+    - `alpha1_W_per_pct`, `alpha2_W_per_pct`: heater power per % of full scale [W/%].
+    - `tau_s`: sensor lag time constant [s] (same for both sensors, as in the paper).
+    - `initial_T1_K`, `initial_T2_K`: heater and sensor temperatures at t_start [K].
+    - fixed: `ambient_K`, `mass_kg`, `cp_J_per_kgK`, `area_m2`, `area_between_m2`, `emissivity`.
+    - `radiation`: include the T^4 terms (static; False gives a linear network, ZOH-able).
+    """
+
+    U_W_per_m2K: float
+    Us_W_per_m2K: float
+    alpha1_W_per_pct: float
+    alpha2_W_per_pct: float
+    tau_s: float
+    camera: Camera
+    initial_T1_K: float = AMBIENT_K
+    initial_T2_K: float = AMBIENT_K
+    ambient_K: float = AMBIENT_K
+    mass_kg: float = MASS_KG
+    cp_J_per_kgK: float = CP_J_PER_KGK
+    area_m2: float = AREA_M2
+    area_between_m2: float = AREA_BETWEEN_M2
+    emissivity: float = EMISSIVITY
+    radiation: bool = eqx.field(static=True, default=True)
+
+    def network(self) -> ThermalNetwork:
+        """The 2-node network with one sensor lag per heater node (states: rises above ambient)."""
+        f = lambda v: jnp.asarray(v, dtype=float)  # noqa: E731
+        rad_ground = rad_between = None
+        if self.radiation:
+            rad_ground = jnp.stack([f(self.emissivity * STEFAN_BOLTZMANN * self.area_m2)] * 2)
+            rad_between = jnp.stack([f(self.emissivity * STEFAN_BOLTZMANN * self.area_between_m2)])
+        return ThermalNetwork(
+            capacitance_J_per_K=jnp.stack([f(self.mass_kg * self.cp_J_per_kgK)] * 2),
+            ground_conductance_W_per_K=jnp.stack([f(self.U_W_per_m2K * self.area_m2)] * 2),
+            coupling_conductance_W_per_K=jnp.stack([f(self.Us_W_per_m2K * self.area_between_m2)]),
+            couplings=((0, 1),), input_nodes=(0, 1),
+            radiation_ground_W_per_K4=rad_ground, radiation_coupling_W_per_K4=rad_between,
+            ambient_K=self.ambient_K, sensor_nodes=(0, 1), sensor_tau_s=jnp.stack([f(self.tau_s)] * 2))
+
+    @property
+    def n_states(self) -> int:
+        return 4
+
+    @property
+    def n_inputs(self) -> int:
+        return 2
+
+    @property
+    def n_outputs(self) -> int:
+        return 2
+
+    @property
+    def is_linear(self) -> bool:
+        return not self.radiation
+
+    def initial_state(self):
+        rise = jnp.stack([jnp.asarray(self.initial_T1_K, dtype=float) - self.ambient_K,
+                          jnp.asarray(self.initial_T2_K, dtype=float) - self.ambient_K])
+        return jnp.concatenate([rise, rise])  # heaters and sensors start at the same reading
+
+    def heat_W(self, u_pct):
+        """Heater powers [W] for levels `u_pct` (2,) [%]."""
+        return jnp.stack([self.alpha1_W_per_pct, self.alpha2_W_per_pct]) * u_pct
+
+    def vector_field(self, t, x, u):
+        return self.network().derivative(x, self.heat_W(u))
+
+    def linear_dynamics(self):
+        a, b = self.network().linear_matrices()
+        return a, b * jnp.stack([self.alpha1_W_per_pct, self.alpha2_W_per_pct])[None, :]
+
+    def output(self, x):
+        return self.ambient_K + x[2:]
+
+
+def default_model(*, radiation: bool = True, **overrides) -> TCLab:
+    """TCLab at the paper's published estimates; `overrides` replace fields (``tau_s=15.0``)."""
+    model = TCLab(**PUBLISHED, camera=Camera(m_per_px=1.0, exposure_s=0.0),
+                  radiation=radiation)
+    if overrides:
+        from greybox.parameters import set_values
+
+        model = set_values(model, [k.replace("__", ".") for k in overrides], list(overrides.values()))
+    return model
+
+
+PARAMETERS = (
+    ParameterInfo("U_W_per_m2K", "W/(m^2 K)", PUBLISHED["U_W_per_m2K"], 1.0, 20.0,
+                  "convection coefficient heater -> ambient", "identifiable (steady state)"),
+    ParameterInfo("Us_W_per_m2K", "W/(m^2 K)", PUBLISHED["Us_W_per_m2K"], 0.5, 100.0,
+                  "heater-to-heater conductance per area", "identifiable from cross-heating"),
+    ParameterInfo("alpha1_W_per_pct", "W/%", PUBLISHED["alpha1_W_per_pct"], 0.003, 0.03,
+                  "heater 1 power per % of full scale", "identifiable when Q1 moves"),
+    ParameterInfo("alpha2_W_per_pct", "W/%", PUBLISHED["alpha2_W_per_pct"], 0.003, 0.03,
+                  "heater 2 power per % of full scale", "identifiable when Q2 moves"),
+    ParameterInfo("tau_s", "s", PUBLISHED["tau_s"], 1.0, 100.0, "sensor lag time constant",
+                  "identifiable (shape of the step response)"),
+    ParameterInfo("initial_T1_K", "K", AMBIENT_K, None, None, "initial heater/sensor 1 temperature",
+                  "known per run (first measurement)"),
+    ParameterInfo("initial_T2_K", "K", AMBIENT_K, None, None, "initial heater/sensor 2 temperature",
+                  "known per run (first measurement)"),
+    ParameterInfo("ambient_K", "K", AMBIENT_K, None, None, "ambient temperature", "fixed (paper)"),
+)
+
+
+def default_free_parameters() -> list[FreeParameter]:
+    """The paper's five free parameters, each bounded to a physically plausible range."""
+    return [FreeParameter(p.path, unit=p.unit, lower=p.lower, upper=p.upper)
+            for p in PARAMETERS[:5]]

@@ -1,0 +1,24 @@
+"""Shared synthetic data for the core tests (kept small so JAX compiles stay shared)."""
+
+import numpy as np
+
+from greybox.synthetic import CameraDefects, record
+from greybox.waveforms import PulseTrain
+
+# (power mW, period s) of the thesis's six stitched estimation runs
+THESIS_RUNS = ((5, 0.2), (10, 0.4), (10, 0.6), (15, 0.8), (20, 1.0), (30, 0.5))
+
+
+def chevron_runs(model, *, runs=THESIS_RUNS, duration_s=6.0, seed=0, burst_run=None,
+                 defects=None, role="estimation"):
+    """Pulse-train runs recorded by a defective camera; returns (experiments, clean readings)."""
+    exps, cleans = [], []
+    for i, (p_mw, period) in enumerate(runs):
+        d = defects or CameraDefects()
+        if burst_run == i:
+            d = CameraDefects(d.fps, d.jitter_s, d.noise_m, d.drop_fraction, 6, 2e-6)
+        wave = PulseTrain(p_mw * 1e-3, period, 0.5, int(np.ceil(duration_s / period)))
+        e, c = record(model, wave, name=f"run{i + 1}", defects=d, seed=seed * 100 + i, role=role)
+        exps.append(e)
+        cleans.append(c)
+    return exps, cleans

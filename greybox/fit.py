@@ -90,8 +90,8 @@ class FitResult:
     free: tuple
     parameters: tuple
     raw: np.ndarray
-    covariance_raw: np.ndarray
-    correlation: np.ndarray
+    covariance_raw: np.ndarray  # raw coordinates, determined subspace (see identifiability)
+    correlation: np.ndarray  # NaN rows/columns for undetermined parameters
     sigma: np.ndarray
     cost: float
     n_data: int
@@ -399,24 +399,9 @@ def _assemble(problem, best, sig, steps, runs, experiments, free, say) -> FitRes
     report = analyse(jac[:n_rows_data], jac[n_rows_data:], problem, raw, labels)
 
     cov = report.covariance_raw
-    sd_raw = np.sqrt(np.clip(np.diag(cov), 0, None))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov / np.outer(sd_raw, sd_raw)
-    params = []
+    corr = correlation(report)
     flat_free = [*problem.shared] + [p for _ in range(problem.n_exp) for p in problem.per_exp]
-    for k, p in enumerate(flat_free):
-        value = float(p.to_value(raw[k]))
-        verdict = report.verdicts[k]
-        if verdict == "not identifiable" or not np.isfinite(sd_raw[k]):
-            se, ci = float("nan"), (float("nan"), float("nan"))
-        else:
-            deriv = float(jax.grad(lambda r, p=p: p.to_value(r))(raw[k]))
-            se = abs(deriv) * sd_raw[k]
-            lo, hi = (float(p.to_value(raw[k] + s * 1.959964 * sd_raw[k])) for s in (-1, 1))
-            ci = (min(lo, hi), max(lo, hi))
-        prior = (p.prior_median, p.prior_log_sd) if p.has_prior else None
-        params.append(ParameterEstimate(labels[k], p.path, p.unit, value, se, ci, verdict,
-                                        owners[k], prior))
+    params = parameter_estimates(flat_free, raw, report, labels, owners)
 
     base, per = problem.models(raw_j)
     exp_models = tuple(problem.experiment_model(base, per[i], problem.settings[i])
@@ -429,11 +414,50 @@ def _assemble(problem, best, sig, steps, runs, experiments, free, say) -> FitRes
         ok, message = False, "an experiment's simulation failed at the final parameters"
     return FitResult(
         model=base, experiment_models=exp_models, experiments=tuple(experiments), free=tuple(free),
-        parameters=tuple(params), raw=raw, covariance_raw=cov, correlation=corr, sigma=np.asarray(sig),
+        parameters=params, raw=raw, covariance_raw=cov, correlation=corr, sigma=np.asarray(sig),
         cost=float(cost), n_data=problem.n_data, converged=bool(ok), message=message,
         n_steps=int(steps), fit_percent=fits, n_outliers=outliers, identifiability=report,
         loss=problem.loss, method=problem.method,
         multistart_costs=tuple((float(r["cost"]), bool(r["ok"])) for r in runs))
+
+
+Z95 = 1.959963984540054  # two-sided 95 % normal quantile
+
+
+def correlation(report: IdentifiabilityReport) -> np.ndarray:
+    """Correlation matrix of the raw coordinates (NaN rows/columns where undetermined)."""
+    cov = report.covariance_raw
+    sd = np.where(report.undetermined, np.nan, np.sqrt(np.clip(np.diag(cov), 0, None)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return cov / np.outer(sd, sd)
+
+
+def parameter_estimates(free_flat, raw, report: IdentifiabilityReport, labels=None,
+                        owners=None) -> tuple:
+    """One `ParameterEstimate` per raw coordinate: SI value, delta-method standard error and a
+    95 % interval mapped through the transform (so bounds and positivity are respected).
+
+    A parameter reported "not identifiable" (or touching an undetermined direction) gets NaN
+    standard error and interval: no confident-looking number for what the data cannot tell.
+    """
+    cov = report.covariance_raw
+    sd_raw = np.where(report.undetermined, np.nan, np.sqrt(np.clip(np.diag(cov), 0, None)))
+    out = []
+    for k, p in enumerate(free_flat):
+        value = float(p.to_value(raw[k]))
+        verdict = report.verdicts[k]
+        if verdict == "not identifiable" or not np.isfinite(sd_raw[k]):
+            se, ci = float("nan"), (float("nan"), float("nan"))
+        else:
+            deriv = float(jax.grad(lambda r, p=p: p.to_value(r))(raw[k]))
+            se = abs(deriv) * sd_raw[k]
+            lo, hi = (float(p.to_value(raw[k] + s * Z95 * sd_raw[k])) for s in (-1, 1))
+            ci = (min(lo, hi), max(lo, hi))
+        prior = (p.prior_median, p.prior_log_sd) if p.has_prior else None
+        label = labels[k] if labels is not None else p.path
+        owner = owners[k] if owners is not None else None
+        out.append(ParameterEstimate(label, p.path, p.unit, value, se, ci, verdict, owner, prior))
+    return tuple(out)
 
 
 def _labels(problem, experiments):

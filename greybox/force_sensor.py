@@ -84,6 +84,14 @@ class RepeatAverage:
     se: np.ndarray
     n: np.ndarray
 
+    @property
+    def pooled_se(self) -> np.ndarray:
+        """Standard error per voltage from the sd pooled over all voltages (equal scatter
+        assumed): steadier than each voltage's own sd when there are only a few repeats."""
+        dof = self.n - 1
+        pooled_sd = np.sqrt(np.sum(dof * self.sd**2) / np.sum(dof))
+        return pooled_sd / np.sqrt(self.n)
+
 
 def average_repeats(voltage_V, values, *, expected_repeats: int | None = None) -> RepeatAverage:
     """Average repeated readings (`values`, any unit) per applied voltage; NaN = missing reading.

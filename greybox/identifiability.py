@@ -42,8 +42,14 @@ class IdentifiabilityReport:
     weak_directions: tuple
     verdicts: tuple  # one per raw coordinate
     data_sd_raw: np.ndarray  # sd from the data alone (inf where unconstrained)
-    covariance_raw: np.ndarray  # posterior (data + priors); NaN where undetermined
+    covariance_raw: np.ndarray  # posterior (data + priors) on the determined subspace
+    null_directions: np.ndarray  # (k, n) unit vectors nothing determines (k = 0 usually)
     raw_labels: tuple
+
+    @property
+    def undetermined(self) -> np.ndarray:
+        """(n,) True for raw coordinates with no finite uncertainty."""
+        return undetermined(self.null_directions, self.covariance_raw.shape[0])
 
     def summary(self) -> list[str]:
         lines = [f"singular values of the weighted Jacobian: "
@@ -57,21 +63,24 @@ class IdentifiabilityReport:
         return lines
 
 
-def _pseudo_inverse(matrix: np.ndarray) -> np.ndarray:
-    """Inverse of a PSD information matrix on its determined subspace.
+def _pseudo_inverse(matrix: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(inverse on the determined subspace, unit vectors spanning the undetermined one).
 
-    Coordinates with real weight on a (numerically) zero-information direction get NaN
-    variance and covariance: the data and priors say nothing about them. Rounding-level
-    weights (< 1e-6) on such directions are ignored, so an identifiable parameter that merely
-    sits next to an unidentifiable pair keeps its proper variance.
+    An information matrix with (numerically) zero eigenvalues has directions about which the
+    data and priors say nothing; they are excluded from the inverse and returned separately.
     """
     vals, vecs = np.linalg.eigh(matrix)
     keep = vals > max(vals.max(), 1e-300) * TINY
     inv = (vecs[:, keep] / vals[keep]) @ vecs[:, keep].T
-    lost = np.sum(vecs[:, ~keep] ** 2, axis=1) > 1e-6
-    inv[lost, :] = np.nan
-    inv[:, lost] = np.nan
-    return inv
+    return inv, vecs[:, ~keep].T
+
+
+def undetermined(null_directions: np.ndarray, n: int) -> np.ndarray:
+    """Coordinates with real weight on an undetermined direction (rounding-level weights,
+    < 1e-6, do not count: an identifiable parameter next to an unidentifiable pair stays)."""
+    if null_directions.size == 0:
+        return np.zeros(n, dtype=bool)
+    return np.sum(null_directions**2, axis=0) > 1e-6
 
 
 def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, problem, raw: np.ndarray,
@@ -81,7 +90,7 @@ def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, problem, raw: np.ndarra
     if not np.all(np.isfinite(jac_data)):
         nan = np.full(n, np.nan)
         return IdentifiabilityReport(nan, float("nan"), (), ("not identifiable",) * n, nan,
-                                     np.full((n, n), np.nan), raw_labels)
+                                     np.full((n, n), np.nan), np.eye(n), raw_labels)
     _, s, vt = np.linalg.svd(jac_data, full_matrices=False)
     s_max = s.max() if s.size else 0.0
     safe_s = np.where(s > s_max * TINY, s, 0.0)
@@ -101,12 +110,13 @@ def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, problem, raw: np.ndarra
     data_var = np.sum(vt[~null].T ** 2 * inv_s[~null] ** 2, axis=1)
     data_var = np.where(null_weight > 1e-6, np.inf, data_var)
     fisher = jac_data.T @ jac_data + (jac_prior.T @ jac_prior if jac_prior.size else 0.0)
-    cov = _pseudo_inverse(fisher)
+    cov, null_dirs = _pseudo_inverse(fisher)
+    lost = undetermined(null_dirs, n)
 
     flat_free = [*problem.shared] + [p for _ in range(problem.n_exp) for p in problem.per_exp]
     verdicts = []
     for k, p in enumerate(flat_free):
-        post_var = cov[k, k]
+        post_var = np.inf if lost[k] else cov[k, k]
         if p.has_prior:
             value = float(p.to_value(raw[k]))
             dlog = float(jax.grad(lambda r, p=p: p.to_value(r))(raw[k])) / value
@@ -118,7 +128,7 @@ def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, problem, raw: np.ndarra
         verdicts.append(verdict)
     cond = float(s_max / s.min()) if s.size and s.min() > 0 else float("inf")
     return IdentifiabilityReport(s, cond, tuple(weak), tuple(verdicts), np.sqrt(data_var), cov,
-                                 raw_labels)
+                                 null_dirs, raw_labels)
 
 
 def _raw_labels(problem, labels):

@@ -223,11 +223,13 @@ def square_wave_response(model, amplitude, frequency_Hz, *, duty: float = 0.5, l
 
 
 def response_function(model, *, duty: float = 0.5, low: float = 0.0, n_steps: int = 64,
-                      method: str = "auto"):
+                      method: str = "numerical"):
     """A pure function (model, amplitude (N,), frequency_Hz (N,)) -> (mean (N,), pp (N,)) [SI].
 
-    The method is resolved now on the concrete `model`, so the function can be traced with
-    abstract parameters (e.g. inside a fit).
+    The method is fixed now, so the function can be traced with abstract parameters (inside a
+    fit). The default "numerical" is right for any parameter values (and exact for affine
+    dynamics); "analytic" ignores state dependence, so choose it only when every parameter that
+    could break affinity (e.g. `joule.tcr_per_K`) stays fixed at a value where `model` is affine.
     """
     method = resolve_method(model, method)
 

@@ -26,14 +26,12 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from greybox.fit import ParameterEstimate
+from greybox.fit import ParameterEstimate, correlation, parameter_estimates
 from greybox.freeparams import FreeParameter
 from greybox.identifiability import IdentifiabilityReport, analyse
 from greybox.metrics import r_squared, rmse
 from greybox.parameters import get_value, set_values
 from greybox.simulate import as_arrays, require_x64
-
-Z95 = 1.959964
 
 
 class _TableProblem(eqx.Module):
@@ -103,24 +101,6 @@ class TableFitResult:
             if p.name == name:
                 return p
         raise KeyError(f"{name}: not a fitted parameter; have {[p.name for p in self.parameters]}")
-
-
-def _estimates(free, raw, cov, verdicts) -> tuple:
-    # Same interval rule as greybox.fit (delta-method se, interval mapped through the transform).
-    out = []
-    sd_raw = np.sqrt(np.clip(np.diag(cov), 0, None))
-    for k, p in enumerate(free):
-        value = float(p.to_value(raw[k]))
-        if verdicts[k] == "not identifiable" or not np.isfinite(sd_raw[k]):
-            se, ci = float("nan"), (float("nan"), float("nan"))
-        else:
-            deriv = float(jax.grad(lambda r, p=p: p.to_value(r))(raw[k]))
-            se = abs(deriv) * sd_raw[k]
-            lo, hi = (float(p.to_value(raw[k] + s * Z95 * sd_raw[k])) for s in (-1, 1))
-            ci = (min(lo, hi), max(lo, hi))
-        prior = (p.prior_median, p.prior_log_sd) if p.has_prior else None
-        out.append(ParameterEstimate(p.path, p.path, p.unit, value, se, ci, verdicts[k], None, prior))
-    return tuple(out)
 
 
 def fit_table(model, predict: Callable, x, y, free: Sequence[FreeParameter], *,
@@ -194,9 +174,7 @@ def fit_table(model, predict: Callable, x, y, free: Sequence[FreeParameter], *,
     finite = bool(np.all(np.isfinite(raw)) and np.all(np.isfinite(jac)))
     report = analyse(jac[:n_rows], jac[n_rows:], problem, raw, [p.path for p in free])
     cov = report.covariance_raw
-    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov / np.outer(sd, sd)
+    corr = correlation(report)
     pred = np.asarray(out["prediction"])
     ok = bool(out["ok"]) and finite
     message = "converged" if ok else ("diverged: non-finite parameters" if not finite else
@@ -205,7 +183,7 @@ def fit_table(model, predict: Callable, x, y, free: Sequence[FreeParameter], *,
     cost = 0.5 * float(np.sum(((pred - y) * w / sig) ** 2))
     return TableFitResult(
         model=problem.model_at(jnp.asarray(raw)), free=free,
-        parameters=_estimates(free, raw, cov, report.verdicts), raw=raw, covariance_raw=cov,
+        parameters=parameter_estimates(free, raw, report), raw=raw, covariance_raw=cov,
         correlation=corr, sigma=sig, sigma_estimated=estimate, cost=cost, n_data=n_data,
         converged=ok, message=message, n_steps=steps, identifiability=report, prediction=pred,
         residuals=y - pred, rmse=rmse(y[keep], pred[keep]), r_squared=r_squared(y[keep], pred[keep]))

@@ -214,3 +214,21 @@ def default_free_parameters() -> list[FreeParameter]:
         FreeParameter("thermal.resistance_K_per_W", unit="K/W", lower=1.0, upper=1e4),
         FreeParameter("joule.tcr_per_K", unit="1/K", scale=1e-3),
     ]
+
+
+def force_predictor(sensor_stiffness_N_per_m: float):
+    """A pure function (model, voltage_V (N,)) -> force on the sensor (N,) [N] for `fit_table`."""
+    import jax
+
+    def predict(model, voltage_V):
+        return jax.vmap(lambda v: model.sensor_force_N(v, sensor_stiffness_N_per_m))(voltage_V)
+
+    return predict
+
+
+def force_free_parameters() -> list[FreeParameter]:
+    """DC force against voltage identifies the heating gain (R_th, with R0 measured) and the TCR."""
+    return [
+        FreeParameter("thermal.resistance_K_per_W", unit="K/W", lower=1.0, upper=1e4),
+        FreeParameter("joule.tcr_per_K", unit="1/K", scale=1e-3),
+    ]

@@ -193,6 +193,11 @@ class _Problem(eqx.Module):
     def n_raw(self) -> int:
         return len(self.shared) + self.n_exp * len(self.per_exp)
 
+    @property
+    def flat_free(self) -> list:
+        """The FreeParameter behind each raw coordinate (shared, then per experiment)."""
+        return [*self.shared] + [p for _ in range(self.n_exp) for p in self.per_exp]
+
     def models(self, raw):
         """(shared model, per-experiment raw block (E, P))."""
         ns = len(self.shared)
@@ -250,17 +255,13 @@ def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_st
         predictions=z, solved=solved)
 
 
-def _initial_raw(problem: _Problem, model, free_init: dict) -> np.ndarray:
+def _initial_raw(problem: _Problem, model) -> np.ndarray:
+    """Raw start vector: each parameter's `initial` or else the model's value (bounds checked)."""
     raw = []
-    for p in problem.shared:
-        v = free_init.get(p.path, p.initial if p.initial is not None else get_value(model, p.path))
+    for p in problem.flat_free:
+        v = p.initial if p.initial is not None else get_value(model, p.path)
         p.check_value(v)
         raw.append(float(p.to_raw(v)))
-    for _ in range(problem.n_exp):
-        for p in problem.per_exp:
-            v = p.initial if p.initial is not None else get_value(model, p.path)
-            p.check_value(v)
-            raw.append(float(p.to_raw(v)))
     return np.asarray(raw)
 
 
@@ -333,7 +334,7 @@ def fit(model, experiments: Sequence[Experiment], free: Sequence[FreeParameter],
     if problem.n_data <= problem.n_raw:
         raise ValueError(f"experiments: {problem.n_data} valid frames cannot determine "
                          f"{problem.n_raw} parameters; add data or free fewer parameters")
-    raw0 = _initial_raw(problem, model, {})
+    raw0 = _initial_raw(problem, model)
 
     def solve(raw_start, sig):
         return _solve(problem, raw_start, sig, float(rtol), float(atol), int(max_steps))
@@ -395,13 +396,16 @@ def _assemble(problem, best, sig, steps, runs, experiments, free, say) -> FitRes
     say("computing covariance and identifiability")
     jac = np.asarray(best["jacobian"]) if finite else np.full_like(best["jacobian"], np.nan)
     n_rows_data = jac.shape[0] - len(problem.priors)
-    labels, units, owners = _labels(problem, experiments)
-    report = analyse(jac[:n_rows_data], jac[n_rows_data:], problem, raw, labels)
+    labels, owners = _labels(problem, experiments)
+    report = analyse(jac[:n_rows_data], jac[n_rows_data:], problem.flat_free, raw, labels)
 
     cov = report.covariance_raw
     corr = correlation(report)
-    flat_free = [*problem.shared] + [p for _ in range(problem.n_exp) for p in problem.per_exp]
-    params = parameter_estimates(flat_free, raw, report, labels, owners)
+    params = parameter_estimates(problem.flat_free, raw, report, labels, owners)
+    unidentified = [p.name for p in params if p.verdict == "not identifiable"]
+    if ok and unidentified:
+        message = (f"converged, but {len(unidentified)} parameter(s) are not identifiable from "
+                   f"these data: {', '.join(unidentified)}")
 
     base, per = problem.models(raw_j)
     exp_models = tuple(problem.experiment_model(base, per[i], problem.settings[i])
@@ -461,17 +465,13 @@ def parameter_estimates(free_flat, raw, report: IdentifiabilityReport, labels=No
 
 
 def _labels(problem, experiments):
-    labels, units, owners = [], [], []
-    for p in problem.shared:
-        labels.append(p.path)
-        units.append(p.unit)
-        owners.append(None)
+    """Display name and owning experiment (None if shared) of each raw coordinate."""
+    labels = [p.path for p in problem.shared]
+    owners = [None] * len(problem.shared)
     for e in experiments:
-        for p in problem.per_exp:
-            labels.append(f"{p.path}[{e.name}]")
-            units.append(p.unit)
-            owners.append(e.name)
-    return labels, units, owners
+        labels += [f"{p.path}[{e.name}]" for p in problem.per_exp]
+        owners += [e.name] * len(problem.per_exp)
+    return labels, owners
 
 
 @dataclasses.dataclass(frozen=True)

@@ -83,10 +83,13 @@ def undetermined(null_directions: np.ndarray, n: int) -> np.ndarray:
     return np.sum(null_directions**2, axis=0) > 1e-6
 
 
-def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, problem, raw: np.ndarray,
+def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, free_flat, raw: np.ndarray,
             labels) -> IdentifiabilityReport:
+    """Identifiability from the weighted data Jacobian `jac_data` (rows: residual / sigma) and
+    the prior rows `jac_prior`, both in raw coordinates; `free_flat[k]` is the FreeParameter
+    of raw coordinate k and `labels[k]` its display name."""
     n = raw.size
-    raw_labels = tuple(_raw_labels(problem, labels))
+    raw_labels = tuple(p.raw_label().replace(p.path, label, 1) for p, label in zip(free_flat, labels))
     if not np.all(np.isfinite(jac_data)):
         nan = np.full(n, np.nan)
         return IdentifiabilityReport(nan, float("nan"), (), ("not identifiable",) * n, nan,
@@ -113,9 +116,8 @@ def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, problem, raw: np.ndarra
     cov, null_dirs = _pseudo_inverse(fisher)
     lost = undetermined(null_dirs, n)
 
-    flat_free = [*problem.shared] + [p for _ in range(problem.n_exp) for p in problem.per_exp]
     verdicts = []
-    for k, p in enumerate(flat_free):
+    for k, p in enumerate(free_flat):
         post_var = np.inf if lost[k] else cov[k, k]
         if p.has_prior:
             value = float(p.to_value(raw[k]))
@@ -130,8 +132,3 @@ def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, problem, raw: np.ndarra
     return IdentifiabilityReport(s, cond, tuple(weak), tuple(verdicts), np.sqrt(data_var), cov,
                                  null_dirs, raw_labels)
 
-
-def _raw_labels(problem, labels):
-    flat_free = [*problem.shared] + [p for _ in range(problem.n_exp) for p in problem.per_exp]
-    for p, label in zip(flat_free, labels):
-        yield p.raw_label().replace(p.path, label, 1)

@@ -35,7 +35,7 @@ from greybox.simulate import as_arrays, require_x64
 
 
 class _TableProblem(eqx.Module):
-    """Residuals over the raw vector; `shared`/`per_exp`/`n_exp` as `identifiability` expects."""
+    """Residuals over the raw vector of the shared free parameters."""
 
     model: object
     x: object
@@ -43,8 +43,6 @@ class _TableProblem(eqx.Module):
     w: jnp.ndarray
     predict: Callable = eqx.field(static=True)
     shared: tuple = eqx.field(static=True)
-    per_exp: tuple = eqx.field(static=True, default=())
-    n_exp: int = eqx.field(static=True, default=1)
 
     def model_at(self, raw):
         return set_values(self.model, [p.path for p in self.shared],
@@ -172,7 +170,7 @@ def fit_table(model, predict: Callable, x, y, free: Sequence[FreeParameter], *,
     jac = np.asarray(out["jacobian"])
     n_rows = y.size
     finite = bool(np.all(np.isfinite(raw)) and np.all(np.isfinite(jac)))
-    report = analyse(jac[:n_rows], jac[n_rows:], problem, raw, [p.path for p in free])
+    report = analyse(jac[:n_rows], jac[n_rows:], free, raw, [p.path for p in free])
     cov = report.covariance_raw
     corr = correlation(report)
     pred = np.asarray(out["prediction"])

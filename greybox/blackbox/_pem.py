@@ -68,6 +68,10 @@ def covariance_direct(r, jac, g, n_rows: int):
     g = np.asarray(g)
     p = jac.shape[1]
     sigma2 = float(r @ r) / (n_rows - p)
+    # A reflection coefficient at +-1 (a pole or zero on the unit circle) makes the map to the
+    # direct parameters singular; the covariance is then undefined, not a crash.
+    if not np.all(np.isfinite(jac)) or np.linalg.cond(g) > 1e12:
+        return sigma2, np.full((p, p), np.nan)
     jd = np.linalg.solve(g.T, jac.T).T
     info = jd.T @ jd
     return sigma2, sigma2 * np.linalg.pinv(info, rcond=1e-13)

@@ -38,16 +38,16 @@ def _rest_reference(model_y: np.ndarray) -> float:
 
 
 def run_figure(path, *, name: str, role: str, t_s, y, y_model, inputs, sigma: float,
-               fit_percent: float, output: tuple = ("shuttle displacement", "m"),
-               input: tuple = ("laser power", "W")) -> None:
+               fit_percent: float, output_label: tuple = ("shuttle displacement", "m"),
+               input_label: tuple = ("laser power", "W")) -> None:
     """Measured vs model for one run, with the input waveform in a panel beneath.
 
     `y`, `y_model`: camera readings (N,) in SI; displayed relative to the model's reading at
     the first frame (the rest position, which absorbs the camera offset). Frames further
     than the outlier threshold from the model are marked.
     """
-    fy, uy = display_unit(output[1])
-    fu, uu = display_unit(input[1])
+    fy, uy = display_unit(output_label[1])
+    fu, uu = display_unit(input_label[1])
     t = np.asarray(t_s)
     ref = _rest_reference(np.asarray(y_model))
     meas = (np.asarray(y) - ref) * fy
@@ -56,30 +56,31 @@ def run_figure(path, *, name: str, role: str, t_s, y, y_model, inputs, sigma: fl
     fig = _figure(9.0, 5.2)
     top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[3, 1])
     top.plot(t, meas, ".", ms=3.5, color="0.35", label="measured (camera)")
-    top.plot(t, model, "-", lw=1.3, color="C0", label="model (free-run simulation)")
+    top.plot(t, model, "-", lw=1.3, color="C0",
+             label="model (free-run simulation, at the frame times)")
     if outlier.any():
         top.plot(t[outlier], meas[outlier], "x", ms=6, color="C3",
                  label=f"outliers (> {OUTLIER_SIGMAS:g} sigma)")
-    top.set_ylabel(f"{output[0]} [{uy}]\n(relative to rest)")
+    top.set_ylabel(f"{output_label[0]} [{uy}]\n(relative to rest)")
     top.set_title(f"{name} ({role}): simulation fit {fit_percent:.1f} %")
     top.legend(loc="upper right", fontsize=8)
     top.grid(alpha=0.3)
     tt, vv = _steps(inputs, float(t.min()), float(t.max()))
     bottom.step(tt, vv * fu, where="post", color="C1", lw=1.0)
-    bottom.set_ylabel(f"{input[0]}\n[{uu}]")
+    bottom.set_ylabel(f"{input_label[0]}\n[{uu}]")
     bottom.set_xlabel("time [s]")
     bottom.grid(alpha=0.3)
     bottom.set_xlim(float(t.min()), float(t.max()))
     fig.savefig(Path(path), dpi=DPI)
 
 
-def residuals_figure(path, runs, *, sigma: float, output: tuple = ("shuttle displacement", "m")
-                     ) -> None:
+def residuals_figure(path, runs, *, sigma: float,
+                     output_label: tuple = ("shuttle displacement", "m")) -> None:
     """Residuals (measured - model) per run, with +-sigma and the outlier threshold.
 
     `runs`: sequence of (name, role, t_s, y, y_model) in SI.
     """
-    fy, uy = display_unit(output[1])
+    fy, uy = display_unit(output_label[1])
     n = len(runs)
     cols = 3 if n > 4 else max(n, 1)
     rows = int(np.ceil(n / cols))
@@ -130,11 +131,11 @@ def correlation_figure(path, labels, correlation) -> None:
 
 
 def band_figure(path, band, inputs, *, title: str = "",
-                output: tuple = ("shuttle displacement", "m"),
-                input: tuple = ("laser power", "W")) -> None:
+                output_label: tuple = ("shuttle displacement", "m"),
+                input_label: tuple = ("laser power", "W")) -> None:
     """Simulated response with its band, and the input waveform beneath."""
-    fy, uy = display_unit(output[1])
-    fu, uu = display_unit(input[1])
+    fy, uy = display_unit(output_label[1])
+    fu, uu = display_unit(input_label[1])
     t = np.asarray(band.t_s)
     fig = _figure(9.0, 5.2)
     top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[3, 1])
@@ -145,13 +146,13 @@ def band_figure(path, band, inputs, *, title: str = "",
                      label=f"{band.level * 100:g} % "
                            f"{'prediction interval' if band.includes_noise else 'confidence band'}")
     top.plot(t, band.y[:, 0] * fy, "-", color="C0", lw=1.3, label="model (simulation)")
-    top.set_ylabel(f"{output[0]} [{uy}]\n(from rest)")
+    top.set_ylabel(f"{output_label[0]} [{uy}]\n(from rest)")
     top.set_title(title or "Simulated response", fontsize=10)
     top.legend(loc="upper right", fontsize=8)
     top.grid(alpha=0.3)
     tt, vv = _steps(inputs, float(t.min()), float(t.max()))
     bottom.step(tt, vv * fu, where="post", color="C1", lw=1.0)
-    bottom.set_ylabel(f"{input[0]}\n[{uu}]")
+    bottom.set_ylabel(f"{input_label[0]}\n[{uu}]")
     bottom.set_xlabel("time [s]")
     bottom.set_xlim(float(t.min()), float(t.max()))
     bottom.grid(alpha=0.3)

@@ -14,9 +14,10 @@ Two kinds of band, and `Band.kind` says which one a result is:
 - prediction interval (`sigma` given): adds the measurement noise sigma^2; where new camera
   readings are expected to fall.
 
-Directions of C that the data left unbounded (a "not identifiable" combination) do not
-widen the band when the output does not depend on them (e.g. only a product of two
-parameters matters); when it does, the band is infinite rather than falsely narrow.
+Parameter directions that nothing determined (a "not identifiable" combination: NaN rows
+of C, or the fit's `null_directions`) do not widen the band when the output does not depend
+on them (e.g. the new response depends only on a product that the data did fix); when it
+does depend on them, the band is infinite rather than falsely narrow.
 """
 
 from __future__ import annotations
@@ -37,7 +38,6 @@ from greybox.simulate import (
     schedule_for,
 )
 
-UNBOUNDED_VARIANCE = 1e100  # identifiability marks unconstrained directions with 1e300
 NEGLIGIBLE_SENSITIVITY = 1e-6  # relative |dy/d direction| treated as "does not depend"
 
 
@@ -69,7 +69,8 @@ class Band:
 
 
 def prediction_band(model, free, raw, covariance_raw, inputs, t_s, *, sigma=None,
-                    level: float = 0.95, method: str = "zoh", t_start_s: float = 0.0) -> Band:
+                    null_directions=None, level: float = 0.95, method: str = "zoh",
+                    t_start_s: float = 0.0) -> Band:
     """Simulate `inputs` at times `t_s` with a pointwise band from the parameter covariance.
 
     **Arguments:**
@@ -79,10 +80,12 @@ def prediction_band(model, free, raw, covariance_raw, inputs, t_s, *, sigma=None
       only the leading shared block is used).
     - `inputs`: waveform in SI (W for laser power); `t_s`: output times [s], increasing.
     - `sigma`: measurement noise per output [SI]; given, the band is a prediction interval.
+    - `null_directions`: (k, n_raw) directions nothing determined (see
+      `greybox.identifiability`), if the covariance leaves them out.
     - `level`: coverage of the pointwise band (default 0.95).
 
-    **Returns:** a `Band`. **Raises:** `ValueError` for a non-finite covariance (a fit that
-    did not converge) or a failed simulation.
+    **Returns:** a `Band`. **Raises:** `ValueError` for non-finite fitted values (a fit that
+    diverged) or a failed simulation.
     """
     require_x64("prediction_band")
     if method not in METHODS:
@@ -93,9 +96,16 @@ def prediction_band(model, free, raw, covariance_raw, inputs, t_s, *, sigma=None
     n_shared = len(shared)
     raw = np.asarray(raw, dtype=float)
     cov = np.asarray(covariance_raw, dtype=float)[:n_shared, :n_shared]
-    if not np.all(np.isfinite(cov)) or not np.all(np.isfinite(raw[:n_shared])):
-        raise ValueError("covariance_raw: not finite (the fit did not converge); no band can "
-                         "be computed")
+    if not np.all(np.isfinite(raw[:n_shared])):
+        raise ValueError("raw: fitted values are not finite (the fit diverged); no simulation "
+                         "or band can be computed")
+    # Undetermined directions: coordinates with NaN covariance, plus any given null directions.
+    unknown = ~np.all(np.isfinite(cov), axis=1)
+    nulls = [np.eye(n_shared)[k] for k in np.flatnonzero(unknown)]
+    if null_directions is not None and np.size(null_directions):
+        nulls += [v[:n_shared] for v in np.atleast_2d(np.asarray(null_directions, dtype=float))
+                  if np.linalg.norm(v[:n_shared]) > NEGLIGIBLE_SENSITIVITY]
+    cov = np.where(unknown[:, None] | unknown[None, :], 0.0, cov)
     t = np.asarray(t_s, dtype=float)
     sched = pad_schedules([schedule_for(model, inputs, t, t_start_s=t_start_s)])
     row = {k: v[0] for k, v in sched.items()}
@@ -120,16 +130,13 @@ def prediction_band(model, free, raw, covariance_raw, inputs, t_s, *, sigma=None
     y = np.asarray(z)[:n]
     var = np.zeros_like(y)
     if n_shared:
-        g = np.asarray(jac)[:n]  # (N, n_y, P)
-        vals, vecs = np.linalg.eigh((cov + cov.T) / 2)
-        proj = g @ vecs  # sensitivity along each covariance direction
-        bounded = vals < UNBOUNDED_VARIANCE
-        var = np.sum(proj[..., bounded] ** 2 * np.clip(vals[bounded], 0, None), axis=-1)
+        g = np.asarray(jac)[:n]  # (N, n_y, P): sensitivity of each output to each raw value
+        var = np.einsum("nyp,pq,nyq->ny", g, (cov + cov.T) / 2, g)
         scale = np.linalg.norm(g, axis=-1) + 1e-300
-        depends = np.any(np.abs(proj[..., ~bounded]) > NEGLIGIBLE_SENSITIVITY * scale[..., None],
-                         axis=-1)
-        var = np.where(depends, np.inf, var)
-    sd_model = np.sqrt(var)
+        for v in nulls:
+            depends = np.abs(g @ v) > NEGLIGIBLE_SENSITIVITY * scale * np.linalg.norm(v)
+            var = np.where(depends, np.inf, var)
+    sd_model = np.sqrt(np.clip(var, 0.0, None))
     includes_noise = sigma is not None
     total = var + (np.broadcast_to(np.asarray(sigma, dtype=float), y.shape[1:]) ** 2
                    if includes_noise else 0.0)

@@ -23,8 +23,11 @@ VERDICT_MEANING = {
 }
 
 
-def display_unit(unit: str) -> tuple[float, str]:
-    """(factor, readable unit) for an SI unit: m -> um, s -> ms, W -> mW; others unchanged."""
+def display_unit(unit: str, value: float | None = None) -> tuple[float, str]:
+    """(factor, readable unit) for an SI unit: m -> um, W -> mW, s -> ms (when `value` is
+    under 1 s or not given); others unchanged."""
+    if unit == "s" and value is not None and np.isfinite(value) and abs(value) >= 1.0:
+        return 1.0, "s"
     return _DISPLAY.get(unit, (1.0, unit))
 
 
@@ -35,11 +38,27 @@ def fmt(x, digits: int = 4) -> str:
     return f"{x:.{digits}g}"
 
 
+def estimate_texts(p) -> tuple[str, str, str]:
+    """(value, 95 % interval, display unit) of a `ParameterEstimate`, in display units, with
+    as many decimals as its standard error warrants (two significant digits of the se)."""
+    f, unit = display_unit(p.unit, p.value)
+    digits = None
+    if p.se is not None and np.isfinite(p.se) and p.se * f > 0:
+        digits = max(0, 1 - int(np.floor(np.log10(abs(p.se * f)))))
+
+    def one(x):
+        if x is None or not np.isfinite(x):
+            return "n/a"
+        return f"{x * f:.{digits}f}" if digits is not None else fmt(x * f, 5)
+
+    ci = "n/a" if not np.all(np.isfinite(p.ci95)) else f"[{one(p.ci95[0])}, {one(p.ci95[1])}]"
+    return one(p.value), ci, unit
+
+
 def _value_cells(p) -> list[str]:
-    f, unit = display_unit(p.unit)
-    ci = "n/a" if not np.all(np.isfinite(p.ci95)) else \
-        f"[{fmt(p.ci95[0] * f, 5)}, {fmt(p.ci95[1] * f, 5)}]"
-    return [fmt(p.value * f, 5), unit if unit != "1" else "-", fmt(p.se * f, 3), ci]
+    value, ci, unit = estimate_texts(p)
+    f, _ = display_unit(p.unit, p.value)
+    return [value, unit if unit != "1" else "-", fmt(p.se * f, 2), ci]
 
 
 def parameter_table(parameters, *, truth: dict | None = None) -> list[str]:
@@ -51,24 +70,34 @@ def parameter_table(parameters, *, truth: dict | None = None) -> list[str]:
     for p in parameters:
         cells = [f"`{p.name}`", *_value_cells(p), p.verdict + (" (prior)" if p.prior else "")]
         if truth is not None:
-            f, _ = display_unit(p.unit)
+            f, _ = display_unit(p.unit, p.value)
             t = truth.get(p.name)
             cells.insert(2, fmt(t * f, 5) if t is not None else "-")
         rows.append("| " + " | ".join(cells) + " |")
     return rows
 
 
+def noise_ceiling(y, sigma: float) -> float:
+    """Fit % a perfect model would score on readings `y` with noise `sigma` (approx.)."""
+    y = np.asarray(y, dtype=float)
+    y = y[np.isfinite(y)]
+    spread = float(np.std(y)) if y.size > 1 else 0.0
+    return 100.0 * (1.0 - sigma / spread) if spread > sigma else float("nan")
+
+
 def _run_rows(result, validation, runs) -> list[str]:
     info = {r.name: r for r in runs}
-    rows = ["| run | role | laser waveform | frames (valid) | outliers flagged | "
-            "fit % (simulation) |", "|---|---|---|---|---|---|"]
+    sigma = float(np.asarray(result.sigma).reshape(-1)[0])
+    rows = ["| run | role | input waveform | frames (valid) | outliers flagged | "
+            "fit % (simulation) | noise ceiling % |", "|---|---|---|---|---|---|---|"]
 
     def add(exps, fits, outliers, role):
         for e in exps:
             r = info.get(e.name)
             valid = int(e.mask.all(axis=1).sum())
             rows.append(f"| {e.name} | {role} | {r.waveform if r else '-'} | {e.n_frames} "
-                        f"({valid}) | {outliers[e.name]} | {fmt(fits[e.name], 3)} |")
+                        f"({valid}) | {outliers[e.name]} | {fmt(fits[e.name], 3)} | "
+                        f"{fmt(noise_ceiling(e.y[:, 0], sigma), 3)} |")
 
     add(result.experiments, result.fit_percent, result.n_outliers, "estimation")
     if validation is not None:
@@ -97,8 +126,8 @@ def identifiability_lines(result, parameter_notes: dict | None = None) -> list[s
         for w in ident.weak_directions:
             names = sorted({_label_path(k) for k in w.combination})
             joined = " x ".join(f"`{n}`" for n in names)
-            lines.append(f"- {joined}: only this combination is constrained, not each factor "
-                         f"(direction {w.describe()}).")
+            lines.append(f"- {joined}: the data fix their combined effect but not each one "
+                         f"(undetermined direction in raw coordinates: {w.describe()}).")
             for n in names:
                 if n in notes and notes[n]:
                     lines.append(f"  - `{n}`: {notes[n]}")
@@ -178,10 +207,14 @@ def fit_report(result, validation=None, *, title: str, device_name: str, runs=()
     lines += ["Verdicts: " + "; ".join(f"*{k}*: {v}" for k, v in VERDICT_MEANING.items())
               + ".", "", "## Fit per run (simulation)", "",
               *_run_rows(result, validation, runs), ""]
+    lines += ["Noise ceiling: the fit % that a perfect model would score given the noise "
+              "sigma, about 100 (1 - sigma / std(y)); a run whose fit % is close to it is "
+              "fitted down to the measurement noise, whatever the absolute number.", ""]
     if validation is not None:
-        lines += ["Validation runs are simulated with the fitted physical parameters held "
-                  "fixed; only their per-run offsets are re-estimated (as MATLAB `compare` "
-                  "estimates initial conditions).", ""]
+        refit = ", ".join(sorted({p.path for p in per_run}))
+        lines += ["Validation runs are simulated with the fitted physical parameters held fixed"
+                  + (f"; only their per-run values ({refit}) are re-estimated, as MATLAB "
+                     "`compare` estimates initial conditions." if refit else "."), ""]
     lines += [
         "## Noise, outliers and convergence",
         "",
@@ -193,8 +226,9 @@ def fit_report(result, validation=None, *, title: str, device_name: str, runs=()
         "leaves them out.",
         f"- Frames: {n_frames} in estimation runs, {result.n_data} valid readings fitted; "
         f"{result.n_params} fitted values.",
-        f"- Convergence: **{'converged' if result.converged else 'NOT CONVERGED'}** "
-        f"({result.message}); {result.n_steps} Levenberg-Marquardt steps, cost "
+        f"- Convergence: **{'converged' if result.converged else 'NOT CONVERGED'}**"
+        f"{'' if result.converged else ' (' + result.message + ')'}; {result.n_steps} "
+        "Levenberg-Marquardt steps, cost "
         f"{fmt(result.cost, 6)}, simulation path `{result.method}`.",
     ]
     if len(result.multistart_costs) > 1:

@@ -153,8 +153,11 @@ PARAMETERS = (
 
 
 def default_free_parameters() -> list[FreeParameter]:
-    """The standard fit: tau and the gain carrier (absorptance) shared, one offset per run,
-    thermal resistance freed with a log-normal prior so the report shows it is prior-dominated."""
+    """The standard fit: tau and the gain carrier (absorptance) shared, one offset per run.
+
+    Absorptance carries the static gain K ∝ A F R kappa alpha L / sin(a) while the other
+    factors stay fixed (PHYSICS.md §13): freeing the thermal resistance as well needs a prior,
+    and the report then shows the two as prior-dominated with only their product determined."""
     return [
         FreeParameter("absorptance", unit="1", lower=0.05, upper=1.0),
         FreeParameter("thermal.tau_s", unit="s", lower=1e-4, upper=2.0),

@@ -124,3 +124,55 @@ def test_video_io_round_trip_is_lossless(tmp_path):
     got, info = read_frames(tmp_path / "tif")
     np.testing.assert_array_equal(got, frames16)
     assert probe(tmp_path / "tif").kind == "stack"
+
+
+def test_decoder_crop_is_exact_for_every_codec(tmp_path):
+    """ffmpeg's crop (odd offsets included, chroma-subsampled H.264 included) returns
+    exactly the pixels of the whole decoded frames."""
+    from greybox.io.video import iter_frames
+
+    rng = np.random.default_rng(1)
+    frames16 = rng.integers(0, 65535, (7, 30, 44)).astype(np.uint16)
+    frames8 = (frames16 >> 8).astype(np.uint8)
+    for path, frames, raw in ((tmp_path / "a.mkv", frames16, False),
+                              (tmp_path / "a.mp4", frames8, False),
+                              (tmp_path / "raw.avi", frames8, True)):
+        write_video(path, frames, fps=10.0, raw=raw)
+        got = np.concatenate(list(iter_frames(path, crop=(5, 3, 21, 17), chunk=3)))
+        np.testing.assert_array_equal(got, frames[:, 3:20, 5:26])
+        assert got.dtype == frames.dtype
+    with pytest.raises(ValueError, match="outside"):
+        next(iter_frames(tmp_path / "a.mkv", crop=(30, 0, 20, 10)))
+
+
+def test_prefetch_keeps_order_reraises_and_stops_early():
+    import threading
+
+    from greybox.errors import InputError
+    from greybox.io.video import prefetch
+
+    assert list(prefetch(iter(range(50)), depth=3)) == list(range(50))
+
+    def broken():
+        yield 1
+        raise InputError("video decoding failed", file="x.avi")
+
+    got = []
+    with pytest.raises(InputError, match="decoding failed"):
+        for item in prefetch(broken()):
+            got.append(item)
+    assert got == [1]
+    closed = threading.Event()
+
+    def endless():
+        try:
+            while True:
+                yield 0
+        finally:
+            closed.set()  # the reader closes its source when the consumer stops
+
+    gen = prefetch(endless())
+    next(gen)
+    gen.close()
+    assert closed.is_set()
+    assert not any(t.name == "greybox-prefetch" for t in threading.enumerate())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import sys
 import time
 from pathlib import Path
@@ -16,10 +17,11 @@ estimation and validation runs, the identifiability verdict) and figures/*.png (
 model per run with the laser waveform beneath, residuals, parameter correlation).
 
 EXPERIMENT_DIR holds experiment.toml and one CSV per run (format: experiments/README.md):
-  [camera]  fps [frames/s], exposure_ms [ms], um_per_px [um per pixel]
-  runs      t_s [s], y_um [um] or y_px [pixels, converted with um_per_px], optional
-            laser_mW [mW] when the laser is logged rather than described
-  laser     described per run: power_mW [mW], period_ms [ms], duty [0-1], n_pulses
+  [camera]   fps [frames/s], exposure_ms [ms], um_per_px [um per pixel]
+  run CSVs   t_s [s], y_um [um] or y_px [pixels, converted with um_per_px], optional
+             laser_mW [mW] when the laser is logged rather than described
+  waveform   per run: { type = "pulse_train", power_mW [mW], period_ms [ms], duty [0-1],
+             n_pulses, delay_ms [ms], tail_ms [ms] } or { type = "logged" }
 
 Units in the output: params.json holds SI values (m, s, W, K/W) with each unit named;
 report.md and the figures show um, ms and mW. Every fit % is free-run simulation (the
@@ -94,22 +96,33 @@ def fit_experiment_dir(experiment_dir, out, say) -> FitOutcome:
     result = fit(fs.model, fs.estimation, fs.free, progress=say, **fs.fit_options)
     validation = None
     if fs.validation:
-        say(f"validating on {len(fs.validation)} runs (physics fixed, offsets re-fitted)")
+        per_run = sorted({p.path for p in fs.free if p.per_experiment})
+        say(f"validating on {len(fs.validation)} runs (physics fixed"
+            + (f"; per-run {', '.join(per_run)} re-fitted)" if per_run else ")"))
         validation = validate(result, fs.validation)
     document = params_document(fs, result, validation)
     say(f"writing {out}")
     with atomic_output_dir(out) as tmp:
+        usual_permissions(tmp)
         figures = write_figures(tmp, fs, result, validation)
         write_params(tmp / "params.json", document)
         (tmp / "report.md").write_text(render_report(fs, result, validation, figures))
     return FitOutcome(fs, result, validation, Path(out), document)
 
 
+def usual_permissions(folder: Path) -> None:
+    """Give a result folder the permissions of a folder made by mkdir (the temporary folder
+    behind an atomic write is private)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    folder.chmod(0o777 & ~mask)
+
+
 def render_report(fs, result, validation, figures) -> str:
     from greybox.report import fit_report
 
     notes = {p.path: p.identifiability for p in getattr(fs.device, "PARAMETERS", ())}
-    source = fs.description + (f" Data: `{fs.directory}`." if fs.description else "")
+    source = " ".join(filter(None, [fs.description, f"Data: `{fs.directory}`."]))
     return fit_report(result, validation, title=fs.name, device_name=fs.device_name,
                       runs=fs.runs, parameter_notes=notes, figures=figures, source=source,
                       output_unit=fs.device.OUTPUTS[0].si_unit)
@@ -134,35 +147,43 @@ def write_figures(folder: Path, fs, result, validation) -> list[str]:
         name = f"figures/fit_{e.name}.png"
         plots.run_figure(folder / name, name=e.name, role=role, t_s=e.t_s, y=e.y[:, 0],
                          y_model=z[:, 0], inputs=e.inputs, sigma=sigma, fit_percent=pct,
-                         output=output, input=inp)
+                         output_label=output, input_label=inp)
         names.append(name)
     plots.residuals_figure(folder / "figures/residuals.png",
                            [(e.name, role, e.t_s, e.y[:, 0], z[:, 0]) for e, role, z, _ in runs],
-                           sigma=sigma, output=output)
+                           sigma=sigma, output_label=output)
     plots.correlation_figure(folder / "figures/correlation.png",
                              [p.name for p in result.parameters], result.correlation)
     return names + ["figures/residuals.png", "figures/correlation.png"]
 
 
-def summary_lines(outcome: FitOutcome) -> list[str]:
-    """Short text summary for the terminal: shared parameters and fit % per run."""
+def parameter_lines(result) -> list[str]:
+    """Terminal table of the shared parameters: value, 95 % interval, verdict."""
+    from greybox.report import estimate_texts
+
+    lines = ["parameter                  value        95 % interval               verdict"]
+    for p in result.parameters:
+        if p.experiment is not None:
+            continue
+        value, ci, unit = estimate_texts(p)
+        lines.append(f"{p.name:<26} {value:>8} {unit if unit != '1' else '':<3} {ci:<27} "
+                     f"{p.verdict}")
+    return lines
+
+
+def fit_lines(outcome: FitOutcome) -> list[str]:
+    """Terminal lines: simulation fit % per run, sigma, outliers, convergence."""
     from greybox.report import display_unit, fmt
 
     r, v = outcome.result, outcome.validation
-    lines = ["parameter                  value        95 % interval               verdict"]
-    for p in r.parameters:
-        if p.experiment is not None:
-            continue
-        f, unit = display_unit(p.unit)
-        ci = f"[{fmt(p.ci95[0] * f, 5)}, {fmt(p.ci95[1] * f, 5)}]"
-        lines.append(f"{p.name:<26} {fmt(p.value * f, 5):>8} {unit if unit != '1' else '':<3} "
-                     f"{ci:<27} {p.verdict}")
-    fits = [f"{k} {fmt(x, 3)}" for k, x in r.fit_percent.items()]
-    lines.append("simulation fit % (estimation): " + ", ".join(fits))
+    f, unit = display_unit(outcome.fitset.device.OUTPUTS[0].si_unit)
+    lines = ["simulation fit % (estimation): "
+             + ", ".join(f"{k} {fmt(x, 3)}" for k, x in r.fit_percent.items())]
     if v is not None:
         lines.append("simulation fit % (validation): "
                      + ", ".join(f"{k} {fmt(x, 3)}" for k, x in v.fit_percent.items()))
-    lines.append(f"sigma {fmt(float(r.sigma[0]) * 1e6, 3)} um (estimated), "
+    lines.append(f"noise sigma {', '.join(fmt(float(s) * f, 3) for s in r.sigma)} {unit} "
+                 "(estimated), "
                  f"{sum(r.n_outliers.values())} outliers flagged, "
                  f"{'converged' if r.converged else 'NOT CONVERGED: ' + r.message}")
     return lines
@@ -175,7 +196,7 @@ def run(args) -> int:
     say = Progress(args.quiet)
     out = Path(args.out) if args.out else default_out(args.experiment_dir)
     outcome = fit_experiment_dir(args.experiment_dir, out, say)
-    print("\n".join(summary_lines(outcome)))
+    print("\n".join(parameter_lines(outcome.result) + fit_lines(outcome)))
     print(f"wrote {out}/ (params.json, report.md, figures/) in {say.elapsed:.1f} s")
     if not outcome.result.converged:
         print(f"greybox fit: warning: the fit did not converge ({outcome.result.message}); "

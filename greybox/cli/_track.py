@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import itertools
 import math
 from pathlib import Path
 
@@ -105,9 +107,10 @@ def _fmt(v: float, digits: int) -> str:
 def run(args) -> int:
     from greybox.errors import InputError
     from greybox.io.atomic import atomic_output_file
-    from greybox.io.video import iter_frames, probe
+    from greybox.io.video import iter_frames, prefetch, probe
     from greybox.tracking import (FeatureTracker, measure_sequence, pose_track,
-                                  reference_frame, saturation_level_for, shuttle_track)
+                                  reference_frame, saturation_level_for, search_crop,
+                                  shuttle_track)
 
     # Cheap checks first, so bad options fail before any decoding.
     _positive(args.um_per_px, "--um-per-px")
@@ -128,26 +131,30 @@ def run(args) -> int:
             raise InputError(f"ROI {roi.x},{roi.y},{roi.w},{roi.h} is outside the "
                              f"{info.shape[1]}x{info.shape[0]} px frame", file=video,
                              field=field)
-    chunks = iter_frames(video, info)
-    first = next(chunks, None)
-    if first is None or len(first) < 2:
-        n = 0 if first is None else len(first)
-        raise InputError(f"has {n} frame(s); tracking needs at least two", file=video)
-    if args.ref_frames > len(first):
-        raise InputError(f"must be <= {len(first)} (frames available)", field="--ref-frames")
-    ref = reference_frame(first, 0, args.ref_frames)
-    try:
-        trackers = [FeatureTracker(ref, roi, search_px=args.search_px,
-                                   saturation_level=saturation_level_for(info.dtype))
-                    for roi in rois]
-    except ValueError as err:
-        raise InputError(str(err), file=video, field="--roi") from None
-
-    def all_chunks():
-        yield first
-        yield from chunks
-
-    meas = measure_sequence(trackers, all_chunks(), follow=len(rois) == 2)
+    follow = len(rois) == 2
+    if follow:  # each feature's window moves with it: decode whole frames
+        crop, track_rois = None, rois
+    else:  # the window is fixed: let ffmpeg crop to it (the speed of one-ROI tracking)
+        crop, roi_in_crop = search_crop(rois[0], args.search_px, info.shape)
+        track_rois = [roi_in_crop]
+    # A reader thread decodes the next chunk while this one is tracked; closing it (also
+    # on an error) stops the thread and ffmpeg.
+    with contextlib.closing(prefetch(iter_frames(video, info, crop=crop))) as chunks:
+        first = next(chunks, None)
+        if first is None or len(first) < 2:
+            n = 0 if first is None else len(first)
+            raise InputError(f"has {n} frame(s); tracking needs at least two", file=video)
+        if args.ref_frames > len(first):
+            raise InputError(f"must be <= {len(first)} (frames available)",
+                             field="--ref-frames")
+        ref = reference_frame(first, 0, args.ref_frames)
+        try:
+            trackers = [FeatureTracker(ref, roi, search_px=args.search_px,
+                                       saturation_level=saturation_level_for(info.dtype))
+                        for roi in track_rois]
+        except ValueError as err:
+            raise InputError(f"ROI {args.roi}: {err}", file=video, field="--roi") from None
+        meas = measure_sequence(trackers, itertools.chain([first], chunks), follow=follow)
     n = len(meas[0].rho)
     t = _times(info, n, args.fps, video)
     s = args.um_per_px

@@ -21,25 +21,26 @@ import numpy as np
 
 from greybox.channels import PIXELS, Channel
 from greybox.data import Experiment
+from greybox.device import AbstractSteppedDevice
 from greybox.errors import InputError
 from greybox.freeparams import FreeParameter
-from greybox.waveforms import PiecewiseConstant, PulseTrain, from_samples
+from greybox.waveforms import PiecewiseConstant, PulseTrain, from_samples, stack_channels
 
 TOML_NAME = "experiment.toml"
-FORMAT_VERSION = 1
 ROLES = ("estimation", "validation")
 LOG_POWER_TOLERANCE = 0.05  # logged vs described: 5 % of the peak level
 TIME_UNITS = {"s": 1.0, "ms": 1e-3}
+WAVEFORM_TYPES = ("pulse_train", "steps", "logged")
 
-_TOP_KEYS = {"format", "description", "device", "camera", "fit", "free", "runs"}
-_DEVICE_KEYS = {"model", "settings"}
+_TOP_KEYS = {"experiment", "camera", "fit", "runs"}
+_EXPERIMENT_KEYS = {"device", "description", "settings"}
 _CAMERA_KEYS = {"fps", "exposure_ms", "um_per_px"}
-_FIT_KEYS = {"method", "loss", "n_starts", "seed", "max_steps"}
+_FIT_KEYS = {"method", "loss", "n_starts", "seed", "max_steps", "free"}
 _FREE_KEYS = {"path", "unit", "lower", "upper", "per_run", "prior_median", "prior_log_sd",
               "initial", "scale"}
-_RUN_KEYS = {"name", "file", "role", "y_column", "t_start_s", "settings", "notes"}
-_PULSE_KEYS = {"shape", "duty", "n_pulses", "n"}
-_STEPS_KEYS = {"shape", "times_s", "end_s"}
+_RUN_KEYS = {"name", "file", "role", "waveform", "settings", "y_column", "t_start_s", "notes"}
+_PULSE_KEYS = {"type", "duty", "n_pulses", "n"}
+_STEPS_KEYS = {"type", "times_s", "end_s"}
 
 
 # --------------------------------------------------------------------------------------
@@ -49,8 +50,8 @@ _STEPS_KEYS = {"shape", "times_s", "end_s"}
 class TomlLines:
     """Best-effort map from key paths to the line that defines them in a TOML text.
 
-    Paths are tuples such as ``("camera", "exposure_ms")`` or ``("runs", 2, "laser",
-    "power_mW")`` (array-of-tables elements by 0-based index). `line(*path)` returns the
+    Paths are tuples such as ``("camera", "exposure_ms")`` or ``("runs", 2, "waveform",
+    "power_mW")`` (array elements by 0-based index). `line(*path)` returns the
     line of the longest prefix of `path` that was found, so a missing key points at its table.
     """
 
@@ -60,30 +61,50 @@ class TomlLines:
         self.lines: dict[tuple, int] = {}
         counters: dict[tuple, int] = {}
         current: tuple = ()
+        array = None  # (path, next element index) while inside a multi-line array
         for lineno, raw in enumerate(text.splitlines(), 1):
-            s = raw.strip()
+            s = raw.split(" #")[0].strip() if "#" in raw and not raw.strip().startswith("#") \
+                else raw.strip()
             if not s or s.startswith("#"):
                 continue
-            if s.startswith("[["):
+            if array is None and s.startswith("[["):
                 parts = self._keys(s[2:s.find("]]")])
                 counters[tuple(parts)] = counters.get(tuple(parts), -1) + 1
                 current = (*parts, counters[tuple(parts)])
                 self._record(current, lineno)
-            elif s.startswith("["):
+            elif array is None and s.startswith("["):
                 parts = self._keys(s[1:s.find("]")])
                 if parts and (parts[0],) in counters:  # [runs.laser] inside the latest [[runs]]
                     parts = [parts[0], counters[(parts[0],)], *parts[1:]]
                 current = tuple(parts)
                 self._record(current, lineno)
+            elif array is not None:  # inside a multi-line array: one element per line
+                array_path, index = array
+                if s[0] in "\"'{0123456789-+.tf":
+                    self._record((*array_path, index), lineno)
+                    self._inline_keys((*array_path, index), s, lineno)
+                    array = (array_path, index + 1)
+                if s.startswith("]") or s.rstrip(",").endswith("]") and s.count("]") > s.count("["):
+                    array = None
             else:
                 key, sep, rest = s.partition("=")
                 if not sep:
                     continue
                 path = (*current, *self._keys(key))
                 self._record(path, lineno)
-                if rest.strip().startswith("{"):  # inline table: its keys are on this line
-                    for m in re.finditer(r"([A-Za-z0-9_\-]+)\s*=", rest):
-                        self._record((*path, m.group(1)), lineno)
+                rest = rest.strip()
+                if rest.startswith("{"):  # inline table: its keys are on this line
+                    self._inline_keys(path, rest, lineno)
+                elif rest.startswith("["):
+                    if rest.count("[") > rest.count("]"):
+                        array = (path, 0)
+                    else:  # a one-line array: every element is on this line
+                        for k in range(rest.count(",") + 1):
+                            self._record((*path, k), lineno)
+
+    def _inline_keys(self, path: tuple, text: str, lineno: int) -> None:
+        for m in re.finditer(r"([A-Za-z0-9_\-]+)\s*=", text):
+            self._record((*path, m.group(1)), lineno)
 
     def _keys(self, text: str) -> list:
         parts, pos = [], 0
@@ -118,7 +139,6 @@ class _Toml:
     """A parsed TOML file with helpers that raise located `InputError`s."""
 
     def __init__(self, path: Path):
-        self.path = path
         self.file = str(path)
         if not path.is_file():
             what = "is a folder" if path.exists() else "does not exist"
@@ -168,12 +188,9 @@ class _Toml:
             raise self.error("must be a table", *path, key)
         return value
 
-    def number(self, table: dict, key: str, *path, default=None, required: bool = False,
-               positive: bool = False, nonneg: bool = False, unit: str = "") -> float | None:
+    def number(self, table: dict, key: str, *path, default=None, positive: bool = False,
+               nonneg: bool = False, unit: str = "") -> float | None:
         if key not in table:
-            if required:
-                raise self.error(f"missing; give a number{f' in {unit}' if unit else ''}",
-                                 *path, key)
             return default
         value = table[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -384,7 +401,7 @@ def _time_key(desc: dict, base: str, path: tuple, where, *, required: bool,
 
 
 def _level_key(desc: dict, channel: Channel, path: tuple, where):
-    """(key, value in file units, SI value) of the ``power_<unit>`` entry."""
+    """(key, value as written, unit) of the ``power_<unit>`` entry of a description."""
     keys = [k for k in desc if k.startswith("power_")]
     if not keys:
         raise where(f"missing; give the level as one of "
@@ -404,26 +421,23 @@ def _level_key(desc: dict, channel: Channel, path: tuple, where):
 def waveform_from_description(desc: dict, channel: Channel, where, path: tuple = ()):
     """A described input waveform -> (PiecewiseConstant in SI, one-line text).
 
-    `desc`: ``{"shape": "pulse", "power_mW": 20, "period_ms": 500, "duty": 0.5,
-    "n_pulses": 10, "delay_ms": 300, "tail_ms": 700}`` or ``{"shape": "steps",
+    `desc`: ``{"type": "pulse_train", "power_mW": 20, "period_ms": 500, "duty": 0.5,
+    "n_pulses": 10, "delay_ms": 300, "tail_ms": 700}`` or ``{"type": "steps",
     "times_s": [...], "power_mW": [...], "end_s": 12.0}``. `where(message, *path_keys)`
     builds the error to raise (it knows the file and lines).
     """
-    if not isinstance(desc, dict):
-        raise where("must be a table such as { shape = \"pulse\", power_mW = 20, "
-                    "period_ms = 500, duty = 0.5, n_pulses = 10 }", *path)
-    shape = desc.get("shape", "pulse")
-    if shape not in ("pulse", "steps"):
-        raise where(f"{shape!r} is not a waveform shape; use \"pulse\" or \"steps\"",
-                    *path, "shape")
+    kind = desc.get("type")
+    if kind not in ("pulse_train", "steps"):
+        raise where(f"{kind!r} is not a described waveform type; use \"pulse_train\", "
+                    "\"steps\" or \"logged\"", *path, "type")
     key, level, unit = _level_key(desc, channel, path, where)
-    if shape == "pulse":
+    if kind == "pulse_train":
         allowed = _PULSE_KEYS | {key} | {f"{b}_{u}" for b in ("period", "delay", "tail")
                                          for u in TIME_UNITS}
         for k in desc:
             if k not in allowed:
-                raise where(f"unknown key for a pulse train; allowed: {', '.join(sorted(allowed))}",
-                            *path, k)
+                raise where("unknown key for a pulse train; allowed: "
+                            f"{', '.join(sorted(allowed))}", *path, k)
         period, period_key = _time_key(desc, "period", path, where, required=True)
         delay, delay_key = _time_key(desc, "delay", path, where, required=False, default=0.0)
         tail, tail_key = _time_key(desc, "tail", path, where, required=False, default=0.0)
@@ -494,7 +508,7 @@ def parse_waveform_spec(spec: str, channel: Channel):
     if not sep or shape != "pulse":
         raise where("expected 'pulse:KEY=VALUE,...' or the path of a CSV with t_s,"
                     f"{channel.name}_<unit> columns")
-    desc: dict = {"shape": "pulse"}
+    desc: dict = {"type": "pulse_train"}
     for item in filter(None, (s.strip() for s in body.split(","))):
         k, eq, v = item.partition("=")
         if not eq:
@@ -565,8 +579,9 @@ class ExperimentSet:
     """A loaded experiment folder: everything `greybox fit` needs, in SI.
 
     - `device`: the device module (`models.<name>`); `model`: its default model with the
-      [camera] settings and the fixed [device.settings] applied.
-    - `camera`: {"fps", "exposure_s", "m_per_px"}; `fixed`: {path: SI value}.
+      [camera] settings and the fixed [experiment] settings applied.
+    - `camera`: the [camera] values given, in SI ({"fps", "exposure_s", "m_per_px"}, each
+      optional); `fixed`: {path: SI value} applied to every run.
     - `estimation`, `validation`: `Experiment`s by role; `runs`: `RunInfo` per run.
     - `free`: `FreeParameter`s to fit; `fit_options`: keyword arguments for `greybox.fit`.
     """
@@ -590,33 +605,35 @@ class ExperimentSet:
 
 
 def configure_model(device, camera: dict, fixed: dict):
-    """`device.default_model()` with the camera settings and the fixed values applied."""
+    """`device.default_model()` with the given camera settings and fixed values applied.
+
+    `camera` may hold "m_per_px" and "exposure_s" (SI); absent ones keep the device default.
+    """
     from greybox.parameters import set_values
 
     model = device.default_model()
     cam = model.camera
-    new_cam = type(cam)(m_per_px=float(camera["m_per_px"]), exposure_s=float(camera["exposure_s"]),
-                        offset_m=cam.offset_m, drift_m_per_s=cam.drift_m_per_s,
-                        n_quadrature=cam.n_quadrature)
-    model = eqx.tree_at(lambda m: m.camera, model, new_cam)
+    if camera.get("m_per_px") is not None or camera.get("exposure_s") is not None:
+        new_cam = type(cam)(
+            m_per_px=float(camera.get("m_per_px") or cam.m_per_px),
+            exposure_s=float(cam.exposure_s if camera.get("exposure_s") is None
+                             else camera["exposure_s"]),
+            offset_m=cam.offset_m, drift_m_per_s=cam.drift_m_per_s,
+            n_quadrature=cam.n_quadrature)
+        model = eqx.tree_at(lambda m: m.camera, model, new_cam)
     return set_values(model, list(fixed), [float(v) for v in fixed.values()])
 
 
-def _parameter_units(device) -> dict:
-    return {p.path: p.unit for p in getattr(device, "PARAMETERS", ())}
-
-
 def _settings(doc: _Toml, table, model, *path) -> dict:
+    """{dotted path: SI value} from a TOML table, each path checked against the model."""
     from greybox.parameters import get_value
 
     if not isinstance(table, dict):
-        raise doc.error("must be a table of \"dotted.path\" = value (SI units)", *path)
+        raise doc.error("must be a table of path = value (SI units), e.g. "
+                        "{ initial_rise_K = 0.0 }", *path)
     out = {}
     for key, value in table.items():
-        if isinstance(value, dict):  # unquoted dotted key: thermal.tau_s = 0.04
-            flat = _flatten(value, key)
-        else:
-            flat = {key: value}
+        flat = _flatten(value, key) if isinstance(value, dict) else {key: value}
         for k, v in flat.items():
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise doc.error(f"{v!r} must be a finite number (SI units)", *path, key)
@@ -624,7 +641,7 @@ def _settings(doc: _Toml, table, model, *path) -> dict:
                 get_value(model, k)
             except ValueError:
                 raise doc.error(f"{k!r} is not a parameter of the device model; see its "
-                                "parameter table (models/<device>.py PARAMETERS)", *path,
+                                "parameter table (PARAMETERS in models/<device>.py)", *path,
                                 key) from None
             out[k] = float(v)
     return out
@@ -641,48 +658,169 @@ def _flatten(table: dict, prefix: str) -> dict:
 
 
 def _free_parameters(doc: _Toml, entries, device, model, fixed: dict) -> tuple:
+    """[fit] free: paths picked from the device's standard free parameters, or tables that
+    define a free parameter (bounds, prior) in full. Absent: the standard list."""
     from greybox.parameters import get_value
 
+    defaults = {p.path: p for p in device.default_free_parameters()}
     if entries is None:
-        return tuple(device.default_free_parameters())
+        return tuple(defaults.values())
     if not isinstance(entries, list) or not entries:
-        raise doc.error("must be one or more [[free]] tables (or leave it out for the "
-                        "device's standard fit)", "free")
-    units = _parameter_units(device)
+        raise doc.error("must be a non-empty list of parameter paths (or tables); leave it "
+                        "out for the device's standard fit", "fit", "free")
+    units = {p.path: p.unit for p in getattr(device, "PARAMETERS", ())}
     out, seen = [], set()
     for i, e in enumerate(entries):
-        doc.check_keys(e, _FREE_KEYS, "free", i)
-        p = doc.string(e, "path", "free", i, required=True)
-        try:
-            get_value(model, p)
-        except ValueError:
-            known = ", ".join(sorted(units)) or "see models/<device>.py"
-            raise doc.error(f"{p!r} is not a parameter of {device.NAME}; known: {known}",
-                            "free", i, "path") from None
-        if p in seen:
-            raise doc.error(f"{p!r} is listed twice", "free", i, "path")
-        if p in fixed:
-            raise doc.error(f"{p!r} is also fixed in [device.settings]; fit it or fix it",
-                            "free", i, "path")
-        seen.add(p)
-        unit = doc.string(e, "unit", "free", i, default=units.get(p))
-        if unit is None:
-            raise doc.error("missing; this path is not in the device's parameter table, so "
-                            "give its SI unit (e.g. unit = \"s\")", "free", i, "unit")
-        per_run = e.get("per_run", False)
-        if not isinstance(per_run, bool):
-            raise doc.error(f"{per_run!r} must be true or false", "free", i, "per_run")
-        kw = {k: doc.number(e, k, "free", i) for k in
-              ("lower", "upper", "prior_median", "prior_log_sd", "initial")}
-        scale = doc.number(e, "scale", "free", i, default=1.0, positive=True)
-        try:
-            fp = FreeParameter(p, unit=unit, per_experiment=per_run, scale=scale, **kw)
-            if kw["initial"] is not None:
-                fp.check_value(kw["initial"])
-        except ValueError as err:
-            raise doc.error(str(err).split(": ", 1)[-1], "free", i, "path") from None
+        where = ("fit", "free", i)
+        if isinstance(e, str):
+            if e not in defaults:
+                raise doc.error(f"{e!r} is not one of {device.NAME}'s standard free "
+                                f"parameters ({', '.join(defaults)}); to fit another "
+                                "parameter give a table { path = ..., lower = ..., ... }",
+                                *where)
+            fp, path = defaults[e], e
+        elif isinstance(e, dict):
+            doc.check_keys(e, _FREE_KEYS, *where)
+            path = doc.string(e, "path", *where, required=True)
+            try:
+                get_value(model, path)
+            except ValueError:
+                known = ", ".join(sorted(units)) or "see models/<device>.py"
+                raise doc.error(f"{path!r} is not a parameter of {device.NAME}; known: {known}",
+                                *where, "path") from None
+            unit = doc.string(e, "unit", *where,
+                              default=units.get(path, getattr(defaults.get(path), "unit", None)))
+            if unit is None:
+                raise doc.error("missing; this path is not in the device's parameter table, "
+                                "so give its SI unit (e.g. unit = \"s\")", *where, "unit")
+            per_run = e.get("per_run", False)
+            if not isinstance(per_run, bool):
+                raise doc.error(f"{per_run!r} must be true or false", *where, "per_run")
+            kw = {k: doc.number(e, k, *where) for k in
+                  ("lower", "upper", "prior_median", "prior_log_sd", "initial")}
+            scale = doc.number(e, "scale", *where, default=1.0, positive=True)
+            try:
+                fp = FreeParameter(path, unit=unit, per_experiment=per_run, scale=scale, **kw)
+                if kw["initial"] is not None:
+                    fp.check_value(kw["initial"])
+            except ValueError as err:
+                raise doc.error(str(err).split(": ", 1)[-1], *where, "path") from None
+        else:
+            raise doc.error(f"{e!r}: give a quoted parameter path or a table", *where)
+        if path in seen:
+            raise doc.error(f"{path!r} is listed twice", *where)
+        if path in fixed:
+            raise doc.error(f"{path!r} is also fixed in [experiment] settings; fit it or fix "
+                            "it", *where)
+        seen.add(path)
         out.append(fp)
     return tuple(out)
+
+
+def _camera(doc: _Toml, data: dict) -> dict:
+    cam = doc.table(data, "camera", required=False)
+    doc.check_keys(cam, _CAMERA_KEYS, "camera")
+    fps = doc.number(cam, "fps", "camera", positive=True, unit="frames/s")
+    exposure_ms = doc.number(cam, "exposure_ms", "camera", nonneg=True,
+                             unit="ms (0 = instantaneous)")
+    um_per_px = doc.number(cam, "um_per_px", "camera", positive=True, unit="um per pixel")
+    if fps is not None and exposure_ms is not None and exposure_ms > 1e3 / fps * 1.0001:
+        raise doc.error(f"{exposure_ms:g} ms is longer than one frame interval (1/fps = "
+                        f"{1e3 / fps:g} ms); check fps and exposure_ms", "camera", "exposure_ms")
+    return {"fps": fps, "exposure_s": None if exposure_ms is None else exposure_ms * 1e-3,
+            "m_per_px": None if um_per_px is None else um_per_px * 1e-6}
+
+
+def _read_outputs(doc: _Toml, table: CsvTable, outputs, camera: dict, y_choice, run: str):
+    """(readings (N, n_y) in SI, column names); px columns need [camera] um_per_px."""
+    ys, cols = [], []
+    for ch in outputs:
+        col = channel_column(table, ch, required=True,
+                             choose=y_choice if len(outputs) == 1 else None,
+                             choose_hint=f" with y_column = \"...\" in run {run!r} of {doc.file}")
+        unit = col[len(ch.name) + 1:]
+        v = table.numbers(col, allow_missing=True, what=f"{ch.name} reading in {unit}")
+        if not np.isfinite(v).any():
+            raise InputError(f"every reading is empty or NaN ({v.size} rows); a run needs at "
+                             "least one tracked frame (check the tracker output)",
+                             file=table.file, line=table.lines[0], field=col)
+        if unit == PIXELS and camera["m_per_px"] is None:
+            raise InputError(f"pixel readings need the image scale: add um_per_px to [camera] "
+                             f"in {doc.file} (or give {ch.name}_um)", file=table.file, line=1,
+                             field=col)
+        ys.append(ch.to_si(v, unit, camera["m_per_px"]))
+        cols.append(col)
+    return np.column_stack(ys), cols
+
+
+def _check_frame_rate(doc: _Toml, table: CsvTable, t: np.ndarray, valid: np.ndarray,
+                      fps: float | None) -> None:
+    """Frame intervals must match [camera] fps within 3x (catches t_s written in ms)."""
+    if fps is None or valid.sum() < 3:
+        return
+    interval = float(np.median(np.diff(t[valid])))
+    expected = 1.0 / fps
+    if not expected / 3 <= interval <= 3 * expected:
+        hint = (" (t_s looks like milliseconds: divide by 1000)"
+                if 300 * expected <= interval <= 3000 * expected else "")
+        raise InputError(f"median frame interval {interval:g} s does not match 1/fps = "
+                         f"{expected:g} s from [camera] fps in {doc.file}{hint}; t_s must be "
+                         "seconds and fps the camera's frame rate", file=table.file,
+                         line=table.lines[0], field="t_s")
+
+
+def _read_inputs(doc: _Toml, table: CsvTable, entry: dict, t: np.ndarray, inputs, camera: dict,
+                 path: tuple, csv_name: str):
+    """(waveform in SI, text, source) from the run's `waveform` and/or logged columns."""
+    desc = entry.get("waveform")
+    if desc is not None and not isinstance(desc, dict):
+        raise doc.error("must be a table such as { type = \"pulse_train\", power_mW = 20, "
+                        "period_ms = 500, duty = 0.5, n_pulses = 10 } or { type = \"logged\" }",
+                        *path, "waveform")
+    kind = None if desc is None else desc.get("type")
+    if desc is not None and kind not in WAVEFORM_TYPES:
+        raise doc.error(f"{kind!r} is not a waveform type; use one of "
+                        f"{', '.join(repr(k) for k in WAVEFORM_TYPES)}", *path, "waveform", "type")
+    if kind == "logged" and len(desc) > 1:
+        extra = next(k for k in desc if k != "type")
+        raise doc.error("a logged waveform takes no other keys (the levels come from the CSV)",
+                        *path, "waveform", extra)
+    logged = {}
+    for ch in inputs:
+        col = channel_column(table, ch, required=kind == "logged")
+        if col is not None:
+            unit = col[len(ch.name) + 1:]
+            v = table.numbers(col, nonneg=True, what=f"logged {ch.description or ch.name} in "
+                                                     f"{unit}")
+            logged[ch.name] = (col, unit, ch.to_si(v, unit))
+    if desc is None and len(logged) < len(inputs):
+        names = " and ".join(ch.column_names()[0] for ch in inputs)
+        raise doc.error(f"no input waveform: describe it (waveform = {{ type = \"pulse_train\", "
+                        f"power_mW = ..., period_ms = ..., duty = 0.5, n_pulses = ... }}) or log "
+                        f"it in {csv_name} ({names}) with waveform = {{ type = \"logged\" }}",
+                        *path, "waveform")
+    end = t[-1] + (float(np.median(np.diff(t))) if t.size > 1 else 0.0)
+    if kind is None or kind == "logged":
+        waves = [from_samples(t, logged[ch.name][2], end_s=end, name=logged[ch.name][0])
+                 for ch in inputs]
+        text = (f"logged in {', '.join(logged[ch.name][0] for ch in inputs)} "
+                f"({t.size} samples, each held until the next)")
+        wave = waves[0] if len(waves) == 1 else stack_channels(waves)
+        return wave, text, "logged"
+    if len(inputs) != 1:
+        raise doc.error(f"a {kind} waveform describes one input, but {inputs[0].name}.. has "
+                        f"{len(inputs)} ({', '.join(c.name for c in inputs)}); log them in the "
+                        "CSV and use type = \"logged\"", *path, "waveform", "type")
+    ch = inputs[0]
+    wave, text = waveform_from_description(desc, ch, doc.error, (*path, "waveform"))
+    if ch.name not in logged:
+        return wave, text, "described"
+    col, unit, values = logged[ch.name]
+    slack = max(1.0 / camera["fps"] if camera["fps"] else 0.0, camera["exposure_s"] or 0.0,
+                float(np.median(np.diff(t))) if t.size > 1 else 0.0)
+    ref = f"{doc.file}:{doc.where.line(*path, 'waveform')}"
+    _check_log_against_description(table, col, values, t, wave, ch, unit, slack, ref)
+    return wave, text, "described (log checked)"
 
 
 def _load_run(doc: _Toml, i: int, entry: dict, directory: Path, device, model, camera: dict,
@@ -690,9 +828,7 @@ def _load_run(doc: _Toml, i: int, entry: dict, directory: Path, device, model, c
     path = ("runs", i)
     if not isinstance(entry, dict):
         raise doc.error("each run is a [[runs]] table", *path)
-    inputs = tuple(device.INPUTS)
-    outputs = tuple(device.OUTPUTS)
-    doc.check_keys(entry, _RUN_KEYS | {c.name for c in inputs}, *path)
+    doc.check_keys(entry, _RUN_KEYS, *path)
     name = doc.string(entry, "name", *path, required=True)
     if name in known_names:
         raise doc.error(f"run name {name!r} is used twice; names must be unique", *path, "name")
@@ -712,77 +848,18 @@ def _load_run(doc: _Toml, i: int, entry: dict, directory: Path, device, model, c
     table = read_csv(csv_path)
     t = time_column(table)
     _check_increasing(table, t)
-    ys, y_cols = [], []
-    for ch in outputs:
-        col = channel_column(table, ch, required=True, choose=y_choice if len(outputs) == 1
-                             else None, choose_hint=f" with y_column = \"...\" in run {name!r} "
-                             f"of {doc.file}")
-        unit = col[len(ch.name) + 1:]
-        v = table.numbers(col, allow_missing=True, what=f"{ch.name} reading in {unit}")
-        if not np.isfinite(v).any():
-            raise InputError(f"every reading is empty or NaN ({v.size} rows); a run needs at "
-                             "least one tracked frame (check the tracker output)",
-                             file=table.file, line=table.lines[0], field=col)
-        ys.append(ch.to_si(v, unit, camera["m_per_px"]) if unit == PIXELS else ch.to_si(v, unit))
-        y_cols.append(col)
-    y = np.column_stack(ys)
+    y, y_cols = _read_outputs(doc, table, device.OUTPUTS, camera, y_choice, name)
     valid = np.all(np.isfinite(y), axis=1)
-    if valid.sum() >= 3:
-        interval = float(np.median(np.diff(t[valid])))
-        expected = 1.0 / camera["fps"]
-        if not expected / 3 <= interval <= 3 * expected:
-            hint = (" (t_s looks like milliseconds: divide by 1000)"
-                    if 300 * expected <= interval <= 3000 * expected else "")
-            raise InputError(f"median frame interval {interval:g} s does not match 1/fps = "
-                             f"{expected:g} s from [camera] fps in {doc.file}{hint}; t_s must "
-                             "be seconds and fps the camera's frame rate", file=table.file,
-                             line=table.lines[0], field="t_s")
-
-    levels, sources, texts = [], [], []
-    for ch in inputs:
-        desc = entry.get(ch.name)
-        col = channel_column(table, ch, required=False)
-        logged = None
-        if col is not None:
-            unit = col[len(ch.name) + 1:]
-            v = table.numbers(col, nonneg=True,
-                              what=f"logged {ch.description or ch.name} in {unit}")
-            logged = (col, unit, ch.to_si(v, unit))
-        if desc is None and logged is None:
-            raise doc.error(f"run {name!r} has no {ch.name} waveform: describe it here "
-                            f"({ch.name} = {{ shape = \"pulse\", power_mW = ..., period_ms = "
-                            f"..., duty = 0.5, n_pulses = ... }}) or log it in a "
-                            f"{ch.column_names()[0]} column of {csv_path.name}", *path, ch.name)
-        if desc is not None:
-            wave, text = waveform_from_description(desc, ch, doc.error, (*path, ch.name))
-            source = "described"
-            if logged is not None:
-                slack = max(1.0 / camera["fps"], camera["exposure_s"])
-                ref = f"{doc.file}:{doc.where.line(*path, ch.name)}"
-                _check_log_against_description(table, logged[0], logged[2], t, wave, ch,
-                                               logged[1], slack, ref)
-                source = "described (log checked)"
-        else:
-            end = t[-1] + (float(np.median(np.diff(t))) if t.size > 1 else 0.0)
-            wave = from_samples(t, logged[2], end_s=end, name=logged[0])
-            text = f"logged in {logged[0]} ({t.size} samples, held between samples)"
-            source = "logged"
-        levels.append(wave)
-        sources.append(source)
-        texts.append(text)
-    if len(levels) == 1:
-        inputs_wave = levels[0]
-    else:
-        from greybox.waveforms import stack_channels
-
-        inputs_wave = stack_channels(levels)
+    _check_frame_rate(doc, table, t, valid, camera["fps"])
+    wave, text, source = _read_inputs(doc, table, entry, t, tuple(device.INPUTS), camera,
+                                      path, csv_path.name)
     try:
-        exp = Experiment(name, t, y if y.shape[1] > 1 else y[:, 0], inputs_wave,
+        exp = Experiment(name, t, y if y.shape[1] > 1 else y[:, 0], wave,
                          t_start_s=t_start, role=role, settings=settings)
     except ValueError as err:
         raise InputError(str(err), file=table.file) from None
     info = RunInfo(name, role, str(csv_path), ",".join(y_cols), t.size, int(valid.sum()),
-                   "; ".join(texts), "; ".join(sources))
+                   text, source)
     return exp, info
 
 
@@ -790,10 +867,13 @@ def _initial_offset(free: tuple, estimation: tuple) -> tuple:
     """Start per-run camera offsets at the median rest reading of the estimation runs.
 
     The fitter starts every run's offset from one value; a camera reading is the image
-    position (hundreds of um), so starting from 0 puts the fit far from the data. The rest
-    reading of a run is the median of its frames before the input first switches on (all
-    frames if there are fewer than three such frames).
+    position (hundreds of um), so starting from 0 puts the fit far from the data (it then
+    fails). A run's rest reading is the median of its frames before the input first
+    switches on (all its frames if fewer than three come before).
     """
+    if not any(p.path == "camera.offset_m" and p.per_experiment and p.initial is None
+               for p in free):
+        return free
     rest = []
     for e in estimation:
         levels = np.asarray(e.inputs.values).reshape(len(e.inputs.times_s), -1)
@@ -823,38 +903,19 @@ def load_experiment_set(directory) -> ExperimentSet:
     doc = _Toml(directory / TOML_NAME)
     data = doc.data
     doc.check_keys(data, _TOP_KEYS)
-    version = data.get("format", FORMAT_VERSION)
-    if version != FORMAT_VERSION:
-        raise doc.error(f"{version!r}: this greybox reads format = {FORMAT_VERSION}", "format")
-    description = data.get("description", "")
-    if not isinstance(description, str):
-        raise doc.error("must be a quoted string", "description")
-
-    dev = doc.table(data, "device")
-    doc.check_keys(dev, _DEVICE_KEYS, "device")
-    device_name = doc.string(dev, "model", "device", required=True)
+    exp = doc.table(data, "experiment")
+    doc.check_keys(exp, _EXPERIMENT_KEYS, "experiment")
+    device_name = doc.string(exp, "device", "experiment", required=True)
     try:
         device = models.load(device_name)
     except ValueError:
         raise doc.error(f"unknown device model {device_name!r}; known: "
                         f"{', '.join(models.available())} (a module in models/)",
-                        "device", "model") from None
-
-    cam = doc.table(data, "camera")
-    doc.check_keys(cam, _CAMERA_KEYS, "camera")
-    camera = {
-        "fps": doc.number(cam, "fps", "camera", required=True, positive=True, unit="frames/s"),
-        "exposure_s": doc.number(cam, "exposure_ms", "camera", required=True, nonneg=True,
-                                 unit="ms (0 = instantaneous)") * 1e-3,
-        "m_per_px": doc.number(cam, "um_per_px", "camera", required=True, positive=True,
-                               unit="um per pixel") * 1e-6,
-    }
-    if camera["exposure_s"] > 1.0 / camera["fps"] * 1.0001:
-        raise doc.error(f"{camera['exposure_s'] * 1e3:g} ms is longer than one frame interval "
-                        f"(1/fps = {1e3 / camera['fps']:g} ms); check fps and exposure_ms",
-                        "camera", "exposure_ms")
+                        "experiment", "device") from None
+    description = doc.string(exp, "description", "experiment", default="")
+    camera = _camera(doc, data)
     base = configure_model(device, camera, {})
-    fixed = _settings(doc, dev.get("settings", {}), base, "device", "settings")
+    fixed = _settings(doc, exp.get("settings", {}), base, "experiment", "settings")
     model = configure_model(device, camera, fixed)
 
     fitopt = doc.table(data, "fit", required=False)
@@ -866,20 +927,21 @@ def load_experiment_set(directory) -> ExperimentSet:
         "seed": doc.integer(fitopt, "seed", "fit", default=0, minimum=0),
         "max_steps": doc.integer(fitopt, "max_steps", "fit", default=200),
     }
-    if fit_options["method"] == "zoh" and not model.is_linear:
+    if fit_options["method"] == "zoh" and not model.is_linear and \
+            not isinstance(model, AbstractSteppedDevice):
         raise doc.error("the exact 'zoh' path needs a linear device; use method = \"adaptive\"",
                         "fit", "method")
-    free = _free_parameters(doc, data.get("free"), device, model, fixed)
+    free = _free_parameters(doc, fitopt.get("free"), device, model, fixed)
 
     runs = data.get("runs")
     if not isinstance(runs, list) or not runs:
-        raise doc.error("no runs; add one [[runs]] table per CSV (name, file, role, and the "
-                        "laser waveform)", "runs")
+        raise doc.error("no runs; add one [[runs]] table per CSV (name, file, role, waveform)",
+                        "runs")
     experiments, infos, names = [], [], set()
     for i, entry in enumerate(runs):
-        exp, info = _load_run(doc, i, entry, directory, device, model, camera, names)
-        names.add(exp.name)
-        experiments.append(exp)
+        e, info = _load_run(doc, i, entry, directory, device, model, camera, names)
+        names.add(e.name)
+        experiments.append(e)
         infos.append(info)
     estimation = tuple(e for e in experiments if e.role == "estimation")
     validation = tuple(e for e in experiments if e.role == "validation")

@@ -14,7 +14,8 @@ Schema (``"schema": "greybox.params/1"``):
 - ``free``: the free-parameter specs (path, unit, bounds, per_experiment, prior, initial,
   scale) in the order of ``raw``; ``raw`` and ``covariance_raw``: the optimiser's
   transformed coordinates and their posterior covariance (shared parameters first, then one
-  block per estimation run), from which `greybox.prediction` rebuilds a band.
+  block per estimation run), from which `greybox.prediction` rebuilds a band;
+  ``null_directions_raw``: directions of ``raw`` that nothing determined (usually none).
 - ``sigma``: noise scale per output [SI] and whether it was estimated.
 - ``fit_percent``: ``{"horizon": "simulation", "estimation": {run: %}, "validation":
   {run: %}}``; ``runs``: frames, valid frames, outliers flagged per run.
@@ -87,6 +88,9 @@ def params_document(fitset, result, validation=None) -> dict:
         "raw": _nums(result.raw),
         "raw_labels": list(ident.raw_labels),
         "covariance_raw": _nums(result.covariance_raw),
+        "null_directions_raw": _nums(np.reshape(
+            getattr(ident, "null_directions", np.zeros((0, result.raw.size))),
+            (-1, result.raw.size))),
         "sigma": {"value": _nums(result.sigma),
                   "unit": [c.si_unit for c in fitset.device.OUTPUTS],
                   "estimated": True, "how": "robust (MAD) scale of the residuals"},
@@ -125,7 +129,8 @@ class FittedModel:
 
     - `model`: the device model with the fitted shared values, the fixed settings and the
       camera; per-run nuisance values (camera offset, drift) stay at the device default (0).
-    - `free`: the free-parameter specs; `raw`, `covariance_raw`: as fitted (all parameters).
+    - `free`: the free-parameter specs; `raw`, `covariance_raw`, `null_directions`: as
+      fitted (all parameters; see `greybox.prediction.prediction_band`).
     - `sigma`: noise scale per output [SI]; `method`: simulation path used by the fit.
     """
 
@@ -135,6 +140,7 @@ class FittedModel:
     free: tuple
     raw: np.ndarray
     covariance_raw: np.ndarray
+    null_directions: np.ndarray
     sigma: np.ndarray
     method: str
     document: dict
@@ -186,6 +192,7 @@ def load_params(path) -> FittedModel:
                      for f in free_docs)
         cov = np.array([[np.nan if v is None else v for v in row] for row in cov_list],
                        dtype=float)
+        nulls = np.array(doc.get("null_directions_raw") or [], dtype=float).reshape(-1, raw.size)
         model = configure_model(device, camera, fixed)
         model = set_values(model, list(fitted), [float(v) for v in fitted.values()])
     except (TypeError, ValueError, KeyError) as err:
@@ -194,4 +201,4 @@ def load_params(path) -> FittedModel:
     if cov.shape != (raw.size, raw.size):
         raise InputError(f"covariance_raw is {cov.shape}, raw has {raw.size} entries",
                          file=file, field="covariance_raw")
-    return FittedModel(device_name, device, model, free, raw, cov, sigma, method, doc)
+    return FittedModel(device_name, device, model, free, raw, cov, nulls, sigma, method, doc)

@@ -8,7 +8,8 @@ wrapper) to ask ffmpeg for 8- or 16-bit *grey* frames, which decodes fast and ke
 16-bit camera data intact.
 
 Timestamps: per-frame presentation times are read from the container (ffmpeg's
-``framemd5`` muxer with ``-c copy``: packet pts without decoding). If they are missing or
+``framecrc`` muxer with ``-c copy``: packet pts without decoding; its Adler-32
+checksum costs a fifth of ``framemd5``'s MD5 on uncompressed video). If they are missing or
 do not match the decoded frame count, the container's frame rate is used
 (t_k = k / fps); ``fps`` given by the caller overrides both. Image stacks have no time
 base: they need ``fps``.
@@ -24,10 +25,13 @@ Errors a user can cause raise `greybox.errors.InputError` naming the file.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
+import queue
 import re
 import subprocess
-from collections.abc import Iterator
+import threading
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -90,11 +94,11 @@ def _ffmpeg_meta(path: Path) -> dict:
 def container_timestamps(path: str | os.PathLike) -> np.ndarray | None:
     """Per-frame presentation times (s, from 0) of the first video stream, or None.
 
-    Reads packet pts with ffmpeg's framemd5 muxer and ``-c copy`` (no decoding), sorted
+    Reads packet pts with ffmpeg's framecrc muxer and ``-c copy`` (no decoding), sorted
     into presentation order.
     """
     cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-i", str(path), "-map", "0:v:0",
-           "-c", "copy", "-f", "framemd5", "-"]
+           "-c", "copy", "-f", "framecrc", "-"]
     try:
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=120).stdout
     except (OSError, subprocess.SubprocessError):
@@ -146,21 +150,41 @@ def _read_image(path: Path) -> np.ndarray:
 
 
 def iter_frames(path: str | os.PathLike, info: VideoInfo | None = None, *,
-                chunk: int = 256) -> Iterator[np.ndarray]:
+                chunk: int = 256, crop: tuple[int, int, int, int] | None = None
+                ) -> Iterator[np.ndarray]:
     """Yield grey frames in chunks, each (n <= chunk, H, W), of ``info.dtype``.
 
     Streaming keeps memory bounded for long videos; frames of a different size than the
-    first raise `InputError`.
+    first raise `InputError`. ``crop = (x, y, w, h)`` px (x = column of the left edge,
+    0-based; must lie inside the frame) yields only that region, (n, h, w): for a video
+    ffmpeg crops inside the decoder process (after the grey conversion, so any offset is
+    exact even for chroma-subsampled codecs), so full frames never cross the pipe; that
+    is what makes tracking one ROI of a large frame fast (benchmarks/track.py).
     """
     path = Path(path)
     info = probe(path) if info is None else info
+    if crop is not None:
+        cx, cy, cw, ch = (int(v) for v in crop)
+        if cx < 0 or cy < 0 or cw < 1 or ch < 1 or cx + cw > info.shape[1] \
+                or cy + ch > info.shape[0]:
+            raise ValueError(f"crop {crop} (x, y, w, h px) is outside the "
+                             f"{info.shape[1]}x{info.shape[0]} px frame")
     if info.kind == "video":
         deep = info.dtype == np.uint16
-        gen = imageio_ffmpeg.read_frames(str(path), pix_fmt="gray16le" if deep else "gray",
+        pix = "gray16le" if deep else "gray"
+        params = [] if crop is None else ["-vf", f"format={pix},crop={cw}:{ch}:{cx}:{cy}"]
+        gen = imageio_ffmpeg.read_frames(str(path), pix_fmt=pix, output_params=params,
                                          bits_per_pixel=16 if deep else 8)
-        h, w = info.shape
+        h, w = info.shape if crop is None else (ch, cw)
         try:
-            next(gen)  # metadata
+            # imageio-ffmpeg warns that a cropped size differs from the source: intended.
+            quiet = logging.getLogger("imageio_ffmpeg")
+            level = quiet.level
+            quiet.setLevel(logging.ERROR if crop is not None else level)
+            try:
+                next(gen)  # metadata
+            finally:
+                quiet.setLevel(level)
             buf = []
             for raw in gen:
                 buf.append(np.frombuffer(raw, dtype="<u2" if deep else np.uint8)
@@ -184,11 +208,68 @@ def iter_frames(path: str | os.PathLike, info: VideoInfo | None = None, *,
                 if fr.shape != info.shape:
                     raise InputError(f"image is {fr.shape[1]}x{fr.shape[0]} px, the stack's "
                                      f"first is {info.shape[1]}x{info.shape[0]}", file=str(f))
-            yield np.stack(frames)
+            yield _crop(np.stack(frames), crop)
         return
     pages = _tiff_pages(path)
     for i in range(0, len(pages), chunk):
-        yield pages[i:i + chunk]
+        yield _crop(pages[i:i + chunk], crop)
+
+
+def _crop(frames: np.ndarray, crop) -> np.ndarray:
+    if crop is None:
+        return frames
+    x, y, w, h = crop
+    return np.ascontiguousarray(frames[:, y:y + h, x:x + w])
+
+
+def prefetch(chunks: Iterable[np.ndarray], depth: int = 2) -> Iterator[np.ndarray]:
+    """Yield the items of ``chunks`` while a background thread reads up to ``depth``
+    ahead, so decoding (the ffmpeg process and the pipe reads, which release the GIL)
+    overlaps the caller's work on the previous chunk (numpy FFTs and matrix products
+    also release it). Without it ffmpeg stalls as soon as the pipe buffer (64 KiB, a few
+    cropped frames) is full. An exception in the reader (e.g. `InputError` on a corrupt
+    video) is re-raised here; closing this generator early stops and joins the reader.
+    """
+    items: queue.Queue = queue.Queue(maxsize=max(1, int(depth)))
+    stop = threading.Event()
+    end = object()
+
+    def put(item) -> bool:
+        while not stop.is_set():
+            try:
+                items.put(item, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def reader():
+        source = iter(chunks)
+        try:
+            for chunk in source:
+                if not put((chunk, None)):
+                    return
+            put((end, None))
+        except BaseException as err:  # handed to the consumer, re-raised there
+            put((end, err))
+        finally:
+            close = getattr(source, "close", None)
+            if close is not None:
+                close()  # stops the ffmpeg process when the consumer quit early
+
+    thread = threading.Thread(target=reader, name="greybox-prefetch", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item, err = items.get()
+            if item is end:
+                if err is not None:
+                    raise err
+                return
+            yield item
+    finally:
+        stop.set()
+        thread.join()
 
 
 def _tiff_pages(path: Path) -> np.ndarray:

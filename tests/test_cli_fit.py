@@ -1,0 +1,200 @@
+"""`greybox fit` on the embedded data set: the files it writes, the truth it recovers, and
+that an interrupted or failed run leaves no result behind.
+
+One fit of the embedded set is shared by this module and tests/test_cli_simulate.py
+(`fitted_dir`), so the suite compiles and runs it once.
+"""
+
+import atexit
+import functools
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from greybox.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+EMBEDDED = ROOT / "experiments" / "chevron_laser"
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+RUNS = ["e1_5mW_200ms", "e2_10mW_200ms", "e3_10mW_300ms", "e4_15mW_400ms", "e5_20mW_600ms",
+        "e6_30mW_1000ms", "v1_8mW_250ms", "v2_12mW_500ms", "v3_25mW_800ms"]
+
+
+@functools.cache
+def fitted_dir() -> Path:
+    """The result folder of `greybox fit experiments/chevron_laser` (run once per process)."""
+    base = Path(tempfile.mkdtemp(prefix="greybox-test-fit-"))
+    atexit.register(shutil.rmtree, base, ignore_errors=True)
+    out = base / "result"
+    assert main(["fit", str(EMBEDDED), "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def result():
+    return fitted_dir()
+
+
+@pytest.fixture(scope="module")
+def params(result):
+    def no_nan(name):
+        raise AssertionError(f"params.json holds {name}: not strict JSON")
+
+    return json.loads((result / "params.json").read_text(), parse_constant=no_nan)
+
+
+@pytest.fixture(scope="module")
+def truth():
+    return json.loads((EMBEDDED / "truth.json").read_text())
+
+
+def test_params_json_schema(params):
+    assert params["schema"] == "greybox.params/1"
+    assert params["device"] == "chevron_laser"
+    assert params["model"]["camera"] == {"m_per_px": 0.645e-6, "exposure_s": 0.01, "fps": 30.0}
+    assert set(params["model"]["fitted"]) == {"absorptance", "thermal.tau_s"}
+    entries = params["parameters"]
+    assert len(entries) == 2 + 6  # two shared values and one offset per estimation run
+    for p in entries:
+        assert set(p) >= {"name", "path", "unit", "value", "se", "ci95", "verdict",
+                          "experiment", "prior"}
+        assert p["verdict"] in ("identifiable", "prior-dominated", "not identifiable")
+        lo, hi = p["ci95"]
+        assert lo < p["value"] < hi and p["se"] > 0
+    units = {p["path"]: p["unit"] for p in entries}
+    assert units == {"absorptance": "1", "thermal.tau_s": "s", "camera.offset_m": "m"}
+    owners = [p["experiment"] for p in entries if p["path"] == "camera.offset_m"]
+    assert owners == RUNS[:6]
+    n = len(params["raw"])
+    assert n == 8 and np.asarray(params["covariance_raw"]).shape == (n, n)
+    assert [f["path"] for f in params["free"]] == ["absorptance", "thermal.tau_s",
+                                                   "camera.offset_m"]
+    fp = params["fit_percent"]
+    assert fp["horizon"] == "simulation"
+    assert list(fp["estimation"]) == RUNS[:6] and list(fp["validation"]) == RUNS[6:]
+    assert params["convergence"]["converged"] is True
+    assert params["sigma"]["estimated"] is True
+    assert params["identifiability"]["weak_directions"] == []
+
+
+def test_true_values_inside_reported_intervals(params, truth):
+    est = {p["name"]: p for p in params["parameters"]}
+    for path, t in truth["parameters"].items():
+        p = est[path]
+        assert p["verdict"] == "identifiable"
+        lo, hi = p["ci95"]
+        assert lo <= t["value"] <= hi, (path, t["value"], p["ci95"])
+        # the fit moved away from the nominal start: the nominal value is excluded
+        assert not lo <= t["nominal"] <= hi, (path, t["nominal"], p["ci95"])
+    # Per-run offsets are nuisance values: eight 95 % intervals all cover their truth only
+    # ~2/3 of the time, and the corrupted burst biases its run's offset by ~2 nm under the
+    # Huber loss (each outlier keeps a pull of c = 1.5 sigma). Each must still be within
+    # 3.5 standard errors, i.e. a few nm of ~200 um.
+    offsets = {p["experiment"]: p for p in params["parameters"] if p["experiment"]}
+    assert set(offsets) == set(RUNS[:6])
+    for run, p in offsets.items():
+        error = p["value"] - truth["camera_offset_m"][run]
+        assert abs(error) < 3.5 * p["se"], (run, error, p["se"])
+
+
+def test_fit_quality_is_at_the_noise_level(params, truth):
+    sigma_um = params["sigma"]["value"][0] * 1e6
+    assert sigma_um == pytest.approx(truth["camera"]["noise_um"], rel=0.15)
+    # the 30 mW run has ~5 um swing on 0.05 um noise: a right model fits it closely
+    assert params["fit_percent"]["estimation"]["e6_30mW_1000ms"] > 90
+    assert min(params["fit_percent"]["validation"].values()) > 60
+    # the corrupted burst (8 frames, one may be dropped) is flagged in its run only
+    flagged = {r: v["outliers_flagged"] for r, v in params["runs"].items()}
+    assert 6 <= flagged[truth["camera"]["burst_run"]] <= 8
+    assert sum(flagged.values()) == flagged[truth["camera"]["burst_run"]]
+
+
+def test_report_states_what_the_numbers_are(result):
+    text = (result / "report.md").read_text()
+    assert "free-run simulation" in text and "not one-step" in text
+    assert "fit % (simulation)" in text
+    assert "estimated from the residuals" in text
+    assert "Outliers flagged" in text and "converged" in text
+    assert "every fitted parameter is identifiable" in text
+    for run in RUNS:
+        assert run in text
+    assert "| `thermal.tau_s` |" in text and "| ms |" in text
+
+
+def test_figures_are_png(result):
+    names = [f"fit_{r}.png" for r in RUNS] + ["residuals.png", "correlation.png"]
+    assert sorted(p.name for p in (result / "figures").iterdir()) == sorted(names)
+    for name in names:
+        data = (result / "figures" / name).read_bytes()
+        assert data.startswith(PNG_SIGNATURE) and len(data) > 10_000, name
+    text = (result / "report.md").read_text()
+    assert all(f"figures/{n}" in text for n in names)
+
+
+def test_interrupted_fit_leaves_the_previous_result(result, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while the figures are written: exit 130, the earlier result stays whole."""
+    import greybox.plots
+
+    out = tmp_path / "result"
+    shutil.copytree(result, out)
+    before = (out / "params.json").read_bytes()
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(greybox.plots, "correlation_figure", interrupt)
+    assert main(["fit", str(EMBEDDED), "--out", str(out)]) == 130
+    err = capsys.readouterr().err
+    assert "[" in err and "fitting" in err  # progress lines were shown
+    assert "no result was written" in err
+    assert (out / "params.json").read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["result"]  # no partial folder
+
+
+def test_failed_fit_leaves_no_result(tmp_path, monkeypatch):
+    import importlib
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("solver exploded")
+
+    # the module, not the function that greybox/__init__ re-exports under the same name
+    monkeypatch.setattr(importlib.import_module("greybox.fit"), "fit", broken)
+    out = tmp_path / "result"
+    with pytest.raises(RuntimeError, match="solver exploded"):
+        main(["fit", str(EMBEDDED), "--out", str(out), "--quiet"])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_prior_dominated_parameter_is_reported(tmp_path):
+    """Freeing the thermal resistance with a log-normal prior: the report calls it
+    prior-dominated and names the absorptance x resistance combination."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from greybox.cli._fit import render_report
+    from greybox.fit import fit
+    from greybox.io.experiment_files import load_experiment_set
+
+    folder = tmp_path / "prior"
+    shutil.copytree(EMBEDDED, folder, ignore=shutil.ignore_patterns("*.py", "v*.csv"))
+    text = (folder / "experiment.toml").read_text()
+    text = text.replace('free = ["absorptance", "thermal.tau_s", "camera.offset_m"]',
+                        'free = ["absorptance", "thermal.tau_s", { path = '
+                        '"thermal.resistance_K_per_W", lower = 0.0, prior_median = 1355.0, '
+                        'prior_log_sd = 0.3 }, "camera.offset_m"]')
+    runs = text.split("[[runs]]")
+    text = "[[runs]]".join(r for r in runs if 'role = "validation"' not in r)
+    (folder / "experiment.toml").write_text(text)
+    fs = load_experiment_set(folder)
+    res = fit(fs.model, fs.estimation, fs.free, **fs.fit_options)
+    verdicts = {p.name: p.verdict for p in res.parameters}
+    assert verdicts["thermal.resistance_K_per_W"] == "prior-dominated"
+    assert verdicts["thermal.tau_s"] == "identifiable"
+    report = render_report(fs, res, None, [])
+    assert "| `thermal.resistance_K_per_W` |" in report and "prior-dominated" in report
+    ident = report.split("## Identifiability")[1]
+    assert "`absorptance` x `thermal.resistance_K_per_W`" in ident

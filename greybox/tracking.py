@@ -4,23 +4,35 @@ Pure: numpy arrays in, numpy arrays out; no file I/O, no printing.
 
 Algorithm (per feature, against a reference frame; the feature is a user ROI):
 
-1. **Coarse, whole pixel** (batched over frames with `numpy.fft`): phase correlation of the
-   tapered, zero-mean reference template with a search window = ROI grown by
-   ``search_px`` on each side. Gives the integer displacement, up to ±``search_px``.
-2. **Fine, sub-pixel**: the patch at the integer displacement is registered against the
-   template by the Guizar-Sicairos et al. (2008) upsampled-DFT refinement with plain
-   cross-correlation (what scikit-image's `phase_cross_correlation` computes with
-   ``normalization=None``: the least-squares estimator for white noise, more
-   noise-robust than phase whitening), batched over all frames of a chunk
-   (`_refine_batch`): scikit-image's one-frame-at-a-time call cost 60 % of the run time
-   in Python overhead and small matrix products. The residual is within ±0.5 px, where
-   the fixed taper's pull towards zero shift is negligible (measured bias < 0.005 px,
-   tests/test_tracking.py); `_refine_batch` is checked against scikit-image there.
-3. **Per-frame quality**: ``rho`` = zero-mean, tapered normalised cross-correlation at
+1. **Coarse, whole pixel** (batched over all frames of a chunk, `scipy.fft` real FFTs
+   in single precision): phase correlation of the tapered, zero-mean reference template
+   with a search window = ROI grown by ``search_px`` on each side. Gives the integer
+   displacement, up to ±``search_px``, and a parabolic estimate (about 0.1 px) of the
+   peak's sub-pixel position.
+2. **Pre-shift** (batched, Fourier shift theorem: one phase ramp per frame): the patch at
+   the integer displacement is moved back by the parabolic estimate, so the residual left
+   for step 3 is tiny. Without it the fixed taper, which does not move with the feature,
+   pulls each estimate by a few % of its sub-pixel part towards the nearest whole pixel
+   (measured on tests/test_tracking.py's sequences: bias 0.010 px at 0.75 px phase, RMS
+   0.024 px at 0.5 px; with it: bias <= 0.005 px, RMS <= 0.013 px at every phase).
+3. **Fine, sub-pixel**: scikit-image's `phase_cross_correlation`, frame by frame
+   (``space="fourier"``, ``upsample_factor=upsample``, ``normalization=None``): the
+   Guizar-Sicairos et al. (2008) upsampled-DFT refinement of the plain
+   cross-correlation, which is the least-squares estimator for white noise and more
+   noise-robust than phase whitening. The published implementation is used rather than
+   our own (the issue asks for it); we only hand it the patch spectra, computed in one
+   batched FFT. Its small matrix products run on one BLAS thread (`_one_blas_thread`):
+   multithreaded OpenBLAS on 150 x 64 matrices spends its time synchronising (measured
+   1.4-2 ms -> 10-25 ms per frame on the shared 2-core machine), and the other core is
+   decoding video (`greybox.io.video.prefetch`). Its error metric gives ``rho``.
+   In short: scikit-image does the sub-pixel registration; `scipy.fft` the batched
+   whole-pixel search and patch spectra; numpy the parabola and phase ramp of step 2
+   (a coarse starting point, not the estimate); threadpoolctl the BLAS thread limit.
+4. **Per-frame quality**: ``rho`` = zero-mean, tapered normalised cross-correlation at
    the sub-pixel peak (invariant to illumination gain/offset drift); ``sharpness`` =
    mid-band spectral energy / total energy, relative to the reference (defocus);
    ``saturation`` = fraction of ROI pixels at the saturation level (glare).
-4. **Honest sigma**: the noise energy implied by the decorrelation, N ≈ (1 - rho)·S,
+5. **Honest sigma**: the noise energy implied by the decorrelation, N ≈ (1 - rho)·S,
    propagated through the least-squares shift estimator,
    ``sigma² = 2 σ_n² Σ W² g² / (Σ W g²)²`` (g = template gradient along the axis,
    W = taper², σ_n² = per-pixel noise variance, factor 2 = noise in both images).
@@ -34,9 +46,9 @@ Flagging thresholds (`Thresholds`, why each value), tested in this order (first 
   sensor destroys the texture in the clipped region; a few hot pixels do not).
 - ``low_contrast``: ROI standard deviation < 25 % of the reference's (lamp off, dropped
   frame): the gain drift we accept is slow and far smaller.
-- ``blur``: sharpness < 0.5 x reference (defocus: half the mid-band energy gone). Motion blur within the exposure is
-  *not* flagged unless this severe: its centroid is the exposure-averaged position,
-  which is what the camera model (PHYSICS.md §10) predicts.
+- ``blur``: sharpness < 0.5 x reference (defocus: half the mid-band energy gone). Motion
+  blur within the exposure is *not* flagged unless this severe: its centroid is the
+  exposure-averaged position, which is what the camera model (PHYSICS.md §10) predicts.
 - ``lost``: the whole-pixel peak puts the feature outside the search window or image.
 - ``low_correlation``: rho < 0.5, or decorrelation 1 - rho > 4x the run's median and
   > median + 0.02 (dust, occlusion, a wrong peak). Relative, because the normal 1 - rho
@@ -50,11 +62,13 @@ Flagging thresholds (`Thresholds`, why each value), tested in this order (first 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Iterable, Sequence
 
 import numpy as np
 from scipy import fft as sfft
-from threadpoolctl import threadpool_limits
+from skimage.registration import phase_cross_correlation
+from threadpoolctl import ThreadpoolController
 
 REASONS = ("glare", "low_contrast", "blur", "lost", "low_correlation", "outlier_jump")
 
@@ -137,7 +151,8 @@ def _search_window(roi: Roi, search_px: int, shape, offset=(0, 0)):
             max(roi.x + ox - search_px, 0), min(roi.x + ox + roi.w + search_px, shape[1]))
 
 
-def search_crop(roi: Roi, search_px: int, shape: Sequence[int]) -> tuple[tuple[int, int, int, int], Roi]:
+def search_crop(roi: Roi, search_px: int,
+                shape: Sequence[int]) -> tuple[tuple[int, int, int, int], Roi]:
     """The only part of (H, W) frames a fixed-window `FeatureTracker` reads.
 
     Returns ``(crop, roi_in_crop)``: ``crop = (x, y, w, h)`` px, the search window at the
@@ -147,6 +162,18 @@ def search_crop(roi: Roi, search_px: int, shape: Sequence[int]) -> tuple[tuple[i
     """
     y0, y1, x0, x1 = _search_window(roi, int(search_px), shape)
     return (x0, y0, x1 - x0, y1 - y0), Roi(roi.x - x0, roi.y - y0, roi.w, roi.h)
+
+
+@functools.cache
+def _blas_controller() -> ThreadpoolController:
+    """The process's thread pools, inspected once (~0.3 ms; a limit from it costs ~3 us)."""
+    return ThreadpoolController()
+
+
+def _one_blas_thread():
+    """Context manager: one BLAS thread for scikit-image's small matrix products (see the
+    module docstring, step 3)."""
+    return _blas_controller().limit(limits=1, user_api="blas")
 
 
 class FeatureTracker:
@@ -186,7 +213,7 @@ class FeatureTracker:
         self._tmpl_fft = np.fft.fft2(tz)
         fy = np.fft.fftfreq(roi.h)[:, None]
         fx = np.fft.fftfreq(roi.w)[None, :]
-        self._fy, self._fx = fy, fx
+        self._fy = fy
         self._rfx = np.fft.rfftfreq(roi.w)[None, :]  # half-spectrum columns
         f = np.hypot(fx, fy)
         # Mid band, where texture beats shot noise and defocus removes energy.
@@ -267,23 +294,27 @@ class FeatureTracker:
         patches = frames[np.arange(n)[:, None, None], y0 + rows[:, :, None],
                          x0 + cols[:, None, :]].astype(float)
         # Parabolic sub-pixel estimate of the coarse peak (about 0.1 px): the patch is
-        # moved back by it (Fourier shift) before the fine step, so the fine residual is
-        # tiny and the fixed taper's pull towards zero shift (~3 % of the residual)
-        # becomes negligible.
+        # moved back by it before the fine step, so the fixed taper's pull on the fine
+        # residual (a few % of it) is negligible (module docstring, step 2).
         s0 = np.stack([self._parabola(cc.reshape(n, hs, ws), py0, px0, ax)
                        for ax in (0, 1)], 1).astype(float)
-        # 2. sub-pixel: batched FFT and batched upsampled-DFT refinement.
+        # 2. pre-shift by s0 (batched phase ramp), then 3. scikit-image, frame by frame.
         pz = patches - patches.mean(axis=(1, 2), keepdims=True)
         ramp = np.exp(2j * np.pi * s0[:, 0, None, None] * self._fy[None]) \
             * np.exp(2j * np.pi * s0[:, 1, None, None] * self._rfx[None])
         pz = sfft.irfft2(sfft.rfft2(pz) * ramp, s=(r.h, r.w))
         spec = sfft.fft2(pz * self._win[None])
-        fine, err = _refine_batch(self._tmpl_fft, spec, self.upsample)
+        fine, err = np.empty((n, 2)), np.empty(n)
+        with _one_blas_thread():
+            for k in range(n):
+                fine[k], err[k], _ = phase_cross_correlation(
+                    self._tmpl_fft, spec[k], space="fourier", upsample_factor=self.upsample,
+                    normalization=None)
         # `fine` registers the patch onto the template: the feature moved by minus that.
         dy = iy + s0[:, 0] - fine[:, 0]
         dx = ix + s0[:, 1] - fine[:, 1]
         rho = np.sqrt(np.clip(1.0 - err**2, 0.0, 1.0))
-        # 3./4. quality and sigma.
+        # 4./5. quality and sigma.
         pstd = patches.std(axis=(1, 2))
         noise_var = (1.0 - rho) * self._tz_energy / self._w2_sum
         sig_n = np.sqrt(noise_var)
@@ -296,75 +327,6 @@ class FeatureTracker:
             lost=lost)
 
 
-def _dft_window(product, centre, step, half):
-    """Cross-correlation sum_k product_k exp(+2 pi i f_k . s) on the grid
-    s = centre + step * (-half..half) per axis (the matrix-multiply DFT of Guizar-Sicairos
-    et al. 2008): ``product`` (n, h, w) spectrum, ``centre`` (n, 2) (row, col) px.
-    Returns (n, 2 half + 1, 2 half + 1) complex."""
-    h, w = product.shape[1:]
-    fy, fx = np.fft.fftfreq(h), np.fft.fftfreq(w)
-    # Shift to the per-frame centre (a separable phase ramp), then one DFT kernel for all
-    # frames, applied as two large matrix products (tensordot) rather than n small ones;
-    # the column part of the ramp is applied after the row DFT, on m < h rows.
-    shifted = product * np.exp(2j * np.pi * centre[:, 0, None, None] * fy[None, :, None])
-    a = step * np.arange(-half, half + 1)
-    ky = np.exp(2j * np.pi * a[:, None] * fy[None])  # (m, h)
-    kx = np.exp(2j * np.pi * a[:, None] * fx[None])  # (m, w)
-    rows = np.tensordot(shifted, ky, axes=([1], [1]))  # (n, w, m): row DFT
-    rows *= np.exp(2j * np.pi * centre[:, 1, None, None] * fx[None, :, None])
-    return np.tensordot(rows, kx, axes=([1], [1]))  # (n, m_rows, m_cols)
-
-
-def _argmax_offset(cc, half):
-    """(n, 2) grid offsets (row, col) in -half..half of each frame's |cc| maximum, and the
-    complex value there."""
-    n, m = cc.shape[0], cc.shape[1]
-    flat = np.argmax(np.abs(cc).reshape(n, -1), axis=1)
-    iy, ix = np.divmod(flat, m)
-    return np.stack([iy, ix], 1) - half, cc[np.arange(n), iy, ix]
-
-
-def _refine_batch(ref_fft, moving_fft, upsample):
-    """Sub-pixel shifts (n, 2) (row, col) registering ``moving_fft`` (n, h, w) onto
-    ``ref_fft`` (h, w), and the RMS error metric (n,), as scikit-image's
-    ``phase_cross_correlation(ref, moving, space="fourier", upsample_factor=upsample,
-    normalization=None)`` computes them frame by frame, but batched.
-
-    Whole-pixel peak by inverse FFT, then the upsampled DFT over ±0.75 px in two stages
-    (~1/10 px steps over ±0.8 px, then 1/upsample px steps over ±0.6 coarse steps around
-    that peak): the correlation peak is smooth over ~1 px, so the coarse grid's maximum
-    is within half a coarse step of the true one and the result equals scikit-image's
-    one-stage 150 x 150 grid (upsample = 100) at 1/15 of the cost.
-    """
-    product = ref_fft[None] * np.conj(moving_fft)
-    n, h, w = product.shape
-    # Hermitian (both images real): the real inverse FFT of the half spectrum.
-    cc = sfft.irfft2(product[..., :w // 2 + 1], s=(h, w))
-    flat = np.argmax(np.abs(cc).reshape(n, -1), axis=1)
-    shift = np.stack(np.divmod(flat, w), 1).astype(float)
-    size = np.array([h, w])
-    shift = np.where(shift > size // 2, shift - size, shift)
-    if upsample > 1:
-        # Coarse step: about 1/10 px, a whole number k of fine steps, so both stages stay
-        # on scikit-image's grid (whole-pixel peak + j/upsample).
-        k = max(1, round(0.1 * upsample))
-        stages = [(1, int(np.ceil(0.75 * upsample)))] if k == 1 else \
-            [(k, int(np.ceil(0.8 * upsample / k))), (1, int(np.ceil(0.6 * k)))]
-        for k_step, half in stages:
-            off, ccmax = _argmax_offset(_dft_window(product, shift, k_step / upsample, half),
-                                        half)
-            shift = shift + k_step * off / upsample
-        shift = np.round(shift * upsample) / upsample  # clean the float sums
-    else:
-        ccmax = cc.reshape(n, -1)[np.arange(n), flat]
-    src_amp = np.sum(np.abs(ref_fft) ** 2)
-    target_amp = np.sum(np.abs(moving_fft) ** 2, axis=(1, 2))
-    if upsample <= 1:  # scikit-image's ifft-normalised peak in this branch
-        src_amp, target_amp = src_amp / (h * w), target_amp / (h * w)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        error = 1.0 - np.abs(ccmax) ** 2 / (src_amp * target_amp)
-    return shift, np.sqrt(np.abs(error))
-
 
 def measure_sequence(trackers: Sequence[FeatureTracker], chunks: Iterable[np.ndarray], *,
                      follow: bool = False) -> list[Measurements]:
@@ -375,11 +337,7 @@ def measure_sequence(trackers: Sequence[FeatureTracker], chunks: Iterable[np.nda
     each search starts at the feature's last tracked position (a feature that travels
     far, e.g. on the micro-robot). Returns one `Measurements` per tracker.
     """
-    # Single-threaded BLAS for the refinement's matrix products: on a busy 2-core machine
-    # OpenBLAS's second thread waits on the first (measured 3x slower, wall clock), and the
-    # other core is decoding video (`greybox.io.video.prefetch`).
-    with threadpool_limits(limits=1, user_api="blas"):
-        parts = _measure_chunks(trackers, chunks, follow)
+    parts = _measure_chunks(trackers, chunks, follow)
     if not parts or not parts[0]:
         raise ValueError("no frames to track")
     return [Measurements.concatenate(p) for p in parts]
@@ -458,10 +416,15 @@ def assess(meas: Measurements, signal_px: np.ndarray | None = None,
 
 
 def _honest_sigma(sigma: np.ndarray, rho: np.ndarray, good: np.ndarray) -> np.ndarray:
-    """NaN for flagged frames; frames identical to the reference (rho = 1, so the noise
-    estimate is 0, e.g. the reference frame itself) get the median of the others."""
+    """NaN for flagged frames; frames that are (nearly) the reference itself get the
+    median of the others: their decorrelation 1 - rho is ~0 (the reference frame when
+    ``reference_count = 1``: ~1e-6 after the sub-pixel pre-shift, not exactly 0), so the
+    noise estimate would be ~0 and the fitter's weight huge. A frame with its own noise
+    decorrelates by about the run's median: < 1 % of it cannot happen by chance."""
     sigma = np.where(good, sigma, np.nan)
-    exact = good & (rho >= 1.0 - 1e-9)
+    decor = 1.0 - rho
+    typical = np.nanmedian(decor[good]) if np.any(good) else 0.0
+    exact = good & (decor <= 0.01 * typical)
     if np.any(good & ~exact):
         sigma[exact] = np.nanmedian(sigma[good & ~exact])
     return sigma

@@ -58,49 +58,84 @@ def main():
         y, u = est.y[:, 0], est.u[:, 0]
         reps = 5 if n == 2000 else 3
         t_arx, arx = best_time(lambda: bb.fit_arx(est, 2, 2, 1), reps)
-        t_arx_s, _ = best_time(lambda: sippy.system_identification(
-            y, u, "ARX", ARX_orders=[2, 2, 0], centering="None"), reps)
+        t_arx_s, _ = best_time(
+            lambda: sippy.system_identification(
+                y, u, "ARX", ARX_orders=[2, 2, 0], centering="None"
+            ),
+            reps,
+        )
         t0 = time.perf_counter()
         bb.fit_armax(est, 2, 2, 2, 1)
         t_first = time.perf_counter() - t0
         t_armax, armax = best_time(lambda: bb.fit_armax(est, 2, 2, 2, 1), reps)
-        t_armax_s, sys_s = best_time(lambda: sippy.system_identification(
-            y, u, "ARMAX", ARMAX_orders=[2, 2, 2, 0], ARMAX_mod="ILLS", max_iterations=200,
-            centering="None"), 1 if n == 20000 else 2)
+        t_armax_s, sys_s = best_time(
+            lambda: sippy.system_identification(
+                y,
+                u,
+                "ARMAX",
+                ARMAX_orders=[2, 2, 2, 0],
+                ARMAX_mod="ILLS",
+                max_iterations=200,
+                centering="None",
+            ),
+            1 if n == 20000 else 2,
+        )
         t_rarx, _ = best_time(lambda: bb.recursive_arx(est, 2, 2, 1), 1)
-        t_rarx_s, _ = best_time(lambda: sippy.system_identification(
-            y, u, "ARX", ARX_orders=[2, 2, 0], ARX_mod="RLLS", centering="None"), 1)
+        t_rarx_s, _ = best_time(
+            lambda: sippy.system_identification(
+                y, u, "ARX", ARX_orders=[2, 2, 0], ARX_mod="RLLS", centering="None"
+            ),
+            1,
+        )
         m_s, _ = sippy_model(sys_s, "armax")
         fit = bb.compare(armax, val).fit_percent[0]
         fit_s = bb.compare(m_s, val).fit_percent[0]
         fit_arx = bb.compare(arx, val).fit_percent[0]
         print(f"N = {n}")
-        print(f"  ARX [2 2 1]      greybox {t_arx * 1e3:8.2f} ms   SIPPY {t_arx_s * 1e3:8.2f} ms"
-              f"   speed-up x{t_arx_s / t_arx:.1f}   (validation sim fit {fit_arx:.2f} %)")
-        print(f"  ARMAX [2 2 2 1]  greybox {t_armax * 1e3:8.2f} ms   SIPPY ILLS "
-              f"{t_armax_s * 1e3:8.2f} ms   speed-up x{t_armax_s / t_armax:.1f}"
-              f"   (first call incl. JIT {t_first:.2f} s; {armax.n_steps} LM steps)")
+        print(
+            f"  ARX [2 2 1]      greybox {t_arx * 1e3:8.2f} ms   SIPPY {t_arx_s * 1e3:8.2f} ms"
+            f"   speed-up x{t_arx_s / t_arx:.1f}   (validation sim fit {fit_arx:.2f} %)"
+        )
+        print(
+            f"  ARMAX [2 2 2 1]  greybox {t_armax * 1e3:8.2f} ms   SIPPY ILLS "
+            f"{t_armax_s * 1e3:8.2f} ms   speed-up x{t_armax_s / t_armax:.1f}"
+            f"   (first call incl. JIT {t_first:.2f} s; {armax.n_steps} LM steps)"
+        )
         print(f"  ARMAX validation simulation fit: greybox {fit:.2f} %   SIPPY {fit_s:.2f} %")
-        print(f"  recursive ARX    greybox {t_rarx * 1e3:8.2f} ms   SIPPY RLLS "
-              f"{t_rarx_s * 1e3:8.2f} ms   speed-up x{t_rarx_s / t_rarx:.1f}")
-        print(f"  ARMAX estimate {np.round(armax.parameters[0], 4)} "
-              f"(truth {np.r_[A[1:], B[1:], C[1:]]})")
-        summary[n] = dict(arx=t_arx_s / t_arx, armax=t_armax_s / t_armax,
-                          rarx=t_rarx_s / t_rarx, fit=fit, fit_s=fit_s, t_first=t_first)
+        print(
+            f"  recursive ARX    greybox {t_rarx * 1e3:8.2f} ms   SIPPY RLLS "
+            f"{t_rarx_s * 1e3:8.2f} ms   speed-up x{t_rarx_s / t_rarx:.1f}"
+        )
+        print(
+            f"  ARMAX estimate {np.round(armax.parameters[0], 4)} "
+            f"(truth {np.r_[A[1:], B[1:], C[1:]]})"
+        )
+        summary[n] = dict(
+            arx=t_arx_s / t_arx,
+            armax=t_armax_s / t_armax,
+            rarx=t_rarx_s / t_rarx,
+            fit=fit,
+            fit_s=fit_s,
+            t_first=t_first,
+        )
     s = summary[2000]
-    print(json.dumps({
-        "arx_speedup_vs_sippy": round(s["arx"], 2),
-        "armax_speedup_vs_sippy": round(s["armax"], 2),
-        "recursive_arx_speedup_vs_sippy": round(s["rarx"], 2),
-        "armax_fit_pct": round(s["fit"], 3),
-        "armax_fit_pct_sippy": round(s["fit_s"], 3),
-        "arx_speedup_vs_sippy_20k": round(summary[20000]["arx"], 2),
-        "armax_speedup_vs_sippy_20k": round(summary[20000]["armax"], 2),
-        "armax_fit_pct_20k": round(summary[20000]["fit"], 3),
-        "armax_fit_pct_sippy_20k": round(summary[20000]["fit_s"], 3),
-        "armax_first_call_s": round(s["t_first"], 3),
-        "timing": "warm, best of repeats; fit % = validation simulation, 2000 samples",
-    }))
+    print(
+        json.dumps(
+            {
+                "arx_speedup_vs_sippy": round(s["arx"], 2),
+                "armax_speedup_vs_sippy": round(s["armax"], 2),
+                "recursive_arx_speedup_vs_sippy": round(s["rarx"], 2),
+                "armax_fit_pct": round(s["fit"], 3),
+                "armax_fit_pct_sippy": round(s["fit_s"], 3),
+                "arx_speedup_vs_sippy_20k": round(summary[20000]["arx"], 2),
+                "armax_speedup_vs_sippy_20k": round(summary[20000]["armax"], 2),
+                "armax_fit_pct_20k": round(summary[20000]["fit"], 3),
+                "armax_fit_pct_sippy_20k": round(summary[20000]["fit_s"], 3),
+                "armax_first_call_s": round(s["t_first"], 3),
+                "timing": "warm, best of repeats; fit % = validation simulation, 2000 samples",
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

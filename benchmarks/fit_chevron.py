@@ -80,11 +80,21 @@ def scipy_fit(model, exps, sigma):
                 continue
             q = a * k_frac * float(pw(t0))
             sel = (ts_sorted >= t0) & (ts_sorted <= t1)
-            sol = integrate.solve_ivp(lambda t, th: (r_th * q - th) / tau, (t0, t1), [state],
-                                      t_eval=ts_sorted[sel], **SOLVER)
+            sol = integrate.solve_ivp(
+                lambda t, th: (r_th * q - th) / tau,
+                (t0, t1),
+                [state],
+                t_eval=ts_sorted[sel],
+                **SOLVER,
+            )
             theta[order[sel]] = sol.y[0]
-            state = sol.y[0, -1] if sol.t.size and sol.t[-1] == t1 else integrate.solve_ivp(
-                lambda t, th: (r_th * q - th) / tau, (t0, t1), [state], **SOLVER).y[0, -1]
+            state = (
+                sol.y[0, -1]
+                if sol.t.size and sol.t[-1] == t1
+                else integrate.solve_ivp(
+                    lambda t, th: (r_th * q - th) / tau, (t0, t1), [state], **SOLVER
+                ).y[0, -1]
+            )
         y = np.asarray(jax.vmap(stroke)(theta)).reshape(e.n_frames, -1)
         return y @ weights_q
 
@@ -97,10 +107,18 @@ def scipy_fit(model, exps, sigma):
             out.append(np.where(np.isfinite(r), r, 0.0))
         return np.concatenate(out)
 
-    x0 = np.concatenate([[np.log((START["absorptance"] - a_lo) / (a_hi - START["absorptance"])),
-                          np.log(START["thermal.tau_s"] - 1e-4)], np.zeros(len(exps))])
-    sol = optimize.least_squares(residuals, x0, loss="huber", f_scale=1.5, method="trf",
-                                 jac="2-point", xtol=1e-8, ftol=1e-8)
+    x0 = np.concatenate(
+        [
+            [
+                np.log((START["absorptance"] - a_lo) / (a_hi - START["absorptance"])),
+                np.log(START["thermal.tau_s"] - 1e-4),
+            ],
+            np.zeros(len(exps)),
+        ]
+    )
+    sol = optimize.least_squares(
+        residuals, x0, loss="huber", f_scale=1.5, method="trf", jac="2-point", xtol=1e-8, ftol=1e-8
+    )
     a, tau, _ = unpack(sol.x)
     return a, tau, sol.nfev
 
@@ -118,33 +136,45 @@ def main():
     print(f"data: {len(exps)} runs, {n_frames} frames")
 
     def run(method):
-        return fit(start, exps, free, method=method, solver_rtol=SOLVER["rtol"],
-                   solver_atol=SOLVER["atol"])
+        return fit(
+            start, exps, free, method=method, solver_rtol=SOLVER["rtol"], solver_atol=SOLVER["atol"]
+        )
 
     t0 = time.perf_counter()
     first = run("zoh")
     first_zoh = time.perf_counter() - t0
     zoh_s, res = timed(lambda: run("zoh"), args.repeats)
     compile_s = first_zoh - zoh_s
-    print(f"zoh: first call {first_zoh:.2f} s (compile ~{compile_s:.2f} s), fit {zoh_s:.3f} s; "
-          f"tau = {res.estimate('thermal.tau_s').value * 1e3:.2f} ms, "
-          f"A = {res.estimate('absorptance').value:.4f}, converged={res.converged}")
+    print(
+        f"zoh: first call {first_zoh:.2f} s (compile ~{compile_s:.2f} s), fit {zoh_s:.3f} s; "
+        f"tau = {res.estimate('thermal.tau_s').value * 1e3:.2f} ms, "
+        f"A = {res.estimate('absorptance').value:.4f}, converged={res.converged}"
+    )
 
     t0 = time.perf_counter()
     run("adaptive")
     first_ada = time.perf_counter() - t0
     ada_s, res_a = timed(lambda: run("adaptive"), max(1, args.repeats // 2))
-    print(f"adaptive: first call {first_ada:.2f} s (compile ~{first_ada - ada_s:.2f} s), fit "
-          f"{ada_s:.3f} s; tau = {res_a.estimate('thermal.tau_s').value * 1e3:.2f} ms")
+    print(
+        f"adaptive: first call {first_ada:.2f} s (compile ~{first_ada - ada_s:.2f} s), fit "
+        f"{ada_s:.3f} s; tau = {res_a.estimate('thermal.tau_s').value * 1e3:.2f} ms"
+    )
 
-    figures = {"compile_s": round(compile_s, 3), "adaptive_compile_s": round(first_ada - ada_s, 3),
-               "zoh_fit_s": round(zoh_s, 4), "adaptive_fit_s": round(ada_s, 4), "frames": n_frames}
+    figures = {
+        "compile_s": round(compile_s, 3),
+        "adaptive_compile_s": round(first_ada - ada_s, 3),
+        "zoh_fit_s": round(zoh_s, 4),
+        "adaptive_fit_s": round(ada_s, 4),
+        "frames": n_frames,
+    }
     if not args.skip_scipy:
         t0 = time.perf_counter()
         a, tau, nfev = scipy_fit(start, exps, float(first.sigma[0]))
         scipy_s = time.perf_counter() - t0
-        print(f"scipy: fit {scipy_s:.2f} s ({nfev} residual evaluations); tau = {tau * 1e3:.2f} ms,"
-              f" A = {a:.4f}")
+        print(
+            f"scipy: fit {scipy_s:.2f} s ({nfev} residual evaluations); tau = {tau * 1e3:.2f} ms,"
+            f" A = {a:.4f}"
+        )
         figures.update(scipy_fit_s=round(scipy_s, 3), ratio_vs_scipy=round(scipy_s / ada_s, 2))
     print(json.dumps(figures))
 

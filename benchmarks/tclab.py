@@ -24,16 +24,19 @@ from pathlib import Path  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT / "experiments" / "tclab"), str(ROOT)]
 
-from greybox import blackbox as bb  # noqa: E402
 import study  # noqa: E402
 from tclab_data import load_folder, uniform  # noqa: E402
+
+from greybox import blackbox as bb  # noqa: E402
 
 
 def main():
     runs = load_folder(ROOT / "experiments" / "tclab" / "two_heaters")
     est, val = runs["estimation"], runs["validation"]
-    print("all SAE [degC, T1+T2, 1,200 points] are free-run simulation results; AIC/BIC from "
-          "the estimation-run simulation residuals")
+    print(
+        "all SAE [degC, T1+T2, 1,200 points] are free-run simulation results; AIC/BIC from "
+        "the estimation-run simulation residuals"
+    )
     fits, candidates = {}, {}
     for label, shared in study.STRUCTURES.items():
         t0 = time.perf_counter()
@@ -43,16 +46,25 @@ def main():
         aic, bic = study.information_criteria(est.y, z_est, len(res.free))
         sae_est = study.scores(est.y, z_est)
         sae_val = study.scores(val.y, study.simulate_run(res.model, val))
-        fits[label] = dict(res=res, shared=shared, compile_s=compile_s, est=sae_est, val=sae_val,
-                           aic=aic, bic=bic)
-        candidates[label] = (aic, bic, res.converged,
-                             all(p.verdict == "identifiable" for p in res.parameters))
-        print(f"grey-box, {label}: first fit (compile + fit) {compile_s:.2f} s, {res.n_steps} LM "
-              f"steps, {res.message}; SAE est {sae_est:.2f} val {sae_val:.2f}; AIC {aic:.1f} "
-              f"BIC {bic:.1f}")
+        fits[label] = dict(
+            res=res, shared=shared, compile_s=compile_s, est=sae_est, val=sae_val, aic=aic, bic=bic
+        )
+        candidates[label] = (
+            aic,
+            bic,
+            res.converged,
+            all(p.verdict == "identifiable" for p in res.parameters),
+        )
+        print(
+            f"grey-box, {label}: first fit (compile + fit) {compile_s:.2f} s, {res.n_steps} LM "
+            f"steps, {res.message}; SAE est {sae_est:.2f} val {sae_val:.2f}; AIC {aic:.1f} "
+            f"BIC {bic:.1f}"
+        )
         for p in res.parameters:
-            print(f"  {p.name} = {p.value:.5g} {p.unit}  95% [{p.ci95[0]:.5g}, {p.ci95[1]:.5g}]  "
-                  f"{p.verdict}")
+            print(
+                f"  {p.name} = {p.value:.5g} {p.unit}  95% [{p.ci95[0]:.5g}, {p.ci95[1]:.5g}]  "
+                f"{p.verdict}"
+            )
     selected = study.select_by_aic(candidates)
     sel, pap = fits[selected], fits["paper: shared lag tau"]
     times = []
@@ -70,22 +82,38 @@ def main():
     a_val = study.scores(u_val.y, bb.simulate(arx, u_val))
     paper = study.PAPER["two_heaters"]
     print(f"AIC-selected (estimation data only): {selected}; warm fit {fit_s:.3f} s")
-    print(f"grey-box SAE est {sel['est']:.2f} (paper {paper['physics-based energy balance'][0]}), "
-          f"val {sel['val']:.2f} (paper {paper['physics-based energy balance'][1]})")
-    print(f"ARX [2 2 1]+offset (least squares, {arx_s * 1e3:.1f} ms; grey-box/ARX fit time "
-          f"{fit_s / arx_s:.0f}x) SAE est {a_est:.2f} (paper {paper['ARX (na=2, nb=2)'][0]}), "
-          f"val {a_val:.2f} (paper {paper['ARX (na=2, nb=2)'][1]})")
-    print(json.dumps({"greybox_sae_est": round(sel["est"], 2), "greybox_sae_val": round(sel["val"], 2),
-                      "arx_sae_est": round(a_est, 2), "arx_sae_val": round(a_val, 2),
-                      "fit_s": round(fit_s, 4), "compile_fit_s": round(sel["compile_s"], 2),
-                      "greybox_structure": selected, "greybox_aic": round(sel["aic"], 1),
-                      "greybox_bic": round(sel["bic"], 1),
-                      "paper_structure_sae_est": round(pap["est"], 2),
-                      "paper_structure_sae_val": round(pap["val"], 2),
-                      "paper_structure_aic": round(pap["aic"], 1),
-                      "paper_structure_bic": round(pap["bic"], 1),
-                      "arx_fit_s": round(arx_s, 5), "paper_greybox_sae_val": 840.95,
-                      "paper_arx_sae_val": 3196.26, "horizon": "simulation"}))
+    print(
+        f"grey-box SAE est {sel['est']:.2f} (paper {paper['physics-based energy balance'][0]}), "
+        f"val {sel['val']:.2f} (paper {paper['physics-based energy balance'][1]})"
+    )
+    print(
+        f"ARX [2 2 1]+offset (least squares, {arx_s * 1e3:.1f} ms; grey-box/ARX fit time "
+        f"{fit_s / arx_s:.0f}x) SAE est {a_est:.2f} (paper {paper['ARX (na=2, nb=2)'][0]}), "
+        f"val {a_val:.2f} (paper {paper['ARX (na=2, nb=2)'][1]})"
+    )
+    print(
+        json.dumps(
+            {
+                "greybox_sae_est": round(sel["est"], 2),
+                "greybox_sae_val": round(sel["val"], 2),
+                "arx_sae_est": round(a_est, 2),
+                "arx_sae_val": round(a_val, 2),
+                "fit_s": round(fit_s, 4),
+                "compile_fit_s": round(sel["compile_s"], 2),
+                "greybox_structure": selected,
+                "greybox_aic": round(sel["aic"], 1),
+                "greybox_bic": round(sel["bic"], 1),
+                "paper_structure_sae_est": round(pap["est"], 2),
+                "paper_structure_sae_val": round(pap["val"], 2),
+                "paper_structure_aic": round(pap["aic"], 1),
+                "paper_structure_bic": round(pap["bic"], 1),
+                "arx_fit_s": round(arx_s, 5),
+                "paper_greybox_sae_val": 840.95,
+                "paper_arx_sae_val": 3196.26,
+                "horizon": "simulation",
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

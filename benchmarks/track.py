@@ -41,8 +41,14 @@ import numpy as np  # noqa: E402
 from greybox.cli import main as cli_main  # noqa: E402
 from greybox.io.video import iter_frames, probe, write_video  # noqa: E402
 from greybox.render import render_shuttle  # noqa: E402
-from greybox.tracking import (FeatureTracker, Roi, measure_sequence,  # noqa: E402
-                              reference_frame, saturation_level_for, shuttle_track)
+from greybox.tracking import (  # noqa: E402
+    FeatureTracker,
+    Roi,
+    measure_sequence,
+    reference_frame,
+    saturation_level_for,
+    shuttle_track,
+)
 
 ROI = Roi(288, 208, 64, 64)
 
@@ -62,8 +68,18 @@ def _load():
 def _cli_rate(path, n, out):
     """(frames/s wall clock, CPU ms per frame) of `greybox track` on ``path``."""
     c0, t0 = _cpu_s(), time.perf_counter()
-    rc = cli_main(["track", str(path), "--roi", f"{ROI.x},{ROI.y},{ROI.w},{ROI.h}",
-                   "--um-per-px", "0.645", "--out", str(out)])
+    rc = cli_main(
+        [
+            "track",
+            str(path),
+            "--roi",
+            f"{ROI.x},{ROI.y},{ROI.w},{ROI.h}",
+            "--um-per-px",
+            "0.645",
+            "--out",
+            str(out),
+        ]
+    )
     dt, cpu = time.perf_counter() - t0, _cpu_s() - c0
     rows = out.read_text().count("\n") - 1
     assert rc == 0 and rows == n, (rc, rows, n)
@@ -76,8 +92,9 @@ def _baseline_rate(path, n):
     info = probe(path)
     chunks = iter_frames(path, info)
     first = next(chunks)
-    tracker = FeatureTracker(reference_frame(first), ROI,
-                             saturation_level=saturation_level_for(info.dtype))
+    tracker = FeatureTracker(
+        reference_frame(first), ROI, saturation_level=saturation_level_for(info.dtype)
+    )
     (meas,) = measure_sequence([tracker], [first, *chunks])
     shuttle_track(meas)
     dt = time.perf_counter() - t0
@@ -99,35 +116,58 @@ def main():
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         raw = write_video(tmp / "bench.avi", frames, fps=100.0, raw=True)
-        ffv1 = write_video(tmp / "bench_ffv1.mkv", frames[:args.ffv1_frames], fps=100.0)
+        ffv1 = write_video(tmp / "bench_ffv1.mkv", frames[: args.ffv1_frames], fps=100.0)
         base_fps, tracker = _baseline_rate(raw, n)
         e2e_fps, cpu_ms = _cli_rate(raw, n, tmp / "run.csv")
         ffv1_fps, _ = _cli_rate(ffv1, args.ffv1_frames, tmp / "run_ffv1.csv")
     t0 = time.perf_counter()
-    (meas,) = measure_sequence([tracker], (frames[i:i + 256] for i in range(0, n, 256)))
+    (meas,) = measure_sequence([tracker], (frames[i : i + 256] for i in range(0, n, 256)))
     shuttle_track(meas)
     track_fps = n / (time.perf_counter() - t0)
     load = _load()
-    print(f"{n} frames 640x480 raw grey AVI, ROI 64x64, {os.cpu_count()} CPUs, "
-          f"load average {load_start:.1f} at the start, {load:.1f} at the end")
-    print(f"  greybox track end to end (cropped decode + reader thread + CSV): "
-          f"{e2e_fps:.0f} frames/s")
-    print(f"  CPU time (all threads + ffmpeg): {cpu_ms:.2f} ms per frame "
-          "(independent of the machine's load)")
-    print(f"  previous pipeline (full frames through the pipe, no overlap): "
-          f"{base_fps:.0f} frames/s  -> speedup {e2e_fps / base_fps:.2f}x")
+    print(
+        f"{n} frames 640x480 raw grey AVI, ROI 64x64, {os.cpu_count()} CPUs, "
+        f"load average {load_start:.1f} at the start, {load:.1f} at the end"
+    )
+    print(
+        f"  greybox track end to end (cropped decode + reader thread + CSV): {e2e_fps:.0f} frames/s"
+    )
+    print(
+        f"  CPU time (all threads + ffmpeg): {cpu_ms:.2f} ms per frame "
+        "(independent of the machine's load)"
+    )
+    print(
+        f"  previous pipeline (full frames through the pipe, no overlap): "
+        f"{base_fps:.0f} frames/s  -> speedup {e2e_fps / base_fps:.2f}x"
+    )
     print(f"  tracking alone, frames in memory: {track_fps:.0f} frames/s")
-    print(f"  FFV1 .mkv end to end ({args.ffv1_frames} frames; full-frame decode bound): "
-          f"{ffv1_fps:.0f} frames/s")
-    print(json.dumps({
-        "benchmark": "track", "frames": n, "frame_px": [640, 480], "roi_px": [64, 64],
-        "container": "avi", "codec": "rawvideo gray (uncompressed)",
-        "frames_per_s": round(e2e_fps, 1), "baseline_frames_per_s": round(base_fps, 1),
-        "speedup": round(e2e_fps / base_fps, 2), "track_frames_per_s": round(track_fps, 1),
-        "cpu_ms_per_frame": round(cpu_ms, 3), "ffv1_frames_per_s": round(ffv1_fps, 1),
-        "subpixel": "skimage.registration.phase_cross_correlation, upsample_factor=100",
-        "cpus": os.cpu_count(), "load_average_start": round(load_start, 2),
-        "load_average": round(load, 2), "python": platform.python_version()}))
+    print(
+        f"  FFV1 .mkv end to end ({args.ffv1_frames} frames; full-frame decode bound): "
+        f"{ffv1_fps:.0f} frames/s"
+    )
+    print(
+        json.dumps(
+            {
+                "benchmark": "track",
+                "frames": n,
+                "frame_px": [640, 480],
+                "roi_px": [64, 64],
+                "container": "avi",
+                "codec": "rawvideo gray (uncompressed)",
+                "frames_per_s": round(e2e_fps, 1),
+                "baseline_frames_per_s": round(base_fps, 1),
+                "speedup": round(e2e_fps / base_fps, 2),
+                "track_frames_per_s": round(track_fps, 1),
+                "cpu_ms_per_frame": round(cpu_ms, 3),
+                "ffv1_frames_per_s": round(ffv1_fps, 1),
+                "subpixel": "skimage.registration.phase_cross_correlation, upsample_factor=100",
+                "cpus": os.cpu_count(),
+                "load_average_start": round(load_start, 2),
+                "load_average": round(load, 2),
+                "python": platform.python_version(),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

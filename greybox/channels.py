@@ -31,12 +31,16 @@ class Channel:
 
     def to_si(self, values, unit: str, m_per_px: float | None = None):
         if unit not in self.units:
-            raise ValueError(f"{self.name}_{unit}: unknown unit {unit!r}; use one of "
-                             f"{', '.join(self.column_names())}")
+            raise ValueError(
+                f"{self.name}_{unit}: unknown unit {unit!r}; use one of "
+                f"{', '.join(self.column_names())}"
+            )
         if self.units[unit] is None:
             if m_per_px is None:
-                raise ValueError(f"{self.name}_{unit}: pixel values need the camera scale "
-                                 "(um_per_px) in the experiment description")
+                raise ValueError(
+                    f"{self.name}_{unit}: pixel values need the camera scale "
+                    "(um_per_px) in the experiment description"
+                )
             return values * m_per_px
         scale, offset = self.units[unit]
         return values * scale + offset
@@ -48,6 +52,12 @@ class Channel:
         return (values - offset) / scale
 
 
-LASER_POWER = Channel("laser", "W", {"mW": (1e-3, 0.0), "W": (1.0, 0.0)}, "laser power at the sample")
-DISPLACEMENT = Channel("y", "m", {"um": (1e-6, 0.0), "nm": (1e-9, 0.0), PIXELS: None},
-                       "shuttle displacement along its axis")
+LASER_POWER = Channel(
+    "laser", "W", {"mW": (1e-3, 0.0), "W": (1.0, 0.0)}, "laser power at the sample"
+)
+DISPLACEMENT = Channel(
+    "y",
+    "m",
+    {"um": (1e-6, 0.0), "nm": (1e-9, 0.0), PIXELS: None},
+    "shuttle displacement along its axis",
+)

@@ -39,15 +39,18 @@ class Experiment:
         if y.ndim == 1:
             y = y[:, None]
         if y.shape[0] != t.size:
-            raise ValueError(f"{self.name}: y has {y.shape[0]} samples but t_s has {t.size}; "
-                             "lengths must match")
+            raise ValueError(
+                f"{self.name}: y has {y.shape[0]} samples but t_s has {t.size}; lengths must match"
+            )
         finite = np.isfinite(y)
         if not finite.any():
             raise ValueError(f"{self.name}: y is NaN in every frame; nothing to fit")
         if np.isinf(y).any():
             raise ValueError(f"{self.name}: y contains infinite values; mark bad frames as NaN")
         if self.role not in ("estimation", "validation"):
-            raise ValueError(f"{self.name}: role {self.role!r} must be 'estimation' or 'validation'")
+            raise ValueError(
+                f"{self.name}: role {self.role!r} must be 'estimation' or 'validation'"
+            )
         if np.any(np.asarray(self.inputs.values) < 0):
             raise ValueError(f"{self.name}: inputs contain negative power; laser power is >= 0")
         for path, value in self.settings.items():

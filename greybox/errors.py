@@ -10,8 +10,14 @@ from __future__ import annotations
 class InputError(ValueError):
     """Bad user input (a file, a column, an option), with where it is and how to fix it."""
 
-    def __init__(self, message: str, *, file: str | None = None, line: int | None = None,
-                 field: str | None = None):
+    def __init__(
+        self,
+        message: str,
+        *,
+        file: str | None = None,
+        line: int | None = None,
+        field: str | None = None,
+    ):
         self.file = file
         self.line = line
         self.field = field

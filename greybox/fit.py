@@ -121,8 +121,13 @@ class FitResult:
         from greybox.simulate import simulate
 
         exp = self.experiments[experiment_index]
-        z = simulate(self.experiment_models[experiment_index], exp.inputs, exp.t_s,
-                     method=method or self.method, t_start_s=exp.t_start_s)
+        z = simulate(
+            self.experiment_models[experiment_index],
+            exp.inputs,
+            exp.t_s,
+            method=method or self.method,
+            t_start_s=exp.t_start_s,
+        )
         return np.asarray(z).reshape(exp.n_frames, -1)
 
 
@@ -150,7 +155,9 @@ class _Problem(eqx.Module):
 
     @staticmethod
     def build(model, experiments, free, method, loss, huber_c, student_nu, rtol, atol, max_steps):
-        schedules = [schedule_for(model, e.inputs, e.t_s, t_start_s=e.t_start_s) for e in experiments]
+        schedules = [
+            schedule_for(model, e.inputs, e.t_s, t_start_s=e.t_start_s) for e in experiments
+        ]
         sched = pad_schedules(schedules)
         n_exp = len(experiments)
         n_frames = sched["t_s"].shape[1]
@@ -163,20 +170,42 @@ class _Problem(eqx.Module):
             y[i, : e.n_frames] = np.nan_to_num(e.y)
             w[i, : e.n_frames] = e.mask
         setting_paths = tuple(sorted({k for e in experiments for k in e.settings}))
-        settings = np.array([[e.settings.get(k, np.asarray(get_value(model, k), dtype=float))
-                              for k in setting_paths] for e in experiments], dtype=float)
+        settings = np.array(
+            [
+                [
+                    e.settings.get(k, np.asarray(get_value(model, k), dtype=float))
+                    for k in setting_paths
+                ]
+                for e in experiments
+            ],
+            dtype=float,
+        )
         free_paths = {p.path for p in free}
         if free_paths & set(setting_paths):
-            raise ValueError(f"settings: {sorted(free_paths & set(setting_paths))} are both "
-                             "fitted and given as known per-run settings; choose one")
+            raise ValueError(
+                f"settings: {sorted(free_paths & set(setting_paths))} are both "
+                "fitted and given as known per-run settings; choose one"
+            )
         return _Problem(
-            model=as_arrays(model), sched=sched, y=jnp.asarray(y), w=jnp.asarray(w),
+            model=as_arrays(model),
+            sched=sched,
+            y=jnp.asarray(y),
+            w=jnp.asarray(w),
             settings=jnp.asarray(settings.reshape(n_exp, len(setting_paths))),
             setting_paths=setting_paths,
             shared=tuple(p for p in free if not p.per_experiment),
-            per_exp=tuple(p for p in free if p.per_experiment), n_exp=n_exp, method=method,
-            loss=loss, huber_c=float(huber_c), student_nu=float(student_nu),
-            solver_opts=(("rtol", float(rtol)), ("atol", float(atol)), ("max_steps", int(max_steps))))
+            per_exp=tuple(p for p in free if p.per_experiment),
+            n_exp=n_exp,
+            method=method,
+            loss=loss,
+            huber_c=float(huber_c),
+            student_nu=float(student_nu),
+            solver_opts=(
+                ("rtol", float(rtol)),
+                ("atol", float(atol)),
+                ("max_steps", int(max_steps)),
+            ),
+        )
 
     @property
     def n_data(self) -> int:
@@ -185,8 +214,12 @@ class _Problem(eqx.Module):
     @property
     def priors(self) -> list:
         out = [(k, p) for k, p in enumerate(self.shared) if p.has_prior]
-        out += [(len(self.shared) + i * len(self.per_exp) + j, p)
-                for i in range(self.n_exp) for j, p in enumerate(self.per_exp) if p.has_prior]
+        out += [
+            (len(self.shared) + i * len(self.per_exp) + j, p)
+            for i in range(self.n_exp)
+            for j, p in enumerate(self.per_exp)
+            if p.has_prior
+        ]
         return out
 
     @property
@@ -216,8 +249,12 @@ class _Problem(eqx.Module):
         opts = dict(self.solver_opts)
 
         def one(per_row, settings_row, sched):
-            return observe_schedule(self.experiment_model(base, per_row, settings_row), sched,
-                                    method=self.method, **opts)
+            return observe_schedule(
+                self.experiment_model(base, per_row, settings_row),
+                sched,
+                method=self.method,
+                **opts,
+            )
 
         return jax.vmap(one)(per, self.settings, self.sched)
 
@@ -243,16 +280,26 @@ def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_st
     solve ended.
     """
     lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(lambda r, s: problem.residuals(r, s), lm, raw_start, args=sigma,
-                             max_steps=max_steps, throw=False)
+    sol = optx.least_squares(
+        lambda r, s: problem.residuals(r, s),
+        lm,
+        raw_start,
+        args=sigma,
+        max_steps=max_steps,
+        throw=False,
+    )
     raw = sol.value
     z, solved = problem.predictions(raw)
     return dict(
-        raw=raw, ok=sol.result == optx.RESULTS.successful, steps=sol.stats["num_steps"],
+        raw=raw,
+        ok=sol.result == optx.RESULTS.successful,
+        steps=sol.stats["num_steps"],
         cost=0.5 * jnp.sum(problem.residuals(raw, sigma) ** 2),
         data_residuals=problem.data_residuals(raw, sigma),
         jacobian=jax.jacfwd(lambda r: problem.residuals(r, sigma))(raw),
-        predictions=z, solved=solved)
+        predictions=z,
+        solved=solved,
+    )
 
 
 def _initial_raw(problem: _Problem, model) -> np.ndarray:
@@ -283,12 +330,26 @@ def _robust_sigma(r_scaled: np.ndarray, w: np.ndarray, sigma: np.ndarray) -> np.
     return np.maximum(np.asarray(out), 1e-300)
 
 
-def fit(model, experiments: Sequence[Experiment], free: Sequence[FreeParameter], *,
-        method: str = "zoh", loss: str = "huber", huber_c: float = 1.5, student_nu: float = 4.0,
-        sigma: float | Sequence[float] | None = None, n_starts: int = 1, seed: int = 0,
-        max_steps: int = 200, rtol: float = 1e-6, atol: float = 1e-6,
-        solver_rtol: float = 1e-8, solver_atol: float = 1e-10, solver_max_steps: int = 16384,
-        progress: Callable[[str], None] | None = None) -> FitResult:
+def fit(
+    model,
+    experiments: Sequence[Experiment],
+    free: Sequence[FreeParameter],
+    *,
+    method: str = "zoh",
+    loss: str = "huber",
+    huber_c: float = 1.5,
+    student_nu: float = 4.0,
+    sigma: float | Sequence[float] | None = None,
+    n_starts: int = 1,
+    seed: int = 0,
+    max_steps: int = 200,
+    rtol: float = 1e-6,
+    atol: float = 1e-6,
+    solver_rtol: float = 1e-8,
+    solver_atol: float = 1e-10,
+    solver_max_steps: int = 16384,
+    progress: Callable[[str], None] | None = None,
+) -> FitResult:
     """Fit `free` parameters of `model` to the estimation `experiments` (free-run simulation error).
 
     **Main arguments:**
@@ -328,12 +389,24 @@ def fit(model, experiments: Sequence[Experiment], free: Sequence[FreeParameter],
     for p in free:
         get_value(model, p.path)  # a clear error for a misspelt path
 
-    problem = _Problem.build(model, experiments, free, method, loss, huber_c, student_nu,
-                             solver_rtol, solver_atol, solver_max_steps)
+    problem = _Problem.build(
+        model,
+        experiments,
+        free,
+        method,
+        loss,
+        huber_c,
+        student_nu,
+        solver_rtol,
+        solver_atol,
+        solver_max_steps,
+    )
     n_y = problem.y.shape[-1]
     if problem.n_data <= problem.n_raw:
-        raise ValueError(f"experiments: {problem.n_data} valid frames cannot determine "
-                         f"{problem.n_raw} parameters; add data or free fewer parameters")
+        raise ValueError(
+            f"experiments: {problem.n_data} valid frames cannot determine "
+            f"{problem.n_raw} parameters; add data or free fewer parameters"
+        )
     raw0 = _initial_raw(problem, model)
 
     def solve(raw_start, sig):
@@ -352,20 +425,26 @@ def fit(model, experiments: Sequence[Experiment], free: Sequence[FreeParameter],
     starts = [raw0] + [_perturbed(problem, raw0, rng) for _ in range(max(n_starts, 1) - 1)]
     runs = []
     for i, start in enumerate(starts):
-        say(f"start {i + 1}/{len(starts)}: Levenberg-Marquardt ({method}, {loss} loss, "
-            f"{problem.n_raw} parameters, {problem.n_data} frames)")
+        say(
+            f"start {i + 1}/{len(starts)}: Levenberg-Marquardt ({method}, {loss} loss, "
+            f"{problem.n_raw} parameters, {problem.n_data} frames)"
+        )
         out = jax.device_get(solve(jnp.asarray(start), jnp.asarray(sig)))
         runs.append(out)
-        say(f"start {i + 1}/{len(starts)}: cost {float(out['cost']):.6g}, "
-            f"{'converged' if out['ok'] else 'not converged'} after {int(out['steps'])} steps")
+        say(
+            f"start {i + 1}/{len(starts)}: cost {float(out['cost']):.6g}, "
+            f"{'converged' if out['ok'] else 'not converged'} after {int(out['steps'])} steps"
+        )
     finite = [r for r in runs if np.isfinite(r["cost"]) and np.all(np.isfinite(r["raw"]))]
     best = min(finite, key=lambda r: r["cost"]) if finite else runs[0]
     steps = int(best["steps"])
 
     if estimate_sigma and np.all(np.isfinite(best["raw"])):
         sig = _robust_sigma(np.asarray(best["data_residuals"]), np.asarray(problem.w), sig)
-        say(f"noise estimated from residuals: sigma = {', '.join(f'{s:.4g}' for s in sig)} (SI); "
-            "refitting at that scale")
+        say(
+            f"noise estimated from residuals: sigma = {', '.join(f'{s:.4g}' for s in sig)} (SI); "
+            "refitting at that scale"
+        )
         best = jax.device_get(solve(jnp.asarray(best["raw"]), jnp.asarray(sig)))
         steps += int(best["steps"])
 
@@ -389,8 +468,10 @@ def _assemble(problem, best, sig, steps, runs, experiments, free, say) -> FitRes
         message = "the fit diverged (non-finite parameters or cost); no estimate is reported"
         ok = False
     elif not ok:
-        message = ("Levenberg-Marquardt stopped without meeting its tolerances (step budget or "
-                   "stalled); treat the estimates as unconverged")
+        message = (
+            "Levenberg-Marquardt stopped without meeting its tolerances (step budget or "
+            "stalled); treat the estimates as unconverged"
+        )
     else:
         message = "converged"
     say("computing covariance and identifiability")
@@ -404,12 +485,15 @@ def _assemble(problem, best, sig, steps, runs, experiments, free, say) -> FitRes
     params = parameter_estimates(problem.flat_free, raw, report, labels, owners)
     unidentified = [p.name for p in params if p.verdict == "not identifiable"]
     if ok and unidentified:
-        message = (f"converged, but {len(unidentified)} parameter(s) are not identifiable from "
-                   f"these data: {', '.join(unidentified)}")
+        message = (
+            f"converged, but {len(unidentified)} parameter(s) are not identifiable from "
+            f"these data: {', '.join(unidentified)}"
+        )
 
     base, per = problem.models(raw_j)
-    exp_models = tuple(problem.experiment_model(base, per[i], problem.settings[i])
-                       for i in range(problem.n_exp))
+    exp_models = tuple(
+        problem.experiment_model(base, per[i], problem.settings[i]) for i in range(problem.n_exp)
+    )
     z, solved = np.asarray(best["predictions"]), np.asarray(best["solved"])
     fits, outliers = {}, {}
     for i, e in enumerate(experiments):
@@ -417,12 +501,27 @@ def _assemble(problem, best, sig, steps, runs, experiments, free, say) -> FitRes
     if not bool(np.all(np.asarray(solved))):
         ok, message = False, "an experiment's simulation failed at the final parameters"
     return FitResult(
-        model=base, experiment_models=exp_models, experiments=tuple(experiments), free=tuple(free),
-        parameters=params, raw=raw, covariance_raw=cov, correlation=corr, sigma=np.asarray(sig),
-        cost=float(cost), n_data=problem.n_data, converged=bool(ok), message=message,
-        n_steps=int(steps), fit_percent=fits, n_outliers=outliers, identifiability=report,
-        loss=problem.loss, method=problem.method,
-        multistart_costs=tuple((float(r["cost"]), bool(r["ok"])) for r in runs))
+        model=base,
+        experiment_models=exp_models,
+        experiments=tuple(experiments),
+        free=tuple(free),
+        parameters=params,
+        raw=raw,
+        covariance_raw=cov,
+        correlation=corr,
+        sigma=np.asarray(sig),
+        cost=float(cost),
+        n_data=problem.n_data,
+        converged=bool(ok),
+        message=message,
+        n_steps=int(steps),
+        fit_percent=fits,
+        n_outliers=outliers,
+        identifiability=report,
+        loss=problem.loss,
+        method=problem.method,
+        multistart_costs=tuple((float(r["cost"]), bool(r["ok"])) for r in runs),
+    )
 
 
 Z95 = 1.959963984540054  # two-sided 95 % normal quantile
@@ -436,8 +535,9 @@ def correlation(report: IdentifiabilityReport) -> np.ndarray:
         return cov / np.outer(sd, sd)
 
 
-def parameter_estimates(free_flat, raw, report: IdentifiabilityReport, labels=None,
-                        owners=None) -> tuple:
+def parameter_estimates(
+    free_flat, raw, report: IdentifiabilityReport, labels=None, owners=None
+) -> tuple:
     """One `ParameterEstimate` per raw coordinate: SI value, delta-method standard error and a
     95 % interval mapped through the transform (so bounds and positivity are respected).
 
@@ -490,7 +590,9 @@ class ValidationResult:
     horizon: str = "simulation"
 
 
-def validate(result: FitResult, experiments: Sequence[Experiment], **fit_kwargs) -> ValidationResult:
+def validate(
+    result: FitResult, experiments: Sequence[Experiment], **fit_kwargs
+) -> ValidationResult:
     """Score fitted physics on new runs: re-fit only per-experiment parameters, then simulate."""
     per_exp = [p for p in result.free if p.per_experiment]
     experiments = tuple(experiments)
@@ -501,8 +603,15 @@ def validate(result: FitResult, experiments: Sequence[Experiment], **fit_kwargs)
         for e in experiments:
             from greybox.simulate import simulate
 
-            z = np.asarray(simulate(e.apply_settings(result.model), e.inputs, e.t_s,
-                                    method=result.method, t_start_s=e.t_start_s)).reshape(e.n_frames, -1)
+            z = np.asarray(
+                simulate(
+                    e.apply_settings(result.model),
+                    e.inputs,
+                    e.t_s,
+                    method=result.method,
+                    t_start_s=e.t_start_s,
+                )
+            ).reshape(e.n_frames, -1)
             preds.append(z)
             fits[e.name], outl[e.name] = _scored(e, z, result.sigma)
         return ValidationResult(experiments, tuple(preds), fits, outl)

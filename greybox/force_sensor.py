@@ -46,8 +46,14 @@ class ForceSensor:
     @property
     def volts_per_m(self) -> float:
         """Bridge output per tip deflection, dU / d [V/m] (eq. 5.2 inverted)."""
-        return (0.75 * self.bridge_V * self.gauge_factor * (1 - self.resistor_position)
-                * self.thickness_m / self.length_m**2)
+        return (
+            0.75
+            * self.bridge_V
+            * self.gauge_factor
+            * (1 - self.resistor_position)
+            * self.thickness_m
+            / self.length_m**2
+        )
 
     def deflection_m(self, sensor_V):
         """Tip deflection [m] for a bridge output change [V] (eq. 5.2)."""
@@ -69,8 +75,10 @@ def check_voltages(voltage_V, name: str = "voltage_V") -> np.ndarray:
     if not np.all(np.isfinite(v)):
         raise ValueError(f"{name}: contains NaN or inf; every reading needs its applied voltage")
     if np.any(v < 0):
-        raise ValueError(f"{name}: negative voltage range (min {v.min():g} V); the actuator "
-                         "heats with V^2, so record magnitudes >= 0 V")
+        raise ValueError(
+            f"{name}: negative voltage range (min {v.min():g} V); the actuator "
+            "heats with V^2, so record magnitudes >= 0 V"
+        )
     return v
 
 
@@ -104,23 +112,31 @@ def average_repeats(voltage_V, values, *, expected_repeats: int | None = None) -
     y = np.asarray(values, dtype=float).reshape(-1)
     if y.shape != v.shape:
         raise ValueError(f"values: {y.size} readings for {v.size} voltages; give one per row")
-    if expected_repeats is not None and (int(expected_repeats) != expected_repeats
-                                         or expected_repeats < 1):
-        raise ValueError(f"expected_repeats: {expected_repeats} repeats per voltage; give a whole "
-                         "number >= 1 (zero repeats means no data)")
+    if expected_repeats is not None and (
+        int(expected_repeats) != expected_repeats or expected_repeats < 1
+    ):
+        raise ValueError(
+            f"expected_repeats: {expected_repeats} repeats per voltage; give a whole "
+            "number >= 1 (zero repeats means no data)"
+        )
     levels = np.unique(v)
     out = {k: [] for k in ("mean", "sd", "se", "n")}
     for level in levels:
         r = y[(v == level) & np.isfinite(y)]
         if r.size == 0:
-            raise ValueError(f"values: zero repeats at {level:g} V (every reading missing); "
-                             "remove that voltage or re-measure it")
+            raise ValueError(
+                f"values: zero repeats at {level:g} V (every reading missing); "
+                "remove that voltage or re-measure it"
+            )
         if expected_repeats is not None and r.size != expected_repeats:
-            raise ValueError(f"values: {r.size} valid repeats at {level:g} V, expected "
-                             f"{expected_repeats}")
+            raise ValueError(
+                f"values: {r.size} valid repeats at {level:g} V, expected {expected_repeats}"
+            )
         if r.size < 2:
-            raise ValueError(f"values: one reading at {level:g} V; the repeat scatter (standard "
-                             "error) needs >= 2 repeats per voltage")
+            raise ValueError(
+                f"values: one reading at {level:g} V; the repeat scatter (standard "
+                "error) needs >= 2 repeats per voltage"
+            )
         sd = float(np.std(r, ddof=1))
         out["mean"].append(float(r.mean()))
         out["sd"].append(sd)

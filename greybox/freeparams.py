@@ -44,13 +44,16 @@ class FreeParameter:
 
     def __post_init__(self):
         if self.lower is not None and self.upper is not None and not self.upper > self.lower:
-            raise ValueError(f"{self.path}: upper bound {self.upper} must exceed lower {self.lower}")
+            raise ValueError(
+                f"{self.path}: upper bound {self.upper} must exceed lower {self.lower}"
+            )
         if (self.prior_median is None) != (self.prior_log_sd is None):
             raise ValueError(f"{self.path}: give both prior_median and prior_log_sd, or neither")
         if self.prior_median is not None:
             if not self.prior_median > 0 or not self.prior_log_sd > 0:
-                raise ValueError(f"{self.path}: a log-normal prior needs prior_median > 0 and "
-                                 "prior_log_sd > 0")
+                raise ValueError(
+                    f"{self.path}: a log-normal prior needs prior_median > 0 and prior_log_sd > 0"
+                )
         if self.upper is not None and self.lower is None:
             raise ValueError(f"{self.path}: an upper bound needs a lower bound too")
         if not self.scale > 0:
@@ -76,9 +79,11 @@ class FreeParameter:
         lo_ok = self.lower is None or v > self.lower
         hi_ok = self.upper is None or v < self.upper
         if not (lo_ok and hi_ok):
-            raise ValueError(f"{self.path}: value {v} is outside its bounds "
-                             f"({self.lower}, {self.upper}) [{self.unit}]; change the initial "
-                             "value or the bounds")
+            raise ValueError(
+                f"{self.path}: value {v} is outside its bounds "
+                f"({self.lower}, {self.upper}) [{self.unit}]; change the initial "
+                "value or the bounds"
+            )
 
     def to_raw(self, value):
         v = jnp.asarray(value, dtype=float)
@@ -98,8 +103,11 @@ class FreeParameter:
 
     def raw_label(self) -> str:
         inner = self.path if self.lower in (None, 0, 0.0) else f"{self.path} - {self.lower:g}"
-        return {"logit": f"logit({self.path})", "log": f"log({inner})",
-                "linear": f"{self.path}/{self.scale:g}"}[self.transform]
+        return {
+            "logit": f"logit({self.path})",
+            "log": f"log({inner})",
+            "linear": f"{self.path}/{self.scale:g}",
+        }[self.transform]
 
     def prior_residual(self, value):
         return (jnp.log(value) - np.log(self.prior_median)) / self.prior_log_sd

@@ -53,8 +53,12 @@ def speed_vs_period(model, periods_s, duty, power_W, n_cycles: int = 8, steps_pe
         return advance[-1], advance[-1] / period, swing[-1, 0]
 
     step, speed, swing = jax.vmap(one)(jnp.asarray(periods_s, dtype=float))
-    return {"period_s": jnp.asarray(periods_s), "step_m": step, "speed_m_per_s": speed,
-            "stroke_swing_m": swing}
+    return {
+        "period_s": jnp.asarray(periods_s),
+        "step_m": step,
+        "speed_m_per_s": speed,
+        "stroke_swing_m": swing,
+    }
 
 
 def speed_vs_duty(model, duties, period_s, power_W, n_cycles: int = 8, steps_per_cycle: int = 20):
@@ -69,8 +73,9 @@ def speed_vs_duty(model, duties, period_s, power_W, n_cycles: int = 8, steps_per
     return {"duty": jnp.asarray(duties), "step_m": step, "speed_m_per_s": speed}
 
 
-def turning_vs_power_ratio(model, spot_y_m, period_s, duty, power_W, n_cycles: int = 8,
-                           steps_per_cycle: int = 20):
+def turning_vs_power_ratio(
+    model, spot_y_m, period_s, duty, power_W, n_cycles: int = 8, steps_per_cycle: int = 20
+):
     """For each lateral spot position [m]: the absorbed left/right power ratio at the start
     pose and the mean turning rate d(psi)/dt [rad/s] and speed [m/s] over the run (psi > 0 is
     counter-clockwise, i.e. towards the left)."""
@@ -83,5 +88,9 @@ def turning_vs_power_ratio(model, spot_y_m, period_s, duty, power_W, n_cycles: i
         return fractions[0] / fractions[1], states[-1, 6] / duration, states[-1, 4] / duration
 
     ratio, rate, speed = jax.vmap(one)(jnp.asarray(spot_y_m, dtype=float))
-    return {"spot_y_m": jnp.asarray(spot_y_m), "power_ratio_left_right": ratio,
-            "turn_rate_rad_per_s": rate, "speed_m_per_s": speed}
+    return {
+        "spot_y_m": jnp.asarray(spot_y_m),
+        "power_ratio_left_right": ratio,
+        "turn_rate_rad_per_s": rate,
+        "speed_m_per_s": speed,
+    }

@@ -52,9 +52,11 @@ class IdentifiabilityReport:
         return undetermined(self.null_directions, self.covariance_raw.shape[0])
 
     def summary(self) -> list[str]:
-        lines = [f"singular values of the weighted Jacobian: "
-                 f"{', '.join(f'{s:.3g}' for s in self.singular_values)} "
-                 f"(condition number {self.condition_number:.3g})"]
+        lines = [
+            f"singular values of the weighted Jacobian: "
+            f"{', '.join(f'{s:.3g}' for s in self.singular_values)} "
+            f"(condition number {self.condition_number:.3g})"
+        ]
         if self.weak_directions:
             lines.append("parameter combinations the data do not determine:")
             lines += [f"  {w.describe()}" for w in self.weak_directions]
@@ -83,17 +85,28 @@ def undetermined(null_directions: np.ndarray, n: int) -> np.ndarray:
     return np.sum(null_directions**2, axis=0) > 1e-6
 
 
-def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, free_flat, raw: np.ndarray,
-            labels) -> IdentifiabilityReport:
+def analyse(
+    jac_data: np.ndarray, jac_prior: np.ndarray, free_flat, raw: np.ndarray, labels
+) -> IdentifiabilityReport:
     """Identifiability from the weighted data Jacobian `jac_data` (rows: residual / sigma) and
     the prior rows `jac_prior`, both in raw coordinates; `free_flat[k]` is the FreeParameter
     of raw coordinate k and `labels[k]` its display name."""
     n = raw.size
-    raw_labels = tuple(p.raw_label().replace(p.path, label, 1) for p, label in zip(free_flat, labels))
+    raw_labels = tuple(
+        p.raw_label().replace(p.path, label, 1) for p, label in zip(free_flat, labels)
+    )
     if not np.all(np.isfinite(jac_data)):
         nan = np.full(n, np.nan)
-        return IdentifiabilityReport(nan, float("nan"), (), ("not identifiable",) * n, nan,
-                                     np.full((n, n), np.nan), np.eye(n), raw_labels)
+        return IdentifiabilityReport(
+            nan,
+            float("nan"),
+            (),
+            ("not identifiable",) * n,
+            nan,
+            np.full((n, n), np.nan),
+            np.eye(n),
+            raw_labels,
+        )
     _, s, vt = np.linalg.svd(jac_data, full_matrices=False)
     s_max = s.max() if s.size else 0.0
     safe_s = np.where(s > s_max * TINY, s, 0.0)
@@ -102,8 +115,11 @@ def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, free_flat, raw: np.ndar
     weak = []
     for i in range(s.size):
         if inv_s[i] > WEAK_SD:
-            comb = {raw_labels[j]: float(vt[i, j]) for j in np.argsort(-np.abs(vt[i]))
-                    if abs(vt[i, j]) > 0.1}
+            comb = {
+                raw_labels[j]: float(vt[i, j])
+                for j in np.argsort(-np.abs(vt[i]))
+                if abs(vt[i, j]) > 0.1
+            }
             weak.append(WeakDirection(float(inv_s[i]), comb))
     # Data-only variance per coordinate from the determined directions; a coordinate with real
     # weight on an exactly singular direction is unbounded. Rounding leaves ~1e-9 weights on
@@ -123,12 +139,15 @@ def analyse(jac_data: np.ndarray, jac_prior: np.ndarray, free_flat, raw: np.ndar
             value = float(p.to_value(raw[k]))
             dlog = float(jax.grad(lambda r, p=p: p.to_value(r))(raw[k])) / value
             prior_var_raw = (p.prior_log_sd / abs(dlog)) ** 2
-            verdict = ("prior-dominated" if not post_var <= PRIOR_SHRINK * prior_var_raw
-                       else "identifiable")
+            verdict = (
+                "prior-dominated"
+                if not post_var <= PRIOR_SHRINK * prior_var_raw
+                else "identifiable"
+            )
         else:
             verdict = "identifiable" if np.sqrt(data_var[k]) < WEAK_SD else "not identifiable"
         verdicts.append(verdict)
     cond = float(s_max / s.min()) if s.size and s.min() > 0 else float("inf")
-    return IdentifiabilityReport(s, cond, tuple(weak), tuple(verdicts), np.sqrt(data_var), cov,
-                                 null_dirs, raw_labels)
-
+    return IdentifiabilityReport(
+        s, cond, tuple(weak), tuple(verdicts), np.sqrt(data_var), cov, null_dirs, raw_labels
+    )

@@ -42,8 +42,10 @@ def get_value(model, path: str):
     try:
         return getter(path)(model)
     except AttributeError as err:
-        raise ValueError(f"parameter path {path!r}: not a field of {type(model).__name__} "
-                         f"({err}); check the spelling against the model's parameter table") from None
+        raise ValueError(
+            f"parameter path {path!r}: not a field of {type(model).__name__} "
+            f"({err}); check the spelling against the model's parameter table"
+        ) from None
 
 
 def set_values(model, paths, values):

@@ -89,6 +89,7 @@ def _affine_cycle(model, q_on, q_off, t_on, t_off, n_steps):
         def step(x, _):
             x = p @ x + g @ q
             return x, x
+
         return jax.lax.scan(step, x, None, length=n_steps)
 
     x_mid, on = run(x0, phi[2], gam[2], q_on)
@@ -103,6 +104,7 @@ def _rosenbrock_phase(model, x, u, h, n_steps):
         _, gam = zoh_matrices(jac, fx[:, None], h[None])
         x = x + gam[0, :, 0]
         return x, x
+
     return jax.lax.scan(step, x, None, length=n_steps)
 
 
@@ -123,8 +125,16 @@ def _numerical_cycle(model, u_on, u_off, t_on, t_off, n_steps):
     return jnp.concatenate([x0[None], on, off])
 
 
-def square_wave_cycle(model, amplitude, frequency_Hz, *, duty: float = 0.5, low: float = 0.0,
-                      n_steps: int = 64, method: str = "analytic"):
+def square_wave_cycle(
+    model,
+    amplitude,
+    frequency_Hz,
+    *,
+    duty: float = 0.5,
+    low: float = 0.0,
+    n_steps: int = 64,
+    method: str = "analytic",
+):
     """The periodic steady-state cycle for frequency_Hz > 0 (pure, jit/vmap-able).
 
     **Returns:** (t_s (2 n_steps + 1,) from the rising edge, states (2 n_steps + 1, n_states)).
@@ -154,8 +164,9 @@ def _simpson(y, duration):
 def _response_one(model, amplitude, frequency_Hz, duty, low, n_steps, method):
     """(mean, peak-to-peak) of output 0 for one (amplitude, frequency) point; f = 0 is DC."""
     f_safe = jnp.where(frequency_Hz > 0, frequency_Hz, 1.0)
-    _, states = square_wave_cycle(model, amplitude, f_safe, duty=duty, low=low, n_steps=n_steps,
-                                  method=method)
+    _, states = square_wave_cycle(
+        model, amplitude, f_safe, duty=duty, low=low, n_steps=n_steps, method=method
+    )
     y = jax.vmap(model.output)(states)[:, 0]
     t = 1.0 / f_safe
     mean = (_simpson(y[: n_steps + 1], duty * t) + _simpson(y[n_steps:], (1 - duty) * t)) / t
@@ -163,14 +174,17 @@ def _response_one(model, amplitude, frequency_Hz, duty, low, n_steps, method):
     y_on = model.output(steady_state(model, _u(model, amplitude), method=method))[0]
     y_off = model.output(steady_state(model, _u(model, low), method=method))[0]
     dc = frequency_Hz == 0
-    return (jnp.where(dc, duty * y_on + (1 - duty) * y_off, mean),
-            jnp.where(dc, jnp.abs(y_on - y_off), pp))
+    return (
+        jnp.where(dc, duty * y_on + (1 - duty) * y_off, mean),
+        jnp.where(dc, jnp.abs(y_on - y_off), pp),
+    )
 
 
 @eqx.filter_jit
 def _response_jit(model, amplitude, frequency_Hz, duty, low, n_steps, method):
     return jax.vmap(lambda a, f: _response_one(model, a, f, duty, low, n_steps, method))(
-        amplitude, frequency_Hz)
+        amplitude, frequency_Hz
+    )
 
 
 def resolve_method(model, method: str) -> str:
@@ -180,8 +194,10 @@ def resolve_method(model, method: str) -> str:
     if method == "auto":
         return "analytic" if is_state_affine(model) else "numerical"
     if method == "analytic" and not is_state_affine(model):
-        raise ValueError("method: the closed-form cycle needs dynamics affine in the state "
-                         "(e.g. tcr_per_K = 0 and no radiation); use method='numerical' or 'auto'")
+        raise ValueError(
+            "method: the closed-form cycle needs dynamics affine in the state "
+            "(e.g. tcr_per_K = 0 and no radiation); use method='numerical' or 'auto'"
+        )
     return method
 
 
@@ -199,8 +215,16 @@ def _check(amplitude, frequency_Hz, duty, n_steps):
     return np.broadcast_arrays(a, f)
 
 
-def square_wave_response(model, amplitude, frequency_Hz, *, duty: float = 0.5, low: float = 0.0,
-                         n_steps: int = 64, method: str = "auto"):
+def square_wave_response(
+    model,
+    amplitude,
+    frequency_Hz,
+    *,
+    duty: float = 0.5,
+    low: float = 0.0,
+    n_steps: int = 64,
+    method: str = "auto",
+):
     """Periodic steady-state mean and peak-to-peak of the first output, elementwise.
 
     **Arguments:**
@@ -216,14 +240,21 @@ def square_wave_response(model, amplitude, frequency_Hz, *, duty: float = 0.5, l
     require_x64("square_wave_response")
     a, f = _check(amplitude, frequency_Hz, duty, n_steps)
     method = resolve_method(model, method)
-    mean, pp = _response_jit(as_arrays(model), jnp.asarray(a.reshape(-1)),
-                             jnp.asarray(f.reshape(-1)), float(duty), float(low), int(n_steps),
-                             method)
+    mean, pp = _response_jit(
+        as_arrays(model),
+        jnp.asarray(a.reshape(-1)),
+        jnp.asarray(f.reshape(-1)),
+        float(duty),
+        float(low),
+        int(n_steps),
+        method,
+    )
     return np.asarray(mean).reshape(a.shape), np.asarray(pp).reshape(a.shape)
 
 
-def response_function(model, *, duty: float = 0.5, low: float = 0.0, n_steps: int = 64,
-                      method: str = "numerical"):
+def response_function(
+    model, *, duty: float = 0.5, low: float = 0.0, n_steps: int = 64, method: str = "numerical"
+):
     """A pure function (model, amplitude (N,), frequency_Hz (N,)) -> (mean (N,), pp (N,)) [SI].
 
     The method is fixed now, so the function can be traced with abstract parameters (inside a
@@ -235,13 +266,15 @@ def response_function(model, *, duty: float = 0.5, low: float = 0.0, n_steps: in
 
     def respond(m, amplitude, frequency_Hz):
         return jax.vmap(lambda a, f: _response_one(m, a, f, duty, low, n_steps, method))(
-            amplitude, frequency_Hz)
+            amplitude, frequency_Hz
+        )
 
     return respond
 
 
 def response_surface(model, amplitudes, frequencies_Hz, **kwargs):
     """Mean and peak-to-peak (each (n_amplitudes, n_frequencies), SI) on a full grid."""
-    a, f = np.meshgrid(np.asarray(amplitudes, float), np.asarray(frequencies_Hz, float),
-                       indexing="ij")
+    a, f = np.meshgrid(
+        np.asarray(amplitudes, float), np.asarray(frequencies_Hz, float), indexing="ij"
+    )
     return square_wave_response(model, a, f, **kwargs)

@@ -37,9 +37,20 @@ def _rest_reference(model_y: np.ndarray) -> float:
     return float(finite[0]) if finite.size else 0.0
 
 
-def run_figure(path, *, name: str, role: str, t_s, y, y_model, inputs, sigma: float,
-               fit_percent: float, output_label: tuple = ("shuttle displacement", "m"),
-               input_label: tuple = ("laser power", "W")) -> None:
+def run_figure(
+    path,
+    *,
+    name: str,
+    role: str,
+    t_s,
+    y,
+    y_model,
+    inputs,
+    sigma: float,
+    fit_percent: float,
+    output_label: tuple = ("shuttle displacement", "m"),
+    input_label: tuple = ("laser power", "W"),
+) -> None:
     """Measured vs model for one run, with the input waveform in a panel beneath.
 
     `y`, `y_model`: camera readings (N,) in SI; displayed relative to the model's reading at
@@ -56,11 +67,18 @@ def run_figure(path, *, name: str, role: str, t_s, y, y_model, inputs, sigma: fl
     fig = _figure(9.0, 5.2)
     top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[3, 1])
     top.plot(t, meas, ".", ms=3.5, color="0.35", label="measured (camera)")
-    top.plot(t, model, "-", lw=1.3, color="C0",
-             label="model (free-run simulation, at the frame times)")
+    top.plot(
+        t, model, "-", lw=1.3, color="C0", label="model (free-run simulation, at the frame times)"
+    )
     if outlier.any():
-        top.plot(t[outlier], meas[outlier], "x", ms=6, color="C3",
-                 label=f"outliers (> {OUTLIER_SIGMAS:g} sigma)")
+        top.plot(
+            t[outlier],
+            meas[outlier],
+            "x",
+            ms=6,
+            color="C3",
+            label=f"outliers (> {OUTLIER_SIGMAS:g} sigma)",
+        )
     top.set_ylabel(f"{output_label[0]} [{uy}]\n(relative to rest)")
     top.set_title(f"{name} ({role}): simulation fit {fit_percent:.1f} %")
     top.legend(loc="upper right", fontsize=8)
@@ -74,8 +92,9 @@ def run_figure(path, *, name: str, role: str, t_s, y, y_model, inputs, sigma: fl
     fig.savefig(Path(path), dpi=DPI)
 
 
-def residuals_figure(path, runs, *, sigma: float,
-                     output_label: tuple = ("shuttle displacement", "m")) -> None:
+def residuals_figure(
+    path, runs, *, sigma: float, output_label: tuple = ("shuttle displacement", "m")
+) -> None:
     """Residuals (measured - model) per run, with +-sigma and the outlier threshold.
 
     `runs`: sequence of (name, role, t_s, y, y_model) in SI.
@@ -104,8 +123,11 @@ def residuals_figure(path, runs, *, sigma: float,
         ax.set_xlabel("time [s]", fontsize=8)
     for ax in axes[::cols]:
         ax.set_ylabel(f"residual [{uy}]", fontsize=8)
-    fig.suptitle(f"Residuals, measured - model (dotted: +-sigma = {s:.3g} {uy}; dashed: "
-                 f"outlier threshold {OUTLIER_SIGMAS:g} sigma; clipped at 8 sigma)", fontsize=9)
+    fig.suptitle(
+        f"Residuals, measured - model (dotted: +-sigma = {s:.3g} {uy}; dashed: "
+        f"outlier threshold {OUTLIER_SIGMAS:g} sigma; clipped at 8 sigma)",
+        fontsize=9,
+    )
     fig.savefig(Path(path), dpi=DPI)
 
 
@@ -123,16 +145,29 @@ def correlation_figure(path, labels, correlation) -> None:
         for i in range(k):
             for j in range(k):
                 v = corr[i, j]
-                ax.text(j, i, "n/a" if not np.isfinite(v) else f"{v:.2f}", ha="center",
-                        va="center", fontsize=6, color="white" if abs(v) > 0.6 else "black")
+                ax.text(
+                    j,
+                    i,
+                    "n/a" if not np.isfinite(v) else f"{v:.2f}",
+                    ha="center",
+                    va="center",
+                    fontsize=6,
+                    color="white" if abs(v) > 0.6 else "black",
+                )
     fig.colorbar(im, ax=ax, label="correlation (dimensionless, -1 to 1)")
     ax.set_title("Parameter correlation (posterior, transformed coordinates)", fontsize=9)
     fig.savefig(Path(path), dpi=DPI)
 
 
-def band_figure(path, band, inputs, *, title: str = "",
-                output_label: tuple = ("shuttle displacement", "m"),
-                input_label: tuple = ("laser power", "W")) -> None:
+def band_figure(
+    path,
+    band,
+    inputs,
+    *,
+    title: str = "",
+    output_label: tuple = ("shuttle displacement", "m"),
+    input_label: tuple = ("laser power", "W"),
+) -> None:
     """Simulated response with its band, and the input waveform beneath."""
     fy, uy = display_unit(output_label[1])
     fu, uu = display_unit(input_label[1])
@@ -141,10 +176,16 @@ def band_figure(path, band, inputs, *, title: str = "",
     top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[3, 1])
     lo, hi = band.lower[:, 0] * fy, band.upper[:, 0] * fy
     finite = np.isfinite(lo) & np.isfinite(hi)
-    top.fill_between(t, np.where(finite, lo, np.nan), np.where(finite, hi, np.nan),
-                     color="C0", alpha=0.25, lw=0,
-                     label=f"{band.level * 100:g} % "
-                           f"{'prediction interval' if band.includes_noise else 'confidence band'}")
+    top.fill_between(
+        t,
+        np.where(finite, lo, np.nan),
+        np.where(finite, hi, np.nan),
+        color="C0",
+        alpha=0.25,
+        lw=0,
+        label=f"{band.level * 100:g} % "
+        f"{'prediction interval' if band.includes_noise else 'confidence band'}",
+    )
     top.plot(t, band.y[:, 0] * fy, "-", color="C0", lw=1.3, label="model (simulation)")
     top.set_ylabel(f"{output_label[0]} [{uy}]\n(from rest)")
     top.set_title(title or "Simulated response", fontsize=10)

@@ -62,15 +62,30 @@ class Band:
     def kind(self) -> str:
         pct = f"{self.level * 100:g} %"
         if self.includes_noise:
-            return (f"{pct} prediction interval for new camera readings: parameter "
-                    "uncertainty (delta method) plus measurement noise sigma")
-        return (f"{pct} confidence band of the model response: parameter uncertainty only "
-                "(delta method); single camera readings scatter further by the noise sigma")
+            return (
+                f"{pct} prediction interval for new camera readings: parameter "
+                "uncertainty (delta method) plus measurement noise sigma"
+            )
+        return (
+            f"{pct} confidence band of the model response: parameter uncertainty only "
+            "(delta method); single camera readings scatter further by the noise sigma"
+        )
 
 
-def prediction_band(model, free, raw, covariance_raw, inputs, t_s, *, sigma=None,
-                    null_directions=None, level: float = 0.95, method: str = "zoh",
-                    t_start_s: float = 0.0) -> Band:
+def prediction_band(
+    model,
+    free,
+    raw,
+    covariance_raw,
+    inputs,
+    t_s,
+    *,
+    sigma=None,
+    null_directions=None,
+    level: float = 0.95,
+    method: str = "zoh",
+    t_start_s: float = 0.0,
+) -> Band:
     """Simulate `inputs` at times `t_s` with a pointwise band from the parameter covariance.
 
     **Arguments:**
@@ -97,14 +112,19 @@ def prediction_band(model, free, raw, covariance_raw, inputs, t_s, *, sigma=None
     raw = np.asarray(raw, dtype=float)
     cov = np.asarray(covariance_raw, dtype=float)[:n_shared, :n_shared]
     if not np.all(np.isfinite(raw[:n_shared])):
-        raise ValueError("raw: fitted values are not finite (the fit diverged); no simulation "
-                         "or band can be computed")
+        raise ValueError(
+            "raw: fitted values are not finite (the fit diverged); no simulation "
+            "or band can be computed"
+        )
     # Undetermined directions: coordinates with NaN covariance, plus any given null directions.
     unknown = ~np.all(np.isfinite(cov), axis=1)
     nulls = [np.eye(n_shared)[k] for k in np.flatnonzero(unknown)]
     if null_directions is not None and np.size(null_directions):
-        nulls += [v[:n_shared] for v in np.atleast_2d(np.asarray(null_directions, dtype=float))
-                  if np.linalg.norm(v[:n_shared]) > NEGLIGIBLE_SENSITIVITY]
+        nulls += [
+            v[:n_shared]
+            for v in np.atleast_2d(np.asarray(null_directions, dtype=float))
+            if np.linalg.norm(v[:n_shared]) > NEGLIGIBLE_SENSITIVITY
+        ]
     cov = np.where(unknown[:, None] | unknown[None, :], 0.0, cov)
     t = np.asarray(t_s, dtype=float)
     sched = pad_schedules([schedule_for(model, inputs, t, t_start_s=t_start_s)])
@@ -124,8 +144,10 @@ def prediction_band(model, free, raw, covariance_raw, inputs, t_s, *, sigma=None
 
     z, ok, jac = response_and_jacobian(jnp.asarray(raw[:n_shared]))
     if not bool(ok):
-        raise ValueError("simulation failed for this waveform (adaptive solver); check the "
-                         "waveform and the fitted parameters")
+        raise ValueError(
+            "simulation failed for this waveform (adaptive solver); check the "
+            "waveform and the fitted parameters"
+        )
     n = t.size
     y = np.asarray(z)[:n]
     var = np.zeros_like(y)
@@ -138,8 +160,9 @@ def prediction_band(model, free, raw, covariance_raw, inputs, t_s, *, sigma=None
             var = np.where(depends, np.inf, var)
     sd_model = np.sqrt(np.clip(var, 0.0, None))
     includes_noise = sigma is not None
-    total = var + (np.broadcast_to(np.asarray(sigma, dtype=float), y.shape[1:]) ** 2
-                   if includes_noise else 0.0)
+    total = var + (
+        np.broadcast_to(np.asarray(sigma, dtype=float), y.shape[1:]) ** 2 if includes_noise else 0.0
+    )
     sd = np.sqrt(total)
     zq = float(jax.scipy.special.ndtri((1.0 + level) / 2.0))
     return Band(t, y, y - zq * sd, y + zq * sd, sd_model, sd, float(level), includes_noise)

@@ -72,13 +72,14 @@ def _blur_matrix(n: int, sigma: float) -> np.ndarray:
 
 def _disc(shape, centre_xy, radius, edge):
     """Soft-edged disc in [0, 1] (logistic edge of width ~edge px)."""
-    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]]
     r = np.hypot(xx - centre_xy[0], yy - centre_xy[1])
     return 1.0 / (1.0 + np.exp((r - radius) / edge))
 
 
-def _finish(clean, *, rng, bad_kind, bad_center, full_well_e, read_noise_e, bit_depth,
-            illumination_drift):
+def _finish(
+    clean, *, rng, bad_kind, bad_center, full_well_e, read_noise_e, bit_depth, illumination_drift
+):
     """Illumination drift, bad-frame injection, shot + read noise, quantisation.
 
     ``clean``: (N, H, W) intensity in [0, 1] (1 = full well). Returns integer frames.
@@ -124,15 +125,27 @@ def _as_exposure(traj, n_trailing):
     if traj.ndim == 1 + n_trailing:
         traj = traj[:, None]
     if traj.ndim != 2 + n_trailing or traj.shape[0] < 1:
-        raise ValueError(f"trajectory must have shape (N,) or (N, M) per coordinate, got {traj.shape}")
+        raise ValueError(
+            f"trajectory must have shape (N,) or (N, M) per coordinate, got {traj.shape}"
+        )
     return traj
 
 
-def render_shuttle(traj_px, *, shape=(96, 128), axis: str = "x", seed: int = 0,
-                   psf_sigma_px: float = 1.0, blob_density: float = 0.03,
-                   full_well_e: float = 4000.0, read_noise_e: float = 8.0, bit_depth: int = 8,
-                   illumination_drift: float = 0.2, bad_frames: dict[int, str] | None = None,
-                   bad_center: tuple[float, float] | None = None) -> RenderedSequence:
+def render_shuttle(
+    traj_px,
+    *,
+    shape=(96, 128),
+    axis: str = "x",
+    seed: int = 0,
+    psf_sigma_px: float = 1.0,
+    blob_density: float = 0.03,
+    full_well_e: float = 4000.0,
+    read_noise_e: float = 8.0,
+    bit_depth: int = 8,
+    illumination_drift: float = 0.2,
+    bad_frames: dict[int, str] | None = None,
+    bad_center: tuple[float, float] | None = None,
+) -> RenderedSequence:
     """Render a textured shuttle translating along ``axis`` by ``traj_px``.
 
     **Arguments:**
@@ -187,19 +200,35 @@ def render_shuttle(traj_px, *, shape=(96, 128), axis: str = "x", seed: int = 0,
         shuttle = 0.52 + gy @ gx
         clean[k] = substrate + band[:, None] * (shuttle - substrate)
     kinds = _bad_kinds(n, bad_frames)
-    frames = _finish(clean, rng=rng, bad_kind=kinds, bad_center=bc, full_well_e=full_well_e,
-                     read_noise_e=read_noise_e, bit_depth=bit_depth,
-                     illumination_drift=illumination_drift)
+    frames = _finish(
+        clean,
+        rng=rng,
+        bad_kind=kinds,
+        bad_center=bc,
+        full_well_e=full_well_e,
+        read_noise_e=read_noise_e,
+        bit_depth=bit_depth,
+        illumination_drift=illumination_drift,
+    )
     if axis == "y":
         frames = np.ascontiguousarray(frames.transpose(0, 2, 1))
     return RenderedSequence(frames=frames, truth_px=traj.mean(axis=1), bad_kind=kinds)
 
 
-def render_markers(points_px, *, shape=(120, 160), seed: int = 0, marker_sigma_px: float = 2.5,
-                   psf_sigma_px: float = 1.0, full_well_e: float = 4000.0,
-                   read_noise_e: float = 8.0, bit_depth: int = 8,
-                   illumination_drift: float = 0.1, bad_frames: dict[int, str] | None = None,
-                   bad_center: tuple[float, float] | None = None) -> RenderedSequence:
+def render_markers(
+    points_px,
+    *,
+    shape=(120, 160),
+    seed: int = 0,
+    marker_sigma_px: float = 2.5,
+    psf_sigma_px: float = 1.0,
+    full_well_e: float = 4000.0,
+    read_noise_e: float = 8.0,
+    bit_depth: int = 8,
+    illumination_drift: float = 0.1,
+    bad_frames: dict[int, str] | None = None,
+    bad_center: tuple[float, float] | None = None,
+) -> RenderedSequence:
     """Render K bright round markers on a uniform body (e.g. two features on the micro-robot).
 
     ``points_px``: marker centres (x, y) in px, (N, K, 2) or (N, M, K, 2) with M samples
@@ -225,7 +254,14 @@ def render_markers(points_px, *, shape=(120, 160), seed: int = 0, marker_sigma_p
         gx = _gauss_1d(cols, sub[:, 0], sig)
         clean[k] = background + 0.5 * (gy @ gx) / pts.shape[1]
     kinds = _bad_kinds(n, bad_frames)
-    frames = _finish(clean, rng=rng, bad_kind=kinds, bad_center=bad_center,
-                     full_well_e=full_well_e, read_noise_e=read_noise_e, bit_depth=bit_depth,
-                     illumination_drift=illumination_drift)
+    frames = _finish(
+        clean,
+        rng=rng,
+        bad_kind=kinds,
+        bad_center=bad_center,
+        full_well_e=full_well_e,
+        read_noise_e=read_noise_e,
+        bit_depth=bit_depth,
+        illumination_drift=illumination_drift,
+    )
     return RenderedSequence(frames=frames, truth_px=pts.mean(axis=1), bad_kind=kinds)

@@ -17,9 +17,9 @@ _DISPLAY = {"m": (1e6, "um"), "s": (1e3, "ms"), "m/s": (1e6, "um/s"), "W": (1e3,
 VERDICT_MEANING = {
     "identifiable": "the data alone pin it down (its 95 % interval comes from the data)",
     "prior-dominated": "its value and interval mostly restate the prior you gave; the data "
-                       "did not shrink the prior's spread by 2x",
+    "did not shrink the prior's spread by 2x",
     "not identifiable": "the data do not determine it (only a combination with other "
-                        "parameters is known); no interval is reported",
+    "parameters is known); no interval is reported",
 }
 
 
@@ -88,16 +88,21 @@ def noise_ceiling(y, sigma: float) -> float:
 def _run_rows(result, validation, runs) -> list[str]:
     info = {r.name: r for r in runs}
     sigma = float(np.asarray(result.sigma).reshape(-1)[0])
-    rows = ["| run | role | input waveform | frames (valid) | outliers flagged | "
-            "fit % (simulation) | noise ceiling % |", "|---|---|---|---|---|---|---|"]
+    rows = [
+        "| run | role | input waveform | frames (valid) | outliers flagged | "
+        "fit % (simulation) | noise ceiling % |",
+        "|---|---|---|---|---|---|---|",
+    ]
 
     def add(exps, fits, outliers, role):
         for e in exps:
             r = info.get(e.name)
             valid = int(e.mask.all(axis=1).sum())
-            rows.append(f"| {e.name} | {role} | {r.waveform if r else '-'} | {e.n_frames} "
-                        f"({valid}) | {outliers[e.name]} | {fmt(fits[e.name], 3)} | "
-                        f"{fmt(noise_ceiling(e.y[:, 0], sigma), 3)} |")
+            rows.append(
+                f"| {e.name} | {role} | {r.waveform if r else '-'} | {e.n_frames} "
+                f"({valid}) | {outliers[e.name]} | {fmt(fits[e.name], 3)} | "
+                f"{fmt(noise_ceiling(e.y[:, 0], sigma), 3)} |"
+            )
 
     add(result.experiments, result.fit_percent, result.n_outliers, "estimation")
     if validation is not None:
@@ -114,26 +119,40 @@ def identifiability_lines(result, parameter_notes: dict | None = None) -> list[s
     lines = []
     bad = [p.name for p in result.parameters if p.verdict != "identifiable"]
     if not bad:
-        lines.append("**Verdict: every fitted parameter is identifiable** from these data "
-                     "(no parameter combination is left undetermined).")
+        lines.append(
+            "**Verdict: every fitted parameter is identifiable** from these data "
+            "(no parameter combination is left undetermined)."
+        )
     else:
-        lines.append(f"**Verdict: {len(bad)} of {len(result.parameters)} fitted values are not "
-                     f"determined by the data alone:** "
-                     + ", ".join(f"`{n}` ({verdicts[n]})" for n in bad) + ".")
+        lines.append(
+            f"**Verdict: {len(bad)} of {len(result.parameters)} fitted values are not "
+            f"determined by the data alone:** "
+            + ", ".join(f"`{n}` ({verdicts[n]})" for n in bad)
+            + "."
+        )
     if ident.weak_directions:
-        lines += ["", "Parameter combinations the data do not determine (raw coordinates; "
-                  "a log or logit of each parameter):", ""]
+        lines += [
+            "",
+            "Parameter combinations the data do not determine (raw coordinates; "
+            "a log or logit of each parameter):",
+            "",
+        ]
         for w in ident.weak_directions:
             names = sorted({_label_path(k) for k in w.combination})
             joined = " x ".join(f"`{n}`" for n in names)
-            lines.append(f"- {joined}: the data fix their combined effect but not each one "
-                         f"(undetermined direction in raw coordinates: {w.describe()}).")
+            lines.append(
+                f"- {joined}: the data fix their combined effect but not each one "
+                f"(undetermined direction in raw coordinates: {w.describe()})."
+            )
             for n in names:
                 if n in notes and notes[n]:
                     lines.append(f"  - `{n}`: {notes[n]}")
-    lines += ["", f"Singular values of the weighted Jacobian: "
-              f"{', '.join(fmt(s, 3) for s in ident.singular_values)} (condition number "
-              f"{fmt(ident.condition_number, 3)})."]
+    lines += [
+        "",
+        f"Singular values of the weighted Jacobian: "
+        f"{', '.join(fmt(s, 3) for s in ident.singular_values)} (condition number "
+        f"{fmt(ident.condition_number, 3)}).",
+    ]
     strong = []
     k = len(shared)
     corr = np.asarray(result.correlation)[:k, :k]
@@ -142,11 +161,14 @@ def identifiability_lines(result, parameter_notes: dict | None = None) -> list[s
             if np.isfinite(corr[i, j]) and abs(corr[i, j]) > 0.9:
                 strong.append(f"`{shared[i].name}`-`{shared[j].name}` {corr[i, j]:+.3f}")
     if strong:
-        lines.append("Strongly correlated shared parameters (|r| > 0.9): " + ", ".join(strong)
-                     + ".")
+        lines.append(
+            "Strongly correlated shared parameters (|r| > 0.9): " + ", ".join(strong) + "."
+        )
     elif k > 1:
-        lines.append(f"Largest correlation between shared parameters: "
-                     f"{_max_offdiag(corr):+.3f} (|r| > 0.9 would signal a trade-off).")
+        lines.append(
+            f"Largest correlation between shared parameters: "
+            f"{_max_offdiag(corr):+.3f} (|r| > 0.9 would signal a trade-off)."
+        )
     return lines
 
 
@@ -155,7 +177,7 @@ def _label_path(raw_label: str) -> str:
     inner = raw_label
     for fn in ("logit(", "log("):
         if inner.startswith(fn):
-            inner = inner[len(fn):-1]
+            inner = inner[len(fn) : -1]
     return inner.split(" - ")[0].split("/")[0].split("[")[0]
 
 
@@ -165,9 +187,18 @@ def _max_offdiag(corr) -> float:
     return max(off, key=abs) if off else float("nan")
 
 
-def fit_report(result, validation=None, *, title: str, device_name: str, runs=(),
-               parameter_notes: dict | None = None, figures=(), source: str = "",
-               output_unit: str = "m") -> str:
+def fit_report(
+    result,
+    validation=None,
+    *,
+    title: str,
+    device_name: str,
+    runs=(),
+    parameter_notes: dict | None = None,
+    figures=(),
+    source: str = "",
+    output_unit: str = "m",
+) -> str:
     """Markdown report of a fit (and its validation) for people who did not run it.
 
     - `result`: `greybox.FitResult`; `validation`: `greybox.ValidationResult` or None.
@@ -187,8 +218,12 @@ def fit_report(result, validation=None, *, title: str, device_name: str, runs=()
     lines += [
         f"Device model `{device_name}`; {len(result.experiments)} estimation runs "
         f"({n_frames} frames, {result.n_data} valid readings fitted)"
-        + (f", {len(validation.experiments)} validation runs" if validation is not None
-           else ", no validation runs") + ".",
+        + (
+            f", {len(validation.experiments)} validation runs"
+            if validation is not None
+            else ", no validation runs"
+        )
+        + ".",
         "",
         "**All fit % in this report are free-run simulation**: the model is driven by the "
         "laser waveform alone from rest and never corrected by the measured positions. They "
@@ -202,19 +237,38 @@ def fit_report(result, validation=None, *, title: str, device_name: str, runs=()
         "",
     ]
     if per_run:
-        lines += ["Per-run nuisance values (one per estimation run):", "",
-                  *parameter_table(per_run), ""]
-    lines += ["Verdicts: " + "; ".join(f"*{k}*: {v}" for k, v in VERDICT_MEANING.items())
-              + ".", "", "## Fit per run (simulation)", "",
-              *_run_rows(result, validation, runs), ""]
-    lines += ["Noise ceiling: the fit % that a perfect model would score given the noise "
-              "sigma, about 100 (1 - sigma / std(y)); a run whose fit % is close to it is "
-              "fitted down to the measurement noise, whatever the absolute number.", ""]
+        lines += [
+            "Per-run nuisance values (one per estimation run):",
+            "",
+            *parameter_table(per_run),
+            "",
+        ]
+    lines += [
+        "Verdicts: " + "; ".join(f"*{k}*: {v}" for k, v in VERDICT_MEANING.items()) + ".",
+        "",
+        "## Fit per run (simulation)",
+        "",
+        *_run_rows(result, validation, runs),
+        "",
+    ]
+    lines += [
+        "Noise ceiling: the fit % that a perfect model would score given the noise "
+        "sigma, about 100 (1 - sigma / std(y)); a run whose fit % is close to it is "
+        "fitted down to the measurement noise, whatever the absolute number.",
+        "",
+    ]
     if validation is not None:
         refit = ", ".join(sorted({p.path for p in per_run}))
-        lines += ["Validation runs are simulated with the fitted physical parameters held fixed"
-                  + (f"; only their per-run values ({refit}) are re-estimated, as MATLAB "
-                     "`compare` estimates initial conditions." if refit else "."), ""]
+        lines += [
+            "Validation runs are simulated with the fitted physical parameters held fixed"
+            + (
+                f"; only their per-run values ({refit}) are re-estimated, as MATLAB "
+                "`compare` estimates initial conditions."
+                if refit
+                else "."
+            ),
+            "",
+        ]
     lines += [
         "## Noise, outliers and convergence",
         "",
@@ -232,8 +286,13 @@ def fit_report(result, validation=None, *, title: str, device_name: str, runs=()
         f"{fmt(result.cost, 6)}, simulation path `{result.method}`.",
     ]
     if len(result.multistart_costs) > 1:
-        lines.append("- Multi-start costs: " + ", ".join(
-            f"{fmt(c, 6)}{'' if ok else ' (not converged)'}" for c, ok in result.multistart_costs))
+        lines.append(
+            "- Multi-start costs: "
+            + ", ".join(
+                f"{fmt(c, 6)}{'' if ok else ' (not converged)'}"
+                for c, ok in result.multistart_costs
+            )
+        )
     lines += ["", "## Identifiability", "", *identifiability_lines(result, parameter_notes), ""]
     if figures:
         lines += ["## Figures", ""]

@@ -37,7 +37,8 @@ def require_x64(where: str) -> None:
     if not jax.config.jax_enable_x64:
         raise ValueError(
             f"{where}: float64 is disabled; call jax.config.update('jax_enable_x64', True) "
-            "before using greybox (the greybox command and scripts do this for you)")
+            "before using greybox (the greybox command and scripts do this for you)"
+        )
 
 
 def check_times(t_s, name: str = "t_s") -> np.ndarray:
@@ -48,8 +49,10 @@ def check_times(t_s, name: str = "t_s") -> np.ndarray:
         raise ValueError(f"{name}: timestamps contain NaN; remove those frames")
     if np.any(np.diff(t) <= 0):
         bad = int(np.argmax(np.diff(t) <= 0))
-        raise ValueError(f"{name}: timestamps must be strictly increasing (frame {bad + 1} at "
-                         f"{t[bad + 1]} s follows {t[bad]} s); sort them and drop duplicates")
+        raise ValueError(
+            f"{name}: timestamps must be strictly increasing (frame {bad + 1} at "
+            f"{t[bad + 1]} s follows {t[bad]} s); sort them and drop duplicates"
+        )
     return t
 
 
@@ -76,14 +79,22 @@ class Schedule:
     jump_ts: np.ndarray
 
     @staticmethod
-    def build(inputs: PiecewiseConstant, t_s, quad_offsets_s, *, t_start_s: float = 0.0,
-              n_inputs: int | None = None) -> Schedule:
+    def build(
+        inputs: PiecewiseConstant,
+        t_s,
+        quad_offsets_s,
+        *,
+        t_start_s: float = 0.0,
+        n_inputs: int | None = None,
+    ) -> Schedule:
         t = check_times(t_s)
         inputs = inputs.to_piecewise()
         levels = inputs.values.reshape(len(inputs.times_s), -1)
         if n_inputs is not None and levels.shape[1] != n_inputs:
-            raise ValueError(f"inputs: the device takes {n_inputs} input channel(s) but the "
-                             f"waveform has {levels.shape[1]}")
+            raise ValueError(
+                f"inputs: the device takes {n_inputs} input channel(s) but the "
+                f"waveform has {levels.shape[1]}"
+            )
         offsets = np.asarray(quad_offsets_s, dtype=float)
         quad_t = (t[:, None] + offsets[None, :]).reshape(-1)
         t_start = float(min(t_start_s, quad_t.min(), inputs.times_s[0]))
@@ -97,9 +108,19 @@ class Schedule:
         idx = np.searchsorted(inputs.times_s, grid[:-1], side="right") - 1
         u_grid = np.where((idx >= 0)[:, None], levels[np.clip(idx, 0, None)], 0.0)
         eval_index = np.searchsorted(grid, quad_t)
-        return Schedule(t_s=t, t_start_s=t_start, n_quad=offsets.size, dt=dt, u_grid=u_grid,
-                        eval_index=eval_index, eval_t=eval_t, eval_order=eval_order,
-                        breaks=inputs.times_s.copy(), levels=levels, jump_ts=edges)
+        return Schedule(
+            t_s=t,
+            t_start_s=t_start,
+            n_quad=offsets.size,
+            dt=dt,
+            u_grid=u_grid,
+            eval_index=eval_index,
+            eval_t=eval_t,
+            eval_order=eval_order,
+            breaks=inputs.times_s.copy(),
+            levels=levels,
+            jump_ts=edges,
+        )
 
 
 def _bucket(n: int) -> int:
@@ -119,8 +140,21 @@ def pad_schedules(schedules: Sequence[Schedule]) -> dict:
     n_breaks = _bucket(max(s.breaks.size for s in schedules))
     n_jumps = _bucket(max(s.jump_ts.size for s in schedules))
     n_u = schedules[0].levels.shape[1]
-    out = {k: [] for k in ("t_s", "t_start", "dt", "u_grid", "eval_index", "eval_t", "unsort",
-                           "breaks", "levels", "jump_ts")}
+    out = {
+        k: []
+        for k in (
+            "t_s",
+            "t_start",
+            "dt",
+            "u_grid",
+            "eval_index",
+            "eval_t",
+            "unsort",
+            "breaks",
+            "levels",
+            "jump_ts",
+        )
+    }
     for s in schedules:
         pad_f = n_frames - s.t_s.size
         q = s.n_quad
@@ -129,7 +163,9 @@ def pad_schedules(schedules: Sequence[Schedule]) -> dict:
         out["t_start"].append(s.t_start_s)
         out["dt"].append(np.concatenate([s.dt, np.zeros(n_int - s.dt.size)]))
         out["u_grid"].append(np.vstack([s.u_grid, np.zeros((n_int - s.dt.size, n_u))]))
-        out["eval_index"].append(np.concatenate([s.eval_index, np.full(pad_f * q, s.eval_index[-1])]))
+        out["eval_index"].append(
+            np.concatenate([s.eval_index, np.full(pad_f * q, s.eval_index[-1])])
+        )
         out["eval_t"].append(np.concatenate([s.eval_t, np.full(pad_f * q, t_end)]))
         # frame-major position of each sorted evaluation; padded frames read the last one
         unsort = np.empty_like(s.eval_order)
@@ -137,7 +173,9 @@ def pad_schedules(schedules: Sequence[Schedule]) -> dict:
         out["unsort"].append(np.concatenate([unsort, np.full(pad_f * q, unsort.size - 1)]))
         far = t_end + 1.0 + np.arange(n_breaks - s.breaks.size)
         out["breaks"].append(np.concatenate([s.breaks, far]))
-        out["levels"].append(np.vstack([s.levels, np.repeat(s.levels[-1:], n_breaks - s.breaks.size, 0)]))
+        out["levels"].append(
+            np.vstack([s.levels, np.repeat(s.levels[-1:], n_breaks - s.breaks.size, 0)])
+        )
         far_j = t_end + 1.0 + np.arange(n_jumps - s.jump_ts.size)
         out["jump_ts"].append(np.concatenate([s.jump_ts, far_j]))
     return {k: jnp.asarray(np.stack(v)) for k, v in out.items()}
@@ -202,24 +240,53 @@ def input_at(breaks, levels, t):
 ADJOINTS = {"forward": dfx.ForwardMode, "reverse": dfx.RecursiveCheckpointAdjoint}
 
 
-def _adaptive_states(model: AbstractDevice, x0, t_start, eval_t, breaks, levels, jump_ts,
-                     rtol, atol, max_steps, adjoint="forward"):
+def _adaptive_states(
+    model: AbstractDevice,
+    x0,
+    t_start,
+    eval_t,
+    breaks,
+    levels,
+    jump_ts,
+    rtol,
+    atol,
+    max_steps,
+    adjoint="forward",
+):
     """States at the (sorted) evaluation instants, and whether the solve succeeded."""
 
     def vector_field(t, x, args):
         return model.vector_field(t, x, input_at(breaks, levels, t))
 
-    controller = dfx.ClipStepSizeController(dfx.PIDController(rtol=rtol, atol=atol), jump_ts=jump_ts)
+    controller = dfx.ClipStepSizeController(
+        dfx.PIDController(rtol=rtol, atol=atol), jump_ts=jump_ts
+    )
     sol = dfx.diffeqsolve(
-        dfx.ODETerm(vector_field), dfx.Tsit5(), t_start, eval_t[-1], None, x0,
-        saveat=dfx.SaveAt(ts=eval_t), stepsize_controller=controller,
-        adjoint=ADJOINTS[adjoint](), max_steps=max_steps, throw=False)
+        dfx.ODETerm(vector_field),
+        dfx.Tsit5(),
+        t_start,
+        eval_t[-1],
+        None,
+        x0,
+        saveat=dfx.SaveAt(ts=eval_t),
+        stepsize_controller=controller,
+        adjoint=ADJOINTS[adjoint](),
+        max_steps=max_steps,
+        throw=False,
+    )
     return sol.ys, sol.result == dfx.RESULTS.successful
 
 
-def observe_schedule(model: AbstractDevice, sched: dict, *, method: str = "zoh",
-                     rtol: float = 1e-8, atol: float = 1e-10, max_steps: int = 16384,
-                     adjoint: str = "forward"):
+def observe_schedule(
+    model: AbstractDevice,
+    sched: dict,
+    *,
+    method: str = "zoh",
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 16384,
+    adjoint: str = "forward",
+):
     """Camera readings (N, n_y) [SI] and a success flag for one (padded) schedule dict.
 
     Pure and jit/vmap-able: `sched` holds the arrays of one row of `pad_schedules`.
@@ -235,8 +302,18 @@ def observe_schedule(model: AbstractDevice, sched: dict, *, method: str = "zoh",
         states = grid[sched["eval_index"]]
     elif method == "adaptive":
         sorted_states, ok = _adaptive_states(
-            model, x0, sched["t_start"], sched["eval_t"], sched["breaks"], sched["levels"],
-            sched["jump_ts"], rtol, atol, max_steps, adjoint)
+            model,
+            x0,
+            sched["t_start"],
+            sched["eval_t"],
+            sched["breaks"],
+            sched["levels"],
+            sched["jump_ts"],
+            rtol,
+            atol,
+            max_steps,
+            adjoint,
+        )
         states = sorted_states[sched["unsort"]]
     else:
         raise ValueError(f"method: {method!r} is unknown; use one of {METHODS}")
@@ -248,13 +325,23 @@ def observe_schedule(model: AbstractDevice, sched: dict, *, method: str = "zoh",
 
 def schedule_for(model: AbstractDevice, inputs, t_s, *, t_start_s: float = 0.0) -> Schedule:
     offsets, _ = model.camera.quadrature()
-    return Schedule.build(inputs.to_piecewise(), t_s, offsets, t_start_s=t_start_s,
-                          n_inputs=model.n_inputs)
+    return Schedule.build(
+        inputs.to_piecewise(), t_s, offsets, t_start_s=t_start_s, n_inputs=model.n_inputs
+    )
 
 
-def simulate(model: AbstractDevice, inputs, t_s, *, method: str = "zoh", t_start_s: float = 0.0,
-             rtol: float = 1e-8, atol: float = 1e-10, max_steps: int = 16384,
-             throw: bool = True):
+def simulate(
+    model: AbstractDevice,
+    inputs,
+    t_s,
+    *,
+    method: str = "zoh",
+    t_start_s: float = 0.0,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 16384,
+    throw: bool = True,
+):
     """Simulate what the camera sees for a given input waveform.
 
     **Arguments:**
@@ -279,8 +366,10 @@ def simulate(model: AbstractDevice, inputs, t_s, *, method: str = "zoh", t_start
     z, ok = _observe_jit(as_arrays(model), row, method, rtol, atol, max_steps)
     if not bool(ok):
         if throw:
-            raise ValueError("simulate: the adaptive solver failed (max_steps reached or step "
-                             "size collapsed); raise max_steps or check the parameters")
+            raise ValueError(
+                "simulate: the adaptive solver failed (max_steps reached or step "
+                "size collapsed); raise max_steps or check the parameters"
+            )
         z = jnp.full_like(z, jnp.nan)
     z = np.asarray(z)[: np.size(t_s)]
     return z[:, 0] if z.shape[1] == 1 else z
@@ -288,8 +377,14 @@ def simulate(model: AbstractDevice, inputs, t_s, *, method: str = "zoh", t_start
 
 def as_arrays(model):
     """Turn Python-number leaves into float arrays, so new values never trigger a recompile."""
-    return jax.tree.map(lambda x: jnp.asarray(x, dtype=float)
-                        if isinstance(x, (float, int)) and not isinstance(x, bool) else x, model)
+    return jax.tree.map(
+        lambda x: (
+            jnp.asarray(x, dtype=float)
+            if isinstance(x, (float, int)) and not isinstance(x, bool)
+            else x
+        ),
+        model,
+    )
 
 
 @eqx.filter_jit

@@ -29,8 +29,10 @@ def _finite(name: str, values) -> np.ndarray:
     if v.size == 0:
         raise ValueError(f"{name}: empty; give at least one value")
     if not np.all(np.isfinite(v)):
-        raise ValueError(f"{name}: contains NaN or inf at row {int(np.argmin(np.isfinite(v)))}; "
-                         "remove or fill those rows")
+        raise ValueError(
+            f"{name}: contains NaN or inf at row {int(np.argmin(np.isfinite(v)))}; "
+            "remove or fill those rows"
+        )
     return v
 
 
@@ -44,11 +46,15 @@ def check_grid(amplitude_V, frequency_Hz, values):
     f = _finite("frequency_Hz", frequency_Hz)
     z = _finite("values", values)
     if not a.size == f.size == z.size:
-        raise ValueError(f"table: columns have different lengths (amplitude {a.size}, frequency "
-                         f"{f.size}, values {z.size})")
+        raise ValueError(
+            f"table: columns have different lengths (amplitude {a.size}, frequency "
+            f"{f.size}, values {z.size})"
+        )
     if np.any(a < 0):
-        raise ValueError(f"amplitude_V: negative voltage range (min {a.min():g} V); the square "
-                         "wave runs from 0 V to the amplitude, give amplitudes >= 0 V")
+        raise ValueError(
+            f"amplitude_V: negative voltage range (min {a.min():g} V); the square "
+            "wave runs from 0 V to the amplitude, give amplitudes >= 0 V"
+        )
     if np.any(f < 0):
         raise ValueError(f"frequency_Hz: negative frequency ({f.min():g} Hz); give >= 0 Hz")
     amps, freqs = np.unique(a), np.unique(f)
@@ -58,13 +64,17 @@ def check_grid(amplitude_V, frequency_Hz, values):
     np.add.at(seen, (ia, jf), 1)
     if np.any(seen > 1):
         i, j = np.argwhere(seen > 1)[0]
-        raise ValueError(f"table: the cell amplitude {amps[i]:g} V, frequency {freqs[j]:g} Hz "
-                         "appears more than once; average repeats before fitting")
+        raise ValueError(
+            f"table: the cell amplitude {amps[i]:g} V, frequency {freqs[j]:g} Hz "
+            "appears more than once; average repeats before fitting"
+        )
     if np.any(seen == 0):
         i, j = np.argwhere(seen == 0)[0]
-        raise ValueError(f"table: ragged amplitude-frequency table, {int((seen == 0).sum())} cells "
-                         f"missing (e.g. amplitude {amps[i]:g} V at {freqs[j]:g} Hz); every "
-                         "amplitude needs the same frequencies")
+        raise ValueError(
+            f"table: ragged amplitude-frequency table, {int((seen == 0).sum())} cells "
+            f"missing (e.g. amplitude {amps[i]:g} V at {freqs[j]:g} Hz); every "
+            "amplitude needs the same frequencies"
+        )
     table[ia, jf] = z
     return amps, freqs, table
 
@@ -80,7 +90,9 @@ def polynomial_terms(degree) -> np.ndarray:
     if dx < 0 or dy < 0:
         raise ValueError(f"degree: {degree} must be >= 0 in each variable")
     top = max(dx, dy)
-    terms = [(i, t - i) for t in range(top + 1) for i in range(t, -1, -1) if i <= dx and t - i <= dy]
+    terms = [
+        (i, t - i) for t in range(top + 1) for i in range(t, -1, -1) if i <= dx and t - i <= dy
+    ]
     return np.asarray(terms)
 
 
@@ -122,7 +134,9 @@ class PolynomialFit:
 
     def __call__(self, *xs):
         shape = np.broadcast(*[np.asarray(x, float) for x in xs]).shape
-        cols = np.column_stack([np.broadcast_to(np.asarray(x, float), shape).reshape(-1) for x in xs])
+        cols = np.column_stack(
+            [np.broadcast_to(np.asarray(x, float), shape).reshape(-1) for x in xs]
+        )
         return (design_matrix(cols, self.exponents) @ self.coefficients).reshape(shape)
 
     def describe(self, names=("x", "y"), digits: int = 4) -> str:
@@ -146,12 +160,15 @@ def fit_polynomial(x, z, degree, *, weights=None) -> PolynomialFit:
         raise ValueError("x: contains NaN or inf; remove those rows")
     exps = polynomial_terms(degree)
     if exps.shape[1] != x.shape[1]:
-        raise ValueError(f"degree: {degree} is for {exps.shape[1]} variable(s) but x has "
-                         f"{x.shape[1]} column(s)")
+        raise ValueError(
+            f"degree: {degree} is for {exps.shape[1]} variable(s) but x has {x.shape[1]} column(s)"
+        )
     n, p = z.size, len(exps)
     if n < p:
-        raise ValueError(f"degree: {p} coefficients cannot be determined from {n} points; lower "
-                         "the degree or add data")
+        raise ValueError(
+            f"degree: {p} coefficients cannot be determined from {n} points; lower "
+            "the degree or add data"
+        )
     a = design_matrix(x, exps)
     w = np.ones(n) if weights is None else np.asarray(weights, dtype=float).reshape(-1)
     if w.shape != (n,) or np.any(~np.isfinite(w)) or np.any(w < 0):
@@ -164,9 +181,14 @@ def fit_polynomial(x, z, degree, *, weights=None) -> PolynomialFit:
     z_hat = a @ coef
     rss = float(np.sum((z - z_hat) ** 2))
     return PolynomialFit(
-        exponents=exps, coefficients=coef, r_squared=r_squared(z, z_hat), rmse=rmse(z, z_hat),
-        rmse_dof=float(np.sqrt(rss / (n - p))) if n > p else float("nan"), n_data=n,
-        criteria=information_criteria(rss, n, p))
+        exponents=exps,
+        coefficients=coef,
+        r_squared=r_squared(z, z_hat),
+        rmse=rmse(z, z_hat),
+        rmse_dof=float(np.sqrt(rss / (n - p))) if n > p else float("nan"),
+        n_data=n,
+        criteria=information_criteria(rss, n, p),
+    )
 
 
 def grid(fit: PolynomialFit, x_range, y_range, *, dx: float = 0.1, dy: float = 1.0):

@@ -39,8 +39,16 @@ def frame_times(duration_s: float, defects: CameraDefects, rng: np.random.Genera
     return t[keep]
 
 
-def record(model, inputs, *, name: str, defects: CameraDefects, seed: int,
-           role: str = "estimation", method: str = "zoh") -> tuple[Experiment, np.ndarray]:
+def record(
+    model,
+    inputs,
+    *,
+    name: str,
+    defects: CameraDefects,
+    seed: int,
+    role: str = "estimation",
+    method: str = "zoh",
+) -> tuple[Experiment, np.ndarray]:
     """A synthetic run: (Experiment with noisy/dropped/corrupted readings, clean readings)."""
     rng = np.random.default_rng(seed)
     duration = inputs.to_piecewise().end_s
@@ -50,8 +58,11 @@ def record(model, inputs, *, name: str, defects: CameraDefects, seed: int,
     if defects.burst_length > 0:
         start = int(rng.integers(0, max(t.size - defects.burst_length, 1)))
         sign = rng.choice([-1.0, 1.0])
-        y[start:start + defects.burst_length] += sign * defects.burst_size_m * (
-            1.0 + rng.uniform(0, 1, (min(defects.burst_length, t.size - start), y.shape[1])))
+        y[start : start + defects.burst_length] += (
+            sign
+            * defects.burst_size_m
+            * (1.0 + rng.uniform(0, 1, (min(defects.burst_length, t.size - start), y.shape[1])))
+        )
     dropped = rng.uniform(size=t.size) < defects.drop_fraction
     y[dropped] = np.nan
     return Experiment(name, t, y, inputs.to_piecewise(), role=role), clean

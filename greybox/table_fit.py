@@ -45,15 +45,19 @@ class _TableProblem(eqx.Module):
     shared: tuple = eqx.field(static=True)
 
     def model_at(self, raw):
-        return set_values(self.model, [p.path for p in self.shared],
-                          [p.to_value(raw[k]) for k, p in enumerate(self.shared)])
+        return set_values(
+            self.model,
+            [p.path for p in self.shared],
+            [p.to_value(raw[k]) for k, p in enumerate(self.shared)],
+        )
 
     def data_residuals(self, raw, sigma):
         return (self.predict(self.model_at(raw), self.x) - self.y) / sigma * self.w
 
     def residuals(self, raw, sigma):
-        priors = [p.prior_residual(p.to_value(raw[k])) for k, p in enumerate(self.shared)
-                  if p.has_prior]
+        priors = [
+            p.prior_residual(p.to_value(raw[k])) for k, p in enumerate(self.shared) if p.has_prior
+        ]
         r = self.data_residuals(raw, sigma)
         return jnp.concatenate([r, jnp.stack(priors)]) if priors else r
 
@@ -61,12 +65,17 @@ class _TableProblem(eqx.Module):
 @eqx.filter_jit
 def _solve(problem: _TableProblem, raw0, sigma, rtol: float, atol: float, max_steps: int):
     lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(problem.residuals, lm, raw0, args=sigma, max_steps=max_steps,
-                             throw=False)
+    sol = optx.least_squares(
+        problem.residuals, lm, raw0, args=sigma, max_steps=max_steps, throw=False
+    )
     raw = sol.value
-    return dict(raw=raw, ok=sol.result == optx.RESULTS.successful, steps=sol.stats["num_steps"],
-                jacobian=jax.jacfwd(lambda r: problem.residuals(r, sigma))(raw),
-                prediction=problem.predict(problem.model_at(raw), problem.x))
+    return dict(
+        raw=raw,
+        ok=sol.result == optx.RESULTS.successful,
+        steps=sol.stats["num_steps"],
+        jacobian=jax.jacfwd(lambda r: problem.residuals(r, sigma))(raw),
+        prediction=problem.predict(problem.model_at(raw), problem.x),
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,9 +110,19 @@ class TableFitResult:
         raise KeyError(f"{name}: not a fitted parameter; have {[p.name for p in self.parameters]}")
 
 
-def fit_table(model, predict: Callable, x, y, free: Sequence[FreeParameter], *,
-              sigma=None, weights=None, max_steps: int = 200, rtol: float = 1e-8,
-              atol: float = 1e-10) -> TableFitResult:
+def fit_table(
+    model,
+    predict: Callable,
+    x,
+    y,
+    free: Sequence[FreeParameter],
+    *,
+    sigma=None,
+    weights=None,
+    max_steps: int = 200,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+) -> TableFitResult:
     """Fit `free` parameters of `model` so that `predict(model, x)` matches `y` (SI).
 
     **Arguments:**
@@ -123,8 +142,9 @@ def fit_table(model, predict: Callable, x, y, free: Sequence[FreeParameter], *,
     if not free:
         raise ValueError("free: no free parameters; list at least one FreeParameter")
     if any(p.per_experiment for p in free):
-        raise ValueError("free: per_experiment parameters need several experiments; a table fit "
-                         "has one")
+        raise ValueError(
+            "free: per_experiment parameters need several experiments; a table fit has one"
+        )
     if not np.all(np.isfinite(y)):
         raise ValueError("y: contains NaN or inf; drop those table rows")
     w = np.ones_like(y) if weights is None else np.asarray(weights, dtype=float).reshape(-1)
@@ -132,16 +152,24 @@ def fit_table(model, predict: Callable, x, y, free: Sequence[FreeParameter], *,
         raise ValueError("weights: need one finite value >= 0 per row")
     n_data = int(np.sum(w > 0))
     if n_data <= len(free):
-        raise ValueError(f"y: {n_data} rows cannot determine {len(free)} parameters; add data or "
-                         "free fewer parameters")
+        raise ValueError(
+            f"y: {n_data} rows cannot determine {len(free)} parameters; add data or "
+            "free fewer parameters"
+        )
     raw0 = []
     for p in free:
         v = p.initial if p.initial is not None else get_value(model, p.path)
         p.check_value(v)
         raw0.append(float(p.to_raw(v)))
     raw0 = jnp.asarray(raw0)
-    problem = _TableProblem(as_arrays(model), jax.tree.map(jnp.asarray, x), jnp.asarray(y),
-                            jnp.asarray(w), predict, free)
+    problem = _TableProblem(
+        as_arrays(model),
+        jax.tree.map(jnp.asarray, x),
+        jnp.asarray(y),
+        jnp.asarray(w),
+        predict,
+        free,
+    )
     has_priors = any(p.has_prior for p in free)
     estimate = sigma is None
     sig = np.std(y[w > 0]) * 1e-2 + 1e-300 if estimate else np.asarray(sigma, dtype=float)
@@ -150,8 +178,9 @@ def fit_table(model, predict: Callable, x, y, free: Sequence[FreeParameter], *,
     sig = np.broadcast_to(sig, y.shape).astype(float)
 
     def solve(start, s):
-        return jax.device_get(_solve(problem, start, jnp.asarray(s), float(rtol), float(atol),
-                                     int(max_steps)))
+        return jax.device_get(
+            _solve(problem, start, jnp.asarray(s), float(rtol), float(atol), int(max_steps))
+        )
 
     out = solve(raw0, sig)
     steps = int(out["steps"])
@@ -175,13 +204,34 @@ def fit_table(model, predict: Callable, x, y, free: Sequence[FreeParameter], *,
     corr = correlation(report)
     pred = np.asarray(out["prediction"])
     ok = bool(out["ok"]) and finite
-    message = "converged" if ok else ("diverged: non-finite parameters" if not finite else
-                                      "Levenberg-Marquardt stopped without meeting its tolerances")
+    message = (
+        "converged"
+        if ok
+        else (
+            "diverged: non-finite parameters"
+            if not finite
+            else "Levenberg-Marquardt stopped without meeting its tolerances"
+        )
+    )
     keep = w > 0
     cost = 0.5 * float(np.sum(((pred - y) * w / sig) ** 2))
     return TableFitResult(
-        model=problem.model_at(jnp.asarray(raw)), free=free,
-        parameters=parameter_estimates(free, raw, report), raw=raw, covariance_raw=cov,
-        correlation=corr, sigma=sig, sigma_estimated=estimate, cost=cost, n_data=n_data,
-        converged=ok, message=message, n_steps=steps, identifiability=report, prediction=pred,
-        residuals=y - pred, rmse=rmse(y[keep], pred[keep]), r_squared=r_squared(y[keep], pred[keep]))
+        model=problem.model_at(jnp.asarray(raw)),
+        free=free,
+        parameters=parameter_estimates(free, raw, report),
+        raw=raw,
+        covariance_raw=cov,
+        correlation=corr,
+        sigma=sig,
+        sigma_estimated=estimate,
+        cost=cost,
+        n_data=n_data,
+        converged=ok,
+        message=message,
+        n_steps=steps,
+        identifiability=report,
+        prediction=pred,
+        residuals=y - pred,
+        rmse=rmse(y[keep], pred[keep]),
+        r_squared=r_squared(y[keep], pred[keep]),
+    )

@@ -88,8 +88,12 @@ class Roi:
 
     def inside(self, shape: Sequence[int]) -> bool:
         """Whether the ROI lies wholly inside an image of shape (H, W)."""
-        return self.x >= 0 and self.y >= 0 and self.x + self.w <= shape[1] \
+        return (
+            self.x >= 0
+            and self.y >= 0
+            and self.x + self.w <= shape[1]
             and self.y + self.h <= shape[0]
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,8 +132,12 @@ class Measurements:
     @staticmethod
     def concatenate(parts: Sequence[Measurements]) -> Measurements:
         """Join chunks along the frame axis."""
-        return Measurements(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])
-                               for f in dataclasses.fields(Measurements)})
+        return Measurements(
+            **{
+                f.name: np.concatenate([getattr(p, f.name) for p in parts])
+                for f in dataclasses.fields(Measurements)
+            }
+        )
 
 
 def _taper(n: int) -> np.ndarray:
@@ -139,7 +147,7 @@ def _taper(n: int) -> np.ndarray:
     m = max(1, n // 4)
     ramp = 0.5 * (1.0 - np.cos(np.pi * (np.arange(m) + 0.5) / m))
     t[:m] = ramp
-    t[n - m:] = ramp[::-1]
+    t[n - m :] = ramp[::-1]
     return t
 
 
@@ -147,12 +155,17 @@ def _search_window(roi: Roi, search_px: int, shape, offset=(0, 0)):
     """Rows y0:y1, columns x0:x1 of the search window: the ROI at the expected position
     (shifted by ``offset`` (dx, dy) px) grown by ``search_px``, clipped to ``shape`` (H, W)."""
     ox, oy = offset
-    return (max(roi.y + oy - search_px, 0), min(roi.y + oy + roi.h + search_px, shape[0]),
-            max(roi.x + ox - search_px, 0), min(roi.x + ox + roi.w + search_px, shape[1]))
+    return (
+        max(roi.y + oy - search_px, 0),
+        min(roi.y + oy + roi.h + search_px, shape[0]),
+        max(roi.x + ox - search_px, 0),
+        min(roi.x + ox + roi.w + search_px, shape[1]),
+    )
 
 
-def search_crop(roi: Roi, search_px: int,
-                shape: Sequence[int]) -> tuple[tuple[int, int, int, int], Roi]:
+def search_crop(
+    roi: Roi, search_px: int, shape: Sequence[int]
+) -> tuple[tuple[int, int, int, int], Roi]:
     """The only part of (H, W) frames a fixed-window `FeatureTracker` reads.
 
     Returns ``(crop, roi_in_crop)``: ``crop = (x, y, w, h)`` px, the search window at the
@@ -191,21 +204,29 @@ class FeatureTracker:
       references, no glare test for float ones (e.g. a `reference_frame` mean).
     """
 
-    def __init__(self, reference: np.ndarray, roi: Roi, *, search_px: int = 16,
-                 upsample: int = 100, saturation_level: float | None = None):
+    def __init__(
+        self,
+        reference: np.ndarray,
+        roi: Roi,
+        *,
+        search_px: int = 16,
+        upsample: int = 100,
+        saturation_level: float | None = None,
+    ):
         reference = np.asarray(reference)
         if reference.ndim != 2:
             raise ValueError(f"reference must be a 2-D frame, got shape {reference.shape}")
         if not roi.inside(reference.shape):
-            raise ValueError(f"ROI {roi} is outside the {reference.shape[1]}x"
-                             f"{reference.shape[0]} px frame")
+            raise ValueError(
+                f"ROI {roi} is outside the {reference.shape[1]}x{reference.shape[0]} px frame"
+            )
         if saturation_level is None and np.issubdtype(reference.dtype, np.integer):
             saturation_level = float(np.iinfo(reference.dtype).max)
         self.roi, self.search_px, self.upsample = roi, int(search_px), int(upsample)
         self.frame_shape = reference.shape
         self.saturation_level = saturation_level
         self._win = np.outer(_taper(roi.h), _taper(roi.w))
-        tmpl = reference[roi.y:roi.y + roi.h, roi.x:roi.x + roi.w].astype(float)
+        tmpl = reference[roi.y : roi.y + roi.h, roi.x : roi.x + roi.w].astype(float)
         self._tmpl_std = float(tmpl.std())
         if self._tmpl_std == 0.0:
             raise ValueError(f"ROI {roi} has no contrast in the reference frame (flat)")
@@ -223,8 +244,7 @@ class FeatureTracker:
         # Least-squares sigma factors per axis: sqrt(2 Σ W² g²) / Σ W g² (per unit σ_n).
         gy, gx = np.gradient(tmpl)
         w2 = self._win**2
-        self._sig_gain = [np.sqrt(2.0 * np.sum(w2**2 * g**2)) / np.sum(w2 * g**2)
-                          for g in (gx, gy)]
+        self._sig_gain = [np.sqrt(2.0 * np.sum(w2**2 * g**2)) / np.sum(w2 * g**2) for g in (gx, gy)]
         self._tz_energy = float(np.sum(tz**2))
         self._w2_sum = float(np.sum(w2))
 
@@ -256,8 +276,10 @@ class FeatureTracker:
         (dx, dy) px from its reference position; returns `Measurements` (n,)."""
         frames = np.asarray(frames)
         if frames.ndim != 3 or frames.shape[1:] != self.frame_shape:
-            raise ValueError(f"frames must be (n, {self.frame_shape[0]}, "
-                             f"{self.frame_shape[1]}), got {frames.shape}")
+            raise ValueError(
+                f"frames must be (n, {self.frame_shape[0]}, "
+                f"{self.frame_shape[1]}), got {frames.shape}"
+            )
         n = len(frames)
         r, m = self.roi, self.search_px
         H, W = self.frame_shape
@@ -275,7 +297,7 @@ class FeatureTracker:
         # (2.6x faster again): s0 is refined in double precision below.
         hs, ws = win.shape[1:]
         canvas = np.zeros((hs, ws), np.float32)
-        canvas[:r.h, :r.w] = np.fft.ifft2(self._tmpl_fft).real
+        canvas[: r.h, : r.w] = np.fft.ifft2(self._tmpl_fft).real
         wz = win - win.mean(axis=(1, 2), keepdims=True)
         cross = sfft.rfft2(wz) * np.conj(sfft.rfft2(canvas))[None]
         cross /= np.maximum(np.abs(cross), np.float32(1e-12))
@@ -291,25 +313,32 @@ class FeatureTracker:
         rows = py[:, None] + np.arange(r.h)[None]
         cols = px[:, None] + np.arange(r.w)[None]
         # From the frames themselves (the float32 window is exact for 8/16-bit grey only).
-        patches = frames[np.arange(n)[:, None, None], y0 + rows[:, :, None],
-                         x0 + cols[:, None, :]].astype(float)
+        patches = frames[
+            np.arange(n)[:, None, None], y0 + rows[:, :, None], x0 + cols[:, None, :]
+        ].astype(float)
         # Parabolic sub-pixel estimate of the coarse peak (about 0.1 px): the patch is
         # moved back by it before the fine step, so the fixed taper's pull on the fine
         # residual (a few % of it) is negligible (module docstring, step 2).
-        s0 = np.stack([self._parabola(cc.reshape(n, hs, ws), py0, px0, ax)
-                       for ax in (0, 1)], 1).astype(float)
+        s0 = np.stack(
+            [self._parabola(cc.reshape(n, hs, ws), py0, px0, ax) for ax in (0, 1)], 1
+        ).astype(float)
         # 2. pre-shift by s0 (batched phase ramp), then 3. scikit-image, frame by frame.
         pz = patches - patches.mean(axis=(1, 2), keepdims=True)
-        ramp = np.exp(2j * np.pi * s0[:, 0, None, None] * self._fy[None]) \
-            * np.exp(2j * np.pi * s0[:, 1, None, None] * self._rfx[None])
+        ramp = np.exp(2j * np.pi * s0[:, 0, None, None] * self._fy[None]) * np.exp(
+            2j * np.pi * s0[:, 1, None, None] * self._rfx[None]
+        )
         pz = sfft.irfft2(sfft.rfft2(pz) * ramp, s=(r.h, r.w))
         spec = sfft.fft2(pz * self._win[None])
         fine, err = np.empty((n, 2)), np.empty(n)
         with _one_blas_thread():
             for k in range(n):
                 fine[k], err[k], _ = phase_cross_correlation(
-                    self._tmpl_fft, spec[k], space="fourier", upsample_factor=self.upsample,
-                    normalization=None)
+                    self._tmpl_fft,
+                    spec[k],
+                    space="fourier",
+                    upsample_factor=self.upsample,
+                    normalization=None,
+                )
         # `fine` registers the patch onto the template: the feature moved by minus that.
         dy = iy + s0[:, 0] - fine[:, 0]
         dx = ix + s0[:, 1] - fine[:, 1]
@@ -319,17 +348,21 @@ class FeatureTracker:
         noise_var = (1.0 - rho) * self._tz_energy / self._w2_sum
         sig_n = np.sqrt(noise_var)
         return Measurements(
-            dx_px=np.where(lost, np.nan, dx), dy_px=np.where(lost, np.nan, dy), rho=rho,
+            dx_px=np.where(lost, np.nan, dx),
+            dy_px=np.where(lost, np.nan, dy),
+            rho=rho,
             sharpness=self._sharpness(spec) / self._sharp_ref,
             contrast=pstd / self._tmpl_std,
             saturation=self._saturation(patches) - self._ref_sat,
-            sigma_x_px=sig_n * self._sig_gain[0], sigma_y_px=sig_n * self._sig_gain[1],
-            lost=lost)
+            sigma_x_px=sig_n * self._sig_gain[0],
+            sigma_y_px=sig_n * self._sig_gain[1],
+            lost=lost,
+        )
 
 
-
-def measure_sequence(trackers: Sequence[FeatureTracker], chunks: Iterable[np.ndarray], *,
-                     follow: bool = False) -> list[Measurements]:
+def measure_sequence(
+    trackers: Sequence[FeatureTracker], chunks: Iterable[np.ndarray], *, follow: bool = False
+) -> list[Measurements]:
     """Run each tracker over the same frame chunks (each (n, H, W)), in one pass.
 
     ``follow=False``: the search window stays at the reference position (a shuttle that
@@ -373,14 +406,18 @@ def _spikes(y: np.ndarray, good: np.ndarray, jump_px: float) -> np.ndarray:
     mad = 1.4826 * np.median(np.abs(d2 - np.median(d2)))
     thr = max(jump_px, 8.0 * mad)
     same_side = np.sign(mid - prev) == np.sign(mid - nxt)
-    spike = same_side & (np.minimum(np.abs(mid - prev), np.abs(mid - nxt)) > thr) \
+    spike = (
+        same_side
+        & (np.minimum(np.abs(mid - prev), np.abs(mid - nxt)) > thr)
         & (np.abs(d2) > 3.0 * 0.5 * np.abs(nxt - prev))
+    )
     out[idx[1:-1][spike]] = True
     return out
 
 
-def assess(meas: Measurements, signal_px: np.ndarray | None = None,
-           thresholds: Thresholds = Thresholds()) -> tuple[np.ndarray, np.ndarray]:
+def assess(
+    meas: Measurements, signal_px: np.ndarray | None = None, thresholds: Thresholds = Thresholds()
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-frame quality in [0, 1] and flag reason ("" = good) for one feature.
 
     ``signal_px``: the tracked coordinate(s) used by the jump test, (N,) or (N, C);
@@ -401,17 +438,26 @@ def assess(meas: Measurements, signal_px: np.ndarray | None = None,
         flag(meas.lost, "lost")
         decor = 1.0 - meas.rho
         typical = np.nanmedian(decor[reason == ""]) if np.any(reason == "") else 0.0
-        flag((meas.rho < th.min_rho) | ((decor > th.decorrelation_factor * typical)
-                                        & (decor > typical + th.decorrelation_margin)),
-             "low_correlation")
-        sig = np.stack([meas.dx_px, meas.dy_px]) if signal_px is None \
+        flag(
+            (meas.rho < th.min_rho)
+            | (
+                (decor > th.decorrelation_factor * typical)
+                & (decor > typical + th.decorrelation_margin)
+            ),
+            "low_correlation",
+        )
+        sig = (
+            np.stack([meas.dx_px, meas.dy_px])
+            if signal_px is None
             else np.atleast_2d(np.asarray(signal_px, dtype=float).T)
+        )
         jump = np.zeros(n, bool)
         for s in sig:
             jump |= _spikes(s, reason == "", th.jump_px)
         flag(jump, "outlier_jump")
-        quality = np.clip(np.nan_to_num(meas.rho), 0.0, 1.0) \
-            * np.clip(np.nan_to_num(meas.sharpness), 0.0, 1.0)
+        quality = np.clip(np.nan_to_num(meas.rho), 0.0, 1.0) * np.clip(
+            np.nan_to_num(meas.sharpness), 0.0, 1.0
+        )
     return quality, reason.astype(str)
 
 
@@ -443,8 +489,9 @@ class ShuttleTrack:
     meas: Measurements
 
 
-def shuttle_track(meas: Measurements, axis: str = "x",
-                  thresholds: Thresholds = Thresholds()) -> ShuttleTrack:
+def shuttle_track(
+    meas: Measurements, axis: str = "x", thresholds: Thresholds = Thresholds()
+) -> ShuttleTrack:
     """Turn raw measurements into the 1-D shuttle track along ``axis`` ("x" or "y")."""
     if axis not in ("x", "y"):
         raise ValueError(f"axis must be 'x' or 'y', got {axis!r}")
@@ -466,9 +513,11 @@ def reference_frame(frames: np.ndarray, start: int = 0, count: int = 1) -> np.nd
     """
     frames = np.asarray(frames)
     if not 0 <= start < len(frames) or count < 1 or start + count > len(frames):
-        raise ValueError(f"reference frames {start}..{start + count - 1} are outside the "
-                         f"{len(frames)}-frame sequence")
-    return frames[start:start + count].astype(float).mean(axis=0)
+        raise ValueError(
+            f"reference frames {start}..{start + count - 1} are outside the "
+            f"{len(frames)}-frame sequence"
+        )
+    return frames[start : start + count].astype(float).mean(axis=0)
 
 
 def saturation_level_for(dtype) -> float | None:
@@ -477,20 +526,34 @@ def saturation_level_for(dtype) -> float | None:
     return float(np.iinfo(dtype).max) if np.issubdtype(dtype, np.integer) else None
 
 
-def track_shuttle(frames: np.ndarray, roi: Roi, *, axis: str = "x", reference: int = 0,
-                  reference_count: int = 1, search_px: int = 16, upsample: int = 100,
-                  chunk: int = 256, thresholds: Thresholds = Thresholds()) -> ShuttleTrack:
+def track_shuttle(
+    frames: np.ndarray,
+    roi: Roi,
+    *,
+    axis: str = "x",
+    reference: int = 0,
+    reference_count: int = 1,
+    search_px: int = 16,
+    upsample: int = 100,
+    chunk: int = 256,
+    thresholds: Thresholds = Thresholds(),
+) -> ShuttleTrack:
     """Track a shuttle feature in an in-memory stack ``frames`` (N, H, W) along ``axis``.
 
     Displacements in px relative to the mean of frames ``reference`` ..
     ``reference + reference_count - 1`` (`reference_frame`); see `FeatureTracker`.
     """
     frames = np.asarray(frames)
-    tracker = FeatureTracker(reference_frame(frames, reference, reference_count), roi,
-                             search_px=search_px, upsample=upsample,
-                             saturation_level=saturation_level_for(frames.dtype))
-    (meas,) = measure_sequence([tracker], (frames[i:i + chunk]
-                                           for i in range(0, len(frames), chunk)))
+    tracker = FeatureTracker(
+        reference_frame(frames, reference, reference_count),
+        roi,
+        search_px=search_px,
+        upsample=upsample,
+        saturation_level=saturation_level_for(frames.dtype),
+    )
+    (meas,) = measure_sequence(
+        [tracker], (frames[i : i + chunk] for i in range(0, len(frames), chunk))
+    )
     return shuttle_track(meas, axis, thresholds)
 
 
@@ -514,16 +577,22 @@ class PoseTrack:
     reason: np.ndarray
 
 
-def pose_track(meas1: Measurements, meas2: Measurements, roi1: Roi, roi2: Roi,
-               thresholds: Thresholds = Thresholds()) -> PoseTrack:
+def pose_track(
+    meas1: Measurements,
+    meas2: Measurements,
+    roi1: Roi,
+    roi2: Roi,
+    thresholds: Thresholds = Thresholds(),
+) -> PoseTrack:
     """Combine two features' measurements into midpoint position and heading.
 
     A frame is flagged if either feature is (reason prefixed ``f1:``/``f2:``).
     """
     q1, r1 = assess(meas1, None, thresholds)
     q2, r2 = assess(meas2, None, thresholds)
-    reason = np.where(r1 != "", np.char.add("f1:", r1),
-                      np.where(r2 != "", np.char.add("f2:", r2), ""))
+    reason = np.where(
+        r1 != "", np.char.add("f1:", r1), np.where(r2 != "", np.char.add("f2:", r2), "")
+    )
     good = reason == ""
     f1 = np.column_stack([meas1.dx_px, meas1.dy_px])
     f2 = np.column_stack([meas2.dx_px, meas2.dy_px])
@@ -537,21 +606,46 @@ def pose_track(meas1: Measurements, meas2: Measurements, roi1: Roi, roi2: Roi,
         heading[good] = np.unwrap(heading[good])
     mid = 0.5 * (f1 + f2)
     nanify = lambda a: np.where(good if a.ndim == 1 else good[:, None], a, np.nan)
-    return PoseTrack(f1=nanify(f1), f2=nanify(f2), x_px=nanify(mid[:, 0]),
-                     y_px=nanify(mid[:, 1]), heading_rad=nanify(heading),
-                     sigma_px=np.fmax(*[_honest_sigma(np.fmax(m.sigma_x_px, m.sigma_y_px),
-                                                      m.rho, good) for m in (meas1, meas2)]),
-                     quality=np.minimum(q1, q2), reason=reason.astype(str))
+    return PoseTrack(
+        f1=nanify(f1),
+        f2=nanify(f2),
+        x_px=nanify(mid[:, 0]),
+        y_px=nanify(mid[:, 1]),
+        heading_rad=nanify(heading),
+        sigma_px=np.fmax(
+            *[
+                _honest_sigma(np.fmax(m.sigma_x_px, m.sigma_y_px), m.rho, good)
+                for m in (meas1, meas2)
+            ]
+        ),
+        quality=np.minimum(q1, q2),
+        reason=reason.astype(str),
+    )
 
 
-def track_pose(frames: np.ndarray, roi1: Roi, roi2: Roi, *, reference: int = 0,
-               reference_count: int = 1, search_px: int = 16, upsample: int = 100,
-               thresholds: Thresholds = Thresholds()) -> PoseTrack:
+def track_pose(
+    frames: np.ndarray,
+    roi1: Roi,
+    roi2: Roi,
+    *,
+    reference: int = 0,
+    reference_count: int = 1,
+    search_px: int = 16,
+    upsample: int = 100,
+    thresholds: Thresholds = Thresholds(),
+) -> PoseTrack:
     """Track two features (each following its own last position) in ``frames`` (N, H, W)."""
     frames = np.asarray(frames)
     ref = reference_frame(frames, reference, reference_count)
-    trackers = [FeatureTracker(ref, roi, search_px=search_px, upsample=upsample,
-                               saturation_level=saturation_level_for(frames.dtype))
-                for roi in (roi1, roi2)]
+    trackers = [
+        FeatureTracker(
+            ref,
+            roi,
+            search_px=search_px,
+            upsample=upsample,
+            saturation_level=saturation_level_for(frames.dtype),
+        )
+        for roi in (roi1, roi2)
+    ]
     meas = measure_sequence(trackers, [frames], follow=True)
     return pose_track(meas[0], meas[1], roi1, roi2, thresholds)

@@ -46,10 +46,12 @@ class PiecewiseConstant:
         if values.shape[0] != times.size:
             raise ValueError(
                 f"values: has {values.shape[0]} levels but times_s has {times.size} breakpoints; "
-                "give one level per breakpoint")
+                "give one level per breakpoint"
+            )
         if np.any(np.diff(times) <= 0):
-            raise ValueError("times_s: breakpoints must be strictly increasing; sort them and "
-                             "remove duplicates")
+            raise ValueError(
+                "times_s: breakpoints must be strictly increasing; sort them and remove duplicates"
+            )
         end = float(self.end_s)
         if not np.isfinite(end) or end < times[-1]:
             raise ValueError(f"end_s: {end} is before the last breakpoint {times[-1]}")
@@ -120,8 +122,11 @@ class PulseTrain:
             ("power_W", self.power_W >= 0, "laser power cannot be negative"),
             ("period_s", self.period_s > 0, "the period must be positive"),
             ("duty", 0 < self.duty <= 1, "duty is the on-fraction, in (0, 1]"),
-            ("n_pulses", int(self.n_pulses) == self.n_pulses and self.n_pulses >= 1,
-             "give a whole number of pulses >= 1"),
+            (
+                "n_pulses",
+                int(self.n_pulses) == self.n_pulses and self.n_pulses >= 1,
+                "give a whole number of pulses >= 1",
+            ),
             ("delay_s", self.delay_s >= 0, "the delay cannot be negative"),
             ("tail_s", self.tail_s >= 0, "the tail cannot be negative"),
         ]
@@ -158,7 +163,9 @@ class PulseTrain:
         return self.to_piecewise()(t)
 
 
-def from_samples(times_s, values, *, end_s: float | None = None, name: str = "laser") -> PiecewiseConstant:
+def from_samples(
+    times_s, values, *, end_s: float | None = None, name: str = "laser"
+) -> PiecewiseConstant:
     """Piecewise-constant trace from logged samples (each sample held until the next one).
 
     Raises `ValueError` naming `name` for NaN, non-monotonic times or negative power.
@@ -166,7 +173,9 @@ def from_samples(times_s, values, *, end_s: float | None = None, name: str = "la
     times = np.asarray(times_s, dtype=float).reshape(-1)
     vals = np.asarray(values, dtype=float)
     if times.size != vals.shape[0]:
-        raise ValueError(f"{name}: {times.size} times but {vals.shape[0]} values; lengths must match")
+        raise ValueError(
+            f"{name}: {times.size} times but {vals.shape[0]} values; lengths must match"
+        )
     if not np.all(np.isfinite(vals)):
         raise ValueError(f"{name}: logged values contain NaN; fill or remove those samples")
     if np.any(vals < 0):
@@ -182,9 +191,10 @@ def from_samples(times_s, values, *, end_s: float | None = None, name: str = "la
     return PiecewiseConstant(times[keep], vals[keep], end_s)
 
 
-def multilevel_prbs(levels_W: Sequence[float], hold_s: float, n_holds: int, *, seed: int = 0,
-                    start_s: float = 0.0) -> PiecewiseConstant:
-    """Pseudo-random multilevel sequence: every `hold_s` [s] a level drawn uniformly from `levels_W`.
+def multilevel_prbs(
+    levels_W: Sequence[float], hold_s: float, n_holds: int, *, seed: int = 0, start_s: float = 0.0
+) -> PiecewiseConstant:
+    """Pseudo-random multilevel sequence: every `hold_s` [s] a level drawn from `levels_W`.
 
     Deterministic for a given `seed`; consecutive holds may repeat a level (merged into one).
     """

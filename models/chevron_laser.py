@@ -18,10 +18,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from greybox.blocks.camera import Camera
-from greybox.channels import DISPLACEMENT, LASER_POWER
-from greybox.blocks.mechanics import ChevronExact, ChevronLinear, QuasiStaticShuttle, ThermalElongation
+from greybox.blocks.mechanics import (
+    ChevronExact,
+    ChevronLinear,
+    QuasiStaticShuttle,
+    ThermalElongation,
+)
 from greybox.blocks.spot import GaussianSpot, RectangularFrame
 from greybox.blocks.thermal import AbstractThermal, FirstOrderThermal
+from greybox.channels import DISPLACEMENT, LASER_POWER
 from greybox.device import AbstractDevice
 from greybox.freeparams import FreeParameter
 from greybox.parameters import ParameterInfo
@@ -110,8 +115,9 @@ class LaserChevron(AbstractDevice):
         return jax.grad(self.stroke)(0.0) * theta_per_w
 
 
-def default_model(*, exact: bool = True, exposure_s: float = 0.010, m_per_px: float = 0.645e-6,
-                  **overrides) -> LaserChevron:
+def default_model(
+    *, exact: bool = True, exposure_s: float = 0.010, m_per_px: float = 0.645e-6, **overrides
+) -> LaserChevron:
     """The thesis chevron at nominal values; keyword `overrides` replace dotted-path fields
     given with '__' (e.g. ``thermal__tau_s=0.05``)."""
     angle = np.deg2rad(2.0)
@@ -119,36 +125,91 @@ def default_model(*, exact: bool = True, exposure_s: float = 0.010, m_per_px: fl
         spot=GaussianSpot(waist_m=150e-6),
         target=RectangularFrame.square(0.0, 0.0, PAD_SIZE_M),
         absorptance=0.67,  # Si >= 100 um at 800 nm
-        thermal=FirstOrderThermal(tau_s=NOMINAL_TAU_S, resistance_K_per_W=NOMINAL_RESISTANCE_K_PER_W),
-        elongation=ThermalElongation(cte_per_K=CTE_SI_PER_K, length_m=BEAM_LENGTH_M, beam_fraction=0.5),
-        kinematics=ChevronExact(length_m=BEAM_LENGTH_M, angle_rad=angle) if exact else ChevronLinear(angle),
+        thermal=FirstOrderThermal(
+            tau_s=NOMINAL_TAU_S, resistance_K_per_W=NOMINAL_RESISTANCE_K_PER_W
+        ),
+        elongation=ThermalElongation(
+            cte_per_K=CTE_SI_PER_K, length_m=BEAM_LENGTH_M, beam_fraction=0.5
+        ),
+        kinematics=ChevronExact(length_m=BEAM_LENGTH_M, angle_rad=angle)
+        if exact
+        else ChevronLinear(angle),
         shuttle=QuasiStaticShuttle(stiffness_N_per_m=241.5),
         camera=Camera(m_per_px=m_per_px, exposure_s=exposure_s),
     )
     if overrides:
         from greybox.parameters import set_values
 
-        model = set_values(model, [k.replace("__", ".") for k in overrides], list(overrides.values()))
+        model = set_values(
+            model, [k.replace("__", ".") for k in overrides], list(overrides.values())
+        )
     return model
 
 
 PARAMETERS = (
-    ParameterInfo("absorptance", "1", 0.67, 0.40, 0.70, "absorptance of the heated Si pad at 800 nm",
-                  "product with spot fraction and thermal resistance only"),
-    ParameterInfo("spot.waist_m", "m", 150e-6, 25e-6, 500e-6, "1/e^2 spot radius", "not identifiable"),
-    ParameterInfo("thermal.tau_s", "s", NOMINAL_TAU_S, 1e-3, 0.2, "thermal time constant C/G",
-                  "identifiable if frames are faster than tau or tau >~ 20-50 ms"),
-    ParameterInfo("thermal.resistance_K_per_W", "K/W", NOMINAL_RESISTANCE_K_PER_W, 200.0, 1e4,
-                  "thermal resistance 1/G", "product with absorptance only"),
-    ParameterInfo("elongation.beam_fraction", "1", 0.5, 0.3, 1.0, "mean beam rise / pad rise",
-                  "product only"),
-    ParameterInfo("elongation.cte_per_K", "1/K", CTE_SI_PER_K, 2.5e-6, 3.3e-6, "CTE of Si", "fixed"),
-    ParameterInfo("kinematics.angle_rad", "rad", float(np.deg2rad(2.0)), float(np.deg2rad(0.5)),
-                  float(np.deg2rad(5.0)), "chevron pre-bend angle", "weak (curvature only)"),
-    ParameterInfo("camera.offset_m", "m", 0.0, None, None, "image position of zero displacement",
-                  "identifiable, one per run"),
-    ParameterInfo("camera.drift_m_per_s", "m/s", 0.0, None, None, "stage/focus drift",
-                  "only with long laser-off segments"),
+    ParameterInfo(
+        "absorptance",
+        "1",
+        0.67,
+        0.40,
+        0.70,
+        "absorptance of the heated Si pad at 800 nm",
+        "product with spot fraction and thermal resistance only",
+    ),
+    ParameterInfo(
+        "spot.waist_m", "m", 150e-6, 25e-6, 500e-6, "1/e^2 spot radius", "not identifiable"
+    ),
+    ParameterInfo(
+        "thermal.tau_s",
+        "s",
+        NOMINAL_TAU_S,
+        1e-3,
+        0.2,
+        "thermal time constant C/G",
+        "identifiable if frames are faster than tau or tau >~ 20-50 ms",
+    ),
+    ParameterInfo(
+        "thermal.resistance_K_per_W",
+        "K/W",
+        NOMINAL_RESISTANCE_K_PER_W,
+        200.0,
+        1e4,
+        "thermal resistance 1/G",
+        "product with absorptance only",
+    ),
+    ParameterInfo(
+        "elongation.beam_fraction", "1", 0.5, 0.3, 1.0, "mean beam rise / pad rise", "product only"
+    ),
+    ParameterInfo(
+        "elongation.cte_per_K", "1/K", CTE_SI_PER_K, 2.5e-6, 3.3e-6, "CTE of Si", "fixed"
+    ),
+    ParameterInfo(
+        "kinematics.angle_rad",
+        "rad",
+        float(np.deg2rad(2.0)),
+        float(np.deg2rad(0.5)),
+        float(np.deg2rad(5.0)),
+        "chevron pre-bend angle",
+        "weak (curvature only)",
+    ),
+    ParameterInfo(
+        "camera.offset_m",
+        "m",
+        0.0,
+        None,
+        None,
+        "image position of zero displacement",
+        "identifiable, one per run",
+    ),
+    ParameterInfo(
+        "camera.drift_m_per_s",
+        "m/s",
+        0.0,
+        None,
+        None,
+        "stage/focus drift",
+        "only with long laser-off segments",
+    ),
 )
 
 

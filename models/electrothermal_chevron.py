@@ -120,8 +120,10 @@ class ElectrothermalChevron(AbstractDevice):
         return self.thermal.derivative(x, self.heat_W(u, x))
 
     def linear_dynamics(self):
-        raise ValueError("method: the electro-thermal chevron is nonlinear in its input (V^2); "
-                         "use method='adaptive' (greybox.periodic has the closed-form cycle)")
+        raise ValueError(
+            "method: the electro-thermal chevron is nonlinear in its input (V^2); "
+            "use method='adaptive' (greybox.periodic has the closed-form cycle)"
+        )
 
     def state_affine_form(self):
         """(A, B, g) with dx/dt = A x + B g(u); only when `is_state_affine` (tcr = 0)."""
@@ -149,16 +151,27 @@ class ElectrothermalChevron(AbstractDevice):
 
     def stiffness_N_per_m(self):
         """Shuttle-direction stiffness of the beam pairs [N/m] (PHYSICS.md §6)."""
-        return chevron_stiffness_N_per_m(self.youngs_Pa, self.beam_width_m, self.beam_thickness_m,
-                                         self.kinematics.length_m, self.kinematics.angle_rad,
-                                         self.n_pairs)
+        return chevron_stiffness_N_per_m(
+            self.youngs_Pa,
+            self.beam_width_m,
+            self.beam_thickness_m,
+            self.kinematics.length_m,
+            self.kinematics.angle_rad,
+            self.n_pairs,
+        )
 
     def blocked_force_N(self, voltage_V):
         """Blocked force 2 n E A alpha dT sin a [N] at a DC voltage, dT = mean beam rise."""
         rise = self.elongation.beam_fraction * self.dc_rise_K(voltage_V)
-        return chevron_blocked_force_N(self.youngs_Pa, self.beam_width_m, self.beam_thickness_m,
-                                       self.elongation.cte_per_K, rise, self.kinematics.angle_rad,
-                                       self.n_pairs)
+        return chevron_blocked_force_N(
+            self.youngs_Pa,
+            self.beam_width_m,
+            self.beam_thickness_m,
+            self.elongation.cte_per_K,
+            rise,
+            self.kinematics.angle_rad,
+            self.n_pairs,
+        )
 
     def sensor_force_N(self, voltage_V, sensor_stiffness_N_per_m):
         """Force on a sensor of stiffness C [N/m] touching the shuttle: F_block C / (C + k_y).
@@ -167,19 +180,29 @@ class ElectrothermalChevron(AbstractDevice):
         spring, so a compliant sensor reads less than the blocked force [derived].
         """
         k = self.stiffness_N_per_m()
-        return self.blocked_force_N(voltage_V) * sensor_stiffness_N_per_m / (
-            sensor_stiffness_N_per_m + k)
+        return (
+            self.blocked_force_N(voltage_V)
+            * sensor_stiffness_N_per_m
+            / (sensor_stiffness_N_per_m + k)
+        )
 
 
 def default_model(*, exact: bool = True, **overrides) -> ElectrothermalChevron:
     """The nominal electro-thermal chevron; `overrides` use '__' for dots
     (e.g. ``joule__tcr_per_K=0.0``)."""
-    stiffness = float(chevron_stiffness_N_per_m(YOUNGS_SI_PA, BEAM_WIDTH_M, BEAM_THICKNESS_M,
-                                                BEAM_LENGTH_M, ANGLE_RAD))
+    stiffness = float(
+        chevron_stiffness_N_per_m(
+            YOUNGS_SI_PA, BEAM_WIDTH_M, BEAM_THICKNESS_M, BEAM_LENGTH_M, ANGLE_RAD
+        )
+    )
     model = ElectrothermalChevron(
         joule=JouleHeating(resistance_ohm=NOMINAL_R0_OHM, tcr_per_K=NOMINAL_TCR_PER_K),
-        thermal=FirstOrderThermal(tau_s=NOMINAL_TAU_S, resistance_K_per_W=NOMINAL_RESISTANCE_K_PER_W),
-        elongation=ThermalElongation(cte_per_K=CTE_SI_PER_K, length_m=BEAM_LENGTH_M, beam_fraction=1.0),
+        thermal=FirstOrderThermal(
+            tau_s=NOMINAL_TAU_S, resistance_K_per_W=NOMINAL_RESISTANCE_K_PER_W
+        ),
+        elongation=ThermalElongation(
+            cte_per_K=CTE_SI_PER_K, length_m=BEAM_LENGTH_M, beam_fraction=1.0
+        ),
         kinematics=ChevronExact(BEAM_LENGTH_M, ANGLE_RAD) if exact else ChevronLinear(ANGLE_RAD),
         shuttle=QuasiStaticShuttle(stiffness_N_per_m=stiffness),
         camera=Camera(m_per_px=1e-6, exposure_s=0.0),
@@ -187,22 +210,61 @@ def default_model(*, exact: bool = True, **overrides) -> ElectrothermalChevron:
     if overrides:
         from greybox.parameters import set_values
 
-        model = set_values(model, [k.replace("__", ".") for k in overrides], list(overrides.values()))
+        model = set_values(
+            model, [k.replace("__", ".") for k in overrides], list(overrides.values())
+        )
     return model
 
 
 PARAMETERS = (
-    ParameterInfo("thermal.tau_s", "s", NOMINAL_TAU_S, 5e-4, 0.1, "thermal time constant C/G",
-                  "identifiable from the frequency roll-off (0-400 Hz)"),
-    ParameterInfo("thermal.resistance_K_per_W", "K/W", NOMINAL_RESISTANCE_K_PER_W, 30.0, 3000.0,
-                  "mean beam rise per watt", "product with 1/R0, alpha, kappa only"),
-    ParameterInfo("joule.resistance_ohm", "ohm", NOMINAL_R0_OHM, 100.0, 1e5,
-                  "electrical resistance at ambient", "fixed (measured)"),
-    ParameterInfo("joule.tcr_per_K", "1/K", NOMINAL_TCR_PER_K, -2e-3, 5e-3,
-                  "temperature coefficient of resistance", "identifiable from curvature in V^2"),
-    ParameterInfo("elongation.cte_per_K", "1/K", CTE_SI_PER_K, 2.5e-6, 3.3e-6, "CTE of Si", "fixed"),
-    ParameterInfo("kinematics.angle_rad", "rad", ANGLE_RAD, float(np.deg2rad(0.5)),
-                  float(np.deg2rad(5.0)), "chevron pre-bend angle", "fixed from layout"),
+    ParameterInfo(
+        "thermal.tau_s",
+        "s",
+        NOMINAL_TAU_S,
+        5e-4,
+        0.1,
+        "thermal time constant C/G",
+        "identifiable from the frequency roll-off (0-400 Hz)",
+    ),
+    ParameterInfo(
+        "thermal.resistance_K_per_W",
+        "K/W",
+        NOMINAL_RESISTANCE_K_PER_W,
+        30.0,
+        3000.0,
+        "mean beam rise per watt",
+        "product with 1/R0, alpha, kappa only",
+    ),
+    ParameterInfo(
+        "joule.resistance_ohm",
+        "ohm",
+        NOMINAL_R0_OHM,
+        100.0,
+        1e5,
+        "electrical resistance at ambient",
+        "fixed (measured)",
+    ),
+    ParameterInfo(
+        "joule.tcr_per_K",
+        "1/K",
+        NOMINAL_TCR_PER_K,
+        -2e-3,
+        5e-3,
+        "temperature coefficient of resistance",
+        "identifiable from curvature in V^2",
+    ),
+    ParameterInfo(
+        "elongation.cte_per_K", "1/K", CTE_SI_PER_K, 2.5e-6, 3.3e-6, "CTE of Si", "fixed"
+    ),
+    ParameterInfo(
+        "kinematics.angle_rad",
+        "rad",
+        ANGLE_RAD,
+        float(np.deg2rad(0.5)),
+        float(np.deg2rad(5.0)),
+        "chevron pre-bend angle",
+        "fixed from layout",
+    ),
     ParameterInfo("youngs_Pa", "Pa", YOUNGS_SI_PA, 130e9, 169e9, "Young's modulus of Si", "fixed"),
 )
 

@@ -38,10 +38,14 @@ from greybox.parameters import ParameterInfo
 NAME = "tclab"
 _PCT = {"pct": (1.0, 0.0)}
 _TEMP = {"C": (1.0, 273.15), "K": (1.0, 0.0)}
-INPUTS = (Channel("H1", "%", _PCT, "heater 1 level, % of full scale"),
-          Channel("H2", "%", _PCT, "heater 2 level, % of full scale"))
-OUTPUTS = (Channel("T1", "K", _TEMP, "sensor 1 temperature (TMP36 on heater 1)"),
-           Channel("T2", "K", _TEMP, "sensor 2 temperature (TMP36 on heater 2)"))
+INPUTS = (
+    Channel("H1", "%", _PCT, "heater 1 level, % of full scale"),
+    Channel("H2", "%", _PCT, "heater 2 level, % of full scale"),
+)
+OUTPUTS = (
+    Channel("T1", "K", _TEMP, "sensor 1 temperature (TMP36 on heater 1)"),
+    Channel("T2", "K", _TEMP, "sensor 2 temperature (TMP36 on heater 2)"),
+)
 
 # Park et al. (2020) fixed constants [SI]
 AMBIENT_K = 273.15 + 23.0
@@ -54,9 +58,14 @@ EMISSIVITY = 0.9
 # The paper's estimates (tclab_estimate.txt), used as starting values. The paper has one
 # sensor lag tau = 20.68 s shared by both sensors; both per-sensor lags start there.
 PAPER_TAU_S = 20.679715136
-PUBLISHED = {"U_W_per_m2K": 5.5992939361, "Us_W_per_m2K": 20.378532582,
-             "alpha1_W_per_pct": 0.01295874691, "alpha2_W_per_pct": 0.0060915026081,
-             "tau1_s": PAPER_TAU_S, "tau2_s": PAPER_TAU_S}
+PUBLISHED = {
+    "U_W_per_m2K": 5.5992939361,
+    "Us_W_per_m2K": 20.378532582,
+    "alpha1_W_per_pct": 0.01295874691,
+    "alpha2_W_per_pct": 0.0060915026081,
+    "tau1_s": PAPER_TAU_S,
+    "tau2_s": PAPER_TAU_S,
+}
 
 
 class TCLab(AbstractDevice):
@@ -97,7 +106,7 @@ class TCLab(AbstractDevice):
         return jnp.stack([jnp.asarray(self.tau1_s, dtype=float), jnp.asarray(tau2, dtype=float)])
 
     def network(self) -> ThermalNetwork:
-        """The 2-node network with a lagged sensor on each heater node (states: rises above ambient)."""
+        """2-node network with a lagged sensor on each heater node (states: rises over ambient)."""
         f = lambda v: jnp.asarray(v, dtype=float)  # noqa: E731
         rad_ground = rad_between = None
         if self.radiation:
@@ -107,9 +116,14 @@ class TCLab(AbstractDevice):
             capacitance_J_per_K=jnp.stack([f(self.mass_kg * self.cp_J_per_kgK)] * 2),
             ground_conductance_W_per_K=jnp.stack([f(self.U_W_per_m2K * self.area_m2)] * 2),
             coupling_conductance_W_per_K=jnp.stack([f(self.Us_W_per_m2K * self.area_between_m2)]),
-            couplings=((0, 1),), input_nodes=(0, 1),
-            radiation_ground_W_per_K4=rad_ground, radiation_coupling_W_per_K4=rad_between,
-            ambient_K=self.ambient_K, sensor_nodes=(0, 1), sensor_tau_s=self.sensor_tau_s())
+            couplings=((0, 1),),
+            input_nodes=(0, 1),
+            radiation_ground_W_per_K4=rad_ground,
+            radiation_coupling_W_per_K4=rad_between,
+            ambient_K=self.ambient_K,
+            sensor_nodes=(0, 1),
+            sensor_tau_s=self.sensor_tau_s(),
+        )
 
     @property
     def n_states(self) -> int:
@@ -128,8 +142,12 @@ class TCLab(AbstractDevice):
         return not self.radiation
 
     def initial_state(self):
-        rise = jnp.stack([jnp.asarray(self.initial_T1_K, dtype=float) - self.ambient_K,
-                          jnp.asarray(self.initial_T2_K, dtype=float) - self.ambient_K])
+        rise = jnp.stack(
+            [
+                jnp.asarray(self.initial_T1_K, dtype=float) - self.ambient_K,
+                jnp.asarray(self.initial_T2_K, dtype=float) - self.ambient_K,
+            ]
+        )
         return jnp.concatenate([rise, rise])  # heaters and sensors start at the same reading
 
     def heat_W(self, u_pct):
@@ -147,37 +165,98 @@ class TCLab(AbstractDevice):
         return self.ambient_K + x[2:]
 
 
-def default_model(*, radiation: bool = True, shared_sensor_lag: bool = False,
-                  **overrides) -> TCLab:
+def default_model(*, radiation: bool = True, shared_sensor_lag: bool = False, **overrides) -> TCLab:
     """TCLab at the paper's published estimates (both sensor lags at the paper's 20.68 s);
     `shared_sensor_lag=True` is the paper's one-lag structure; `overrides` replace fields
     (``tau1_s=15.0``)."""
-    model = TCLab(**PUBLISHED, camera=Camera(m_per_px=1.0, exposure_s=0.0),
-                  radiation=radiation, shared_sensor_lag=shared_sensor_lag)
+    model = TCLab(
+        **PUBLISHED,
+        camera=Camera(m_per_px=1.0, exposure_s=0.0),
+        radiation=radiation,
+        shared_sensor_lag=shared_sensor_lag,
+    )
     if overrides:
         from greybox.parameters import set_values
 
-        model = set_values(model, [k.replace("__", ".") for k in overrides], list(overrides.values()))
+        model = set_values(
+            model, [k.replace("__", ".") for k in overrides], list(overrides.values())
+        )
     return model
 
 
 PARAMETERS = (
-    ParameterInfo("U_W_per_m2K", "W/(m^2 K)", PUBLISHED["U_W_per_m2K"], 1.0, 20.0,
-                  "convection coefficient heater -> ambient", "identifiable (steady state)"),
-    ParameterInfo("Us_W_per_m2K", "W/(m^2 K)", PUBLISHED["Us_W_per_m2K"], 0.5, 100.0,
-                  "heater-to-heater conductance per area", "identifiable from cross-heating"),
-    ParameterInfo("alpha1_W_per_pct", "W/%", PUBLISHED["alpha1_W_per_pct"], 0.003, 0.03,
-                  "heater 1 power per % of full scale", "identifiable when Q1 moves"),
-    ParameterInfo("alpha2_W_per_pct", "W/%", PUBLISHED["alpha2_W_per_pct"], 0.003, 0.03,
-                  "heater 2 power per % of full scale", "identifiable when Q2 moves"),
-    ParameterInfo("tau1_s", "s", PAPER_TAU_S, 1.0, 100.0, "sensor 1 lag time constant "
-                  "(both sensors' lag when shared_sensor_lag)", "identifiable (shape of the T1 response)"),
-    ParameterInfo("tau2_s", "s", PAPER_TAU_S, 1.0, 100.0, "sensor 2 lag time constant "
-                  "(ignored when shared_sensor_lag)", "identifiable (shape of the T2 response)"),
-    ParameterInfo("initial_T1_K", "K", AMBIENT_K, None, None, "initial heater/sensor 1 temperature",
-                  "known per run (first measurement)"),
-    ParameterInfo("initial_T2_K", "K", AMBIENT_K, None, None, "initial heater/sensor 2 temperature",
-                  "known per run (first measurement)"),
+    ParameterInfo(
+        "U_W_per_m2K",
+        "W/(m^2 K)",
+        PUBLISHED["U_W_per_m2K"],
+        1.0,
+        20.0,
+        "convection coefficient heater -> ambient",
+        "identifiable (steady state)",
+    ),
+    ParameterInfo(
+        "Us_W_per_m2K",
+        "W/(m^2 K)",
+        PUBLISHED["Us_W_per_m2K"],
+        0.5,
+        100.0,
+        "heater-to-heater conductance per area",
+        "identifiable from cross-heating",
+    ),
+    ParameterInfo(
+        "alpha1_W_per_pct",
+        "W/%",
+        PUBLISHED["alpha1_W_per_pct"],
+        0.003,
+        0.03,
+        "heater 1 power per % of full scale",
+        "identifiable when Q1 moves",
+    ),
+    ParameterInfo(
+        "alpha2_W_per_pct",
+        "W/%",
+        PUBLISHED["alpha2_W_per_pct"],
+        0.003,
+        0.03,
+        "heater 2 power per % of full scale",
+        "identifiable when Q2 moves",
+    ),
+    ParameterInfo(
+        "tau1_s",
+        "s",
+        PAPER_TAU_S,
+        1.0,
+        100.0,
+        "sensor 1 lag time constant (both sensors' lag when shared_sensor_lag)",
+        "identifiable (shape of the T1 response)",
+    ),
+    ParameterInfo(
+        "tau2_s",
+        "s",
+        PAPER_TAU_S,
+        1.0,
+        100.0,
+        "sensor 2 lag time constant (ignored when shared_sensor_lag)",
+        "identifiable (shape of the T2 response)",
+    ),
+    ParameterInfo(
+        "initial_T1_K",
+        "K",
+        AMBIENT_K,
+        None,
+        None,
+        "initial heater/sensor 1 temperature",
+        "known per run (first measurement)",
+    ),
+    ParameterInfo(
+        "initial_T2_K",
+        "K",
+        AMBIENT_K,
+        None,
+        None,
+        "initial heater/sensor 2 temperature",
+        "known per run (first measurement)",
+    ),
     ParameterInfo("ambient_K", "K", AMBIENT_K, None, None, "ambient temperature", "fixed (paper)"),
 )
 
@@ -186,5 +265,6 @@ def default_free_parameters(shared_sensor_lag: bool = False) -> list[FreeParamet
     """U, Us, alpha1, alpha2, tau1 and (unless `shared_sensor_lag`, the paper's five) tau2,
     each bounded to a physically plausible range. Use with a model of the same structure."""
     n = 5 if shared_sensor_lag else 6
-    return [FreeParameter(p.path, unit=p.unit, lower=p.lower, upper=p.upper)
-            for p in PARAMETERS[:n]]
+    return [
+        FreeParameter(p.path, unit=p.unit, lower=p.lower, upper=p.upper) for p in PARAMETERS[:n]
+    ]

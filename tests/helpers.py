@@ -9,8 +9,16 @@ from greybox.waveforms import PulseTrain
 THESIS_RUNS = ((5, 0.2), (10, 0.4), (10, 0.6), (15, 0.8), (20, 1.0), (30, 0.5))
 
 
-def chevron_runs(model, *, runs=THESIS_RUNS, duration_s=6.0, seed=0, burst_run=None,
-                 defects=None, role="estimation"):
+def chevron_runs(
+    model,
+    *,
+    runs=THESIS_RUNS,
+    duration_s=6.0,
+    seed=0,
+    burst_run=None,
+    defects=None,
+    role="estimation",
+):
     """Pulse-train runs recorded by a defective camera; returns (experiments, clean readings)."""
     exps, cleans = [], []
     for i, (p_mw, period) in enumerate(runs):

@@ -57,9 +57,15 @@ def test_armax_matches_sippy_fit_or_better():
     rng = np.random.default_rng(12)
     est, val = _armax_data(rng), _armax_data(rng)
     m = bb.fit_armax(est, 2, 2, 2, 1)
-    sys = sippy.system_identification(est.y[:, 0], est.u[:, 0], "ARMAX",
-                                      ARMAX_orders=[2, 2, 2, 0], ARMAX_mod="ILLS",
-                                      max_iterations=200, centering="None")
+    sys = sippy.system_identification(
+        est.y[:, 0],
+        est.u[:, 0],
+        "ARMAX",
+        ARMAX_orders=[2, 2, 2, 0],
+        ARMAX_mod="ILLS",
+        max_iterations=200,
+        centering="None",
+    )
     a_s = np.trim_zeros(np.asarray(sys.DENOMINATOR[0][0], float), "b")
     b_s = np.trim_zeros(np.asarray(sys.NUMERATOR[0][0], float), "f")
     ref = bb.ARMAX.from_coefficients(a_s, [np.r_[0.0, b_s]], [1.0], dt=0.1)

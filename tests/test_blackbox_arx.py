@@ -31,8 +31,11 @@ def test_hair_dryer_arx_223_matches_reference():
     m = bb.fit_arx(ze, 2, 2, 3)
     np.testing.assert_allclose(m.a[0], [1, -1.2737, 0.3935], atol=5e-4)
     np.testing.assert_allclose(m.b[0, 0], [0, 0, 0, 0.0666, 0.0445], atol=5e-4)
-    fits = {(name, k): bb.compare(m, d, k).fit_percent[0]
-            for name, d in (("est", ze), ("val", zv)) for k in (None, 1)}
+    fits = {
+        (name, k): bb.compare(m, d, k).fit_percent[0]
+        for name, d in (("est", ze), ("val", zv))
+        for k in (None, 1)
+    }
     # Reference table (PROVENANCE.md): simulation vs one-step, estimation and validation.
     assert fits["est", None] == pytest.approx(88.9, abs=0.06)
     assert fits["est", 1] == pytest.approx(95.1, abs=0.06)
@@ -55,8 +58,10 @@ def _loop_regressors(d, i, na, nb, nk, offset):
 
 def test_mimo_multi_experiment_matches_lstsq():
     rng = np.random.default_rng(1)
-    exps = [bb.UniformData(rng.standard_normal((n, 2)), rng.standard_normal((n, 3)), 0.5)
-            for n in (80, 120)]
+    exps = [
+        bb.UniformData(rng.standard_normal((n, 2)), rng.standard_normal((n, 3)), 0.5)
+        for n in (80, 120)
+    ]
     nb, nk = (2, 1), (1, 3)
     m = bb.fit_arx(exps, 2, nb, nk, offset=True)
     for i in range(3):
@@ -66,8 +71,7 @@ def test_mimo_multi_experiment_matches_lstsq():
         theta, res, *_ = np.linalg.lstsq(phi, y, rcond=None)
         np.testing.assert_allclose(m.parameters[i], theta, rtol=1e-10, atol=1e-12)
         s2 = res[0] / (len(y) - len(theta))
-        np.testing.assert_allclose(m.covariance[i], s2 * np.linalg.inv(phi.T @ phi),
-                                   rtol=1e-8)
+        np.testing.assert_allclose(m.covariance[i], s2 * np.linalg.inv(phi.T @ phi), rtol=1e-8)
     assert m.n_rows == (80 - 3) + (120 - 3)  # max lag = nk_2 + nb_2 - 1 = 3
 
 
@@ -80,8 +84,9 @@ def test_mimo_gekko_form_noise_free_recovery():
         y[t, 0] = 0.8 * y[t - 1, 0] + 0.5 * u[t - 1, 0] - 0.2 * u[t - 1, 1] + 0.3
         y[t, 1] = 0.6 * y[t - 1, 1] + 0.1 * u[t - 1, 0] + 0.9 * u[t - 1, 1] - 1.0
     m = bb.fit_arx(bb.UniformData(u, y, 1.0), 1, 1, 1, offset=True)
-    np.testing.assert_allclose(m.parameters, [[-0.8, 0.5, -0.2, 0.3], [-0.6, 0.1, 0.9, -1.0]],
-                               atol=1e-10)
+    np.testing.assert_allclose(
+        m.parameters, [[-0.8, 0.5, -0.2, 0.3], [-0.6, 0.1, 0.9, -1.0]], atol=1e-10
+    )
     sim = bb.simulate(m, bb.UniformData(u, y, 1.0))
     np.testing.assert_allclose(sim, y, atol=1e-8)
 
@@ -106,8 +111,9 @@ def test_arx_matches_sippy():
     ze, _ = _dryer()
     m = bb.fit_arx(ze, 2, 2, 3)
     # SIPPY's theta = nk - 1 (its theta = 0 already means one sample of delay).
-    sys = sippy.system_identification(ze.y[:, 0], ze.u[:, 0], "ARX", ARX_orders=[2, 2, 2],
-                                      centering="None")
+    sys = sippy.system_identification(
+        ze.y[:, 0], ze.u[:, 0], "ARX", ARX_orders=[2, 2, 2], centering="None"
+    )
     den = np.trim_zeros(np.asarray(sys.DENOMINATOR[0][0], float), "b")
     num = np.trim_zeros(np.asarray(sys.NUMERATOR[0][0], float), "f")
     np.testing.assert_allclose(den, m.a[0], atol=1e-6)
@@ -122,12 +128,18 @@ def test_predict_horizons_and_simulation():
     a, b = m.a[0], m.b[0, 0]
     y, u = d.y[:, 0], d.u[:, 0]
     # Independent 2-step predictor: iterate the ARX once with the predicted y(t-1).
-    p1 = np.array([-a[1] * y[t - 1] - a[2] * y[t - 2] + b[1] * u[t - 1] + b[2] * u[t - 2]
-                   for t in range(n, 200)])
-    p2 = [-a[1] * p1[t - n - 1] - a[2] * y[t - 2] + b[1] * u[t - 1] + b[2] * u[t - 2]
-          for t in range(n + 1, 200)]
+    p1 = np.array(
+        [
+            -a[1] * y[t - 1] - a[2] * y[t - 2] + b[1] * u[t - 1] + b[2] * u[t - 2]
+            for t in range(n, 200)
+        ]
+    )
+    p2 = [
+        -a[1] * p1[t - n - 1] - a[2] * y[t - 2] + b[1] * u[t - 1] + b[2] * u[t - 2]
+        for t in range(n + 1, 200)
+    ]
     np.testing.assert_allclose(bb.predict(m, d, 1)[n:, 0], p1, atol=1e-12)
-    np.testing.assert_allclose(bb.predict(m, d, 2)[n + 1:, 0], p2, atol=1e-12)
+    np.testing.assert_allclose(bb.predict(m, d, 2)[n + 1 :, 0], p2, atol=1e-12)
     np.testing.assert_allclose(bb.predict(m, d, 10_000), bb.simulate(m, d), atol=1e-10)
     sim = bb.simulate(m, d)[:, 0]
     ref = y.copy()
@@ -140,8 +152,9 @@ def test_predict_horizons_and_simulation():
 def test_order_search_finds_true_orders():
     rng = np.random.default_rng(5)
     est, val = _arx_data(rng, n=1000), _arx_data(rng, n=1000)
-    s = bb.arx_order_search(est, val, na=range(1, 4), nb=range(1, 4), nk=range(0, 3),
-                            criterion="mdl")
+    s = bb.arx_order_search(
+        est, val, na=range(1, 4), nb=range(1, 4), nk=range(0, 3), criterion="mdl"
+    )
     assert s.best == (2, 2, 1)
     assert s.on_validation and len(s.loss) == 27
     # Loss of the true structure is close to the noise variance 0.09.

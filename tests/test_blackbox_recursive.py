@@ -22,8 +22,9 @@ def test_rls_lambda_one_equals_batch_arx():
     batch = bb.fit_arx(d, 2, 2, 1)
     np.testing.assert_allclose(r.final_parameters, batch.parameters[0], atol=1e-7)
     # P_N = (P0^-1 + Phi^T Phi)^-1 -> (Phi^T Phi)^-1 = batch covariance / sigma^2.
-    np.testing.assert_allclose(r.covariance, batch.covariance[0] / batch.noise_variance[0],
-                               rtol=1e-5)
+    np.testing.assert_allclose(
+        r.covariance, batch.covariance[0] / batch.noise_variance[0], rtol=1e-5
+    )
     assert r.parameters.shape == (1500, 4)
 
 
@@ -54,8 +55,7 @@ def test_carry_estimate_into_validation_and_armax():
     r1 = bb.recursive_armax(est, 2, 2, 2, 1)
     r2 = bb.recursive_armax(val, 2, 2, 2, 1, init=r1)
     assert r2.parameters[0] == pytest.approx(r1.final_parameters)
-    np.testing.assert_allclose(r2.final_parameters, [-1.5, 0.7, 1.0, 0.5, -0.6, 0.2],
-                               atol=0.05)
+    np.testing.assert_allclose(r2.final_parameters, [-1.5, 0.7, 1.0, 0.5, -0.6, 0.2], atol=0.05)
     batch = bb.fit_armax(d, 2, 2, 2, 1)
     np.testing.assert_allclose(r2.final_parameters, batch.parameters[0], atol=0.03)
     m = r2.model()

@@ -70,9 +70,16 @@ def test_d2c_zoh_first_order_and_round_trips():
     np.testing.assert_allclose(c.den[0][0], [1, 1 / tau], rtol=1e-10)
     np.testing.assert_allclose(c.num[0][0], [gain / tau], rtol=1e-10)
     assert c.delay_s[0, 0] == pytest.approx(2 * dt)  # nk = 3: one sample is the ZOH lag
-    arx = bb.fit_arx(bb.UniformData(np.sign(np.sin(np.arange(400) * 0.37)),
-                                    lfilter(B, A, np.sign(np.sin(np.arange(400) * 0.37))),
-                                    0.05), 2, 2, 1)
+    arx = bb.fit_arx(
+        bb.UniformData(
+            np.sign(np.sin(np.arange(400) * 0.37)),
+            lfilter(B, A, np.sign(np.sin(np.arange(400) * 0.37))),
+            0.05,
+        ),
+        2,
+        2,
+        1,
+    )
     for method in ("zoh", "tustin"):
         back = bb.c2d(bb.d2c(arx, method), 0.05, method)
         np.testing.assert_allclose(back.den[0][0], A, atol=1e-8)
@@ -91,15 +98,18 @@ def test_against_python_control():
     no_delay = bb.ContinuousTF(ct.num, ct.den, np.zeros((1, 1)), "tustin", 0.05)
     gz = bb.to_control(bb.c2d(no_delay, 0.05, "tustin"))
     gzoh = control.sample_system(g, 0.05, method="zoh")
-    np.testing.assert_allclose(bb.to_control(bb.c2d(no_delay, 0.05, "zoh"))(
-        np.exp(1j * np.linspace(0.1, 3.0, 7))), gzoh(np.exp(1j * np.linspace(0.1, 3.0, 7))),
-        rtol=1e-8)
+    np.testing.assert_allclose(
+        bb.to_control(bb.c2d(no_delay, 0.05, "zoh"))(np.exp(1j * np.linspace(0.1, 3.0, 7))),
+        gzoh(np.exp(1j * np.linspace(0.1, 3.0, 7))),
+        rtol=1e-8,
+    )
     w = np.exp(1j * np.linspace(0.1, 3.0, 7))
     np.testing.assert_allclose(gz(w), gd(w), rtol=1e-8)
     exported = bb.to_control(arx)
     assert exported.dt == 0.05
-    np.testing.assert_allclose(exported(w), (w**-1 + 0.5 * w**-2) / (1 - 1.5 / w + 0.7 / w**2),
-                               rtol=1e-10)
+    np.testing.assert_allclose(
+        exported(w), (w**-1 + 0.5 * w**-2) / (1 - 1.5 / w + 0.7 / w**2), rtol=1e-10
+    )
     ss = bb.to_control(arx, "ss")
     np.testing.assert_allclose(control.dcgain(ss), 7.5, rtol=1e-10)
     with pytest.raises(ValueError, match="pade_order"):

@@ -23,8 +23,10 @@ UM = 1e-6
 
 def _quad_fraction(spot, x1, x2, y1, y2):
     w = spot.waist_m
+
     def intensity(y, x):
         return 2 / (np.pi * w**2) * np.exp(-2 * ((x - spot.x_m) ** 2 + (y - spot.y_m) ** 2) / w**2)
+
     return integrate.dblquad(intensity, x1, x2, y1, y2, epsabs=1e-13, epsrel=1e-11)[0]
 
 
@@ -55,7 +57,8 @@ def test_optics_absorptance_matches_physics_table():
 
 
 def test_exact_chevron_matches_physics_table_and_linear_limit():
-    # PHYSICS.md §6 thesis geometry: a = 2 deg, L = 3.5 mm, dL = 91.3 nm -> 2.59 um exact, 2.62 linear
+    # PHYSICS.md §6, thesis geometry: a = 2 deg, L = 3.5 mm, dL = 91.3 nm -> 2.59 um exact,
+    # 2.62 um linearised
     exact = ChevronExact(3.5e-3, np.deg2rad(2.0))
     linear = ChevronLinear(np.deg2rad(2.0))
     assert float(exact(0.0)) == 0.0
@@ -96,9 +99,14 @@ def test_one_node_network_equals_first_order_block():
 
 def test_network_derivative_matches_its_matrices_and_radiation_linearisation():
     net = ThermalNetwork(
-        capacitance_J_per_K=jnp.array([2e-3, 1e-3]), ground_conductance_W_per_K=jnp.array([5e-3, 4e-3]),
-        coupling_conductance_W_per_K=jnp.array([2e-3]), couplings=((0, 1),), input_nodes=(0, 1),
-        sensor_nodes=(1,), sensor_tau_s=jnp.array([3.0]))
+        capacitance_J_per_K=jnp.array([2e-3, 1e-3]),
+        ground_conductance_W_per_K=jnp.array([5e-3, 4e-3]),
+        coupling_conductance_W_per_K=jnp.array([2e-3]),
+        couplings=((0, 1),),
+        input_nodes=(0, 1),
+        sensor_nodes=(1,),
+        sensor_tau_s=jnp.array([3.0]),
+    )
     x, q = jnp.array([3.0, 1.0, 0.5]), jnp.array([0.02, 0.01])
     a, b = net.linear_matrices()
     np.testing.assert_allclose(net.derivative(x, q), a @ x + b @ q, rtol=1e-12)
@@ -106,8 +114,12 @@ def test_network_derivative_matches_its_matrices_and_radiation_linearisation():
     assert float(net.derivative(x, q)[0]) == pytest.approx((0.02 - 0.015 - 0.004) / 2e-3)
     # sensor lag: (node1 - s) / tau
     assert float(net.derivative(x, q)[2]) == pytest.approx((1.0 - 0.5) / 3.0)
-    rad = ThermalNetwork(jnp.array([2e-3]), jnp.array([5e-3]), jnp.zeros(0),
-                         radiation_ground_W_per_K4=jnp.array([0.9 * 5.67e-8 * 1e-3]))
+    rad = ThermalNetwork(
+        jnp.array([2e-3]),
+        jnp.array([5e-3]),
+        jnp.zeros(0),
+        radiation_ground_W_per_K4=jnp.array([0.9 * 5.67e-8 * 1e-3]),
+    )
     small = jnp.array([1e-4])
     a_lin, _ = rad.linearised_matrices()
     np.testing.assert_allclose(rad.derivative(small, jnp.zeros(1)), a_lin @ small, rtol=1e-3)

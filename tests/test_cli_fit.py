@@ -20,8 +20,17 @@ from greybox.cli import main
 ROOT = Path(__file__).resolve().parents[1]
 EMBEDDED = ROOT / "experiments" / "chevron_laser"
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-RUNS = ["e1_5mW_200ms", "e2_10mW_200ms", "e3_10mW_300ms", "e4_15mW_400ms", "e5_20mW_600ms",
-        "e6_30mW_1000ms", "v1_8mW_250ms", "v2_12mW_500ms", "v3_25mW_800ms"]
+RUNS = [
+    "e1_5mW_200ms",
+    "e2_10mW_200ms",
+    "e3_10mW_300ms",
+    "e4_15mW_400ms",
+    "e5_20mW_600ms",
+    "e6_30mW_1000ms",
+    "v1_8mW_250ms",
+    "v2_12mW_500ms",
+    "v3_25mW_800ms",
+]
 
 
 @functools.cache
@@ -60,8 +69,17 @@ def test_params_json_schema(params):
     entries = params["parameters"]
     assert len(entries) == 2 + 6  # two shared values and one offset per estimation run
     for p in entries:
-        assert set(p) >= {"name", "path", "unit", "value", "se", "ci95", "verdict",
-                          "experiment", "prior"}
+        assert set(p) >= {
+            "name",
+            "path",
+            "unit",
+            "value",
+            "se",
+            "ci95",
+            "verdict",
+            "experiment",
+            "prior",
+        }
         assert p["verdict"] in ("identifiable", "prior-dominated", "not identifiable")
         lo, hi = p["ci95"]
         assert lo < p["value"] < hi and p["se"] > 0
@@ -71,8 +89,11 @@ def test_params_json_schema(params):
     assert owners == RUNS[:6]
     n = len(params["raw"])
     assert n == 8 and np.asarray(params["covariance_raw"]).shape == (n, n)
-    assert [f["path"] for f in params["free"]] == ["absorptance", "thermal.tau_s",
-                                                   "camera.offset_m"]
+    assert [f["path"] for f in params["free"]] == [
+        "absorptance",
+        "thermal.tau_s",
+        "camera.offset_m",
+    ]
     fp = params["fit_percent"]
     assert fp["horizon"] == "simulation"
     assert list(fp["estimation"]) == RUNS[:6] and list(fp["validation"]) == RUNS[6:]
@@ -182,10 +203,12 @@ def test_prior_dominated_parameter_is_reported(tmp_path):
     folder = tmp_path / "prior"
     shutil.copytree(EMBEDDED, folder, ignore=shutil.ignore_patterns("*.py", "v*.csv"))
     text = (folder / "experiment.toml").read_text()
-    text = text.replace('free = ["absorptance", "thermal.tau_s", "camera.offset_m"]',
-                        'free = ["absorptance", "thermal.tau_s", { path = '
-                        '"thermal.resistance_K_per_W", lower = 0.0, prior_median = 1355.0, '
-                        'prior_log_sd = 0.3 }, "camera.offset_m"]')
+    text = text.replace(
+        'free = ["absorptance", "thermal.tau_s", "camera.offset_m"]',
+        'free = ["absorptance", "thermal.tau_s", { path = '
+        '"thermal.resistance_K_per_W", lower = 0.0, prior_median = 1355.0, '
+        'prior_log_sd = 0.3 }, "camera.offset_m"]',
+    )
     runs = text.split("[[runs]]")
     text = "[[runs]]".join(r for r in runs if 'role = "validation"' not in r)
     (folder / "experiment.toml").write_text(text)

@@ -30,8 +30,9 @@ def _read(path):
 def _true_model():
     truth = json.loads((EMBEDDED / "truth.json").read_text())
     cam = truth["camera"]
-    model = chevron_laser.default_model(exposure_s=cam["exposure_ms"] * 1e-3,
-                                        m_per_px=cam["um_per_px"] * 1e-6)
+    model = chevron_laser.default_model(
+        exposure_s=cam["exposure_ms"] * 1e-3, m_per_px=cam["um_per_px"] * 1e-6
+    )
     paths = list(truth["parameters"])
     return set_values(model, paths, [truth["parameters"][p]["value"] for p in paths])
 
@@ -43,8 +44,10 @@ def params_file():
 
 def test_band_contains_the_true_response_to_a_new_waveform(params_file, tmp_path, capsys):
     out = tmp_path / "sim"
-    assert main(["simulate", "--params", str(params_file), "--waveform", NEW_WAVE,
-                 "--out", str(out)]) == 0
+    assert (
+        main(["simulate", "--params", str(params_file), "--waveform", NEW_WAVE, "--out", str(out)])
+        == 0
+    )
     assert "confidence band" in capsys.readouterr().out
     header, d = _read(out / "simulation.csv")
     assert header == ["t_s", "y_um", "y_lo95_um", "y_hi95_um", "laser_mW"]
@@ -65,9 +68,21 @@ def test_band_contains_the_true_response_to_a_new_waveform(params_file, tmp_path
 
 def test_noise_option_gives_a_prediction_interval(params_file, tmp_path):
     out = tmp_path / "sim"
-    assert main(["simulate", "--params", str(params_file), "--waveform",
-                 "pulse:power_mW=10,period_ms=500,duty=0.5,n=2", "--out", str(out),
-                 "--noise"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--params",
+                str(params_file),
+                "--waveform",
+                "pulse:power_mW=10,period_ms=500,duty=0.5,n=2",
+                "--out",
+                str(out),
+                "--noise",
+            ]
+        )
+        == 0
+    )
     _, d = _read(out / "simulation.csv")
     sigma_um = load_params(params_file).sigma[0] * 1e6
     assert np.min(d[:, 3] - d[:, 2]) >= 2 * 1.959 * sigma_um
@@ -80,11 +95,26 @@ def test_logged_trace_csv_waveform(params_file, tmp_path):
     p = np.where((t >= 0.2) & (t < 0.6), 12.5, 0.0)
     trace.write_text("t_s,laser_mW\n" + "".join(f"{a:.2f},{b:g}\n" for a, b in zip(t, p)))
     out = tmp_path / "sim"
-    assert main(["simulate", "--params", str(params_file), "--waveform", str(trace),
-                 "--out", str(out), "--dt-ms", "5"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--params",
+                str(params_file),
+                "--waveform",
+                str(trace),
+                "--out",
+                str(out),
+                "--dt-ms",
+                "5",
+            ]
+        )
+        == 0
+    )
     _, d = _read(out / "simulation.csv")
-    np.testing.assert_allclose(d[:, 4], np.where((d[:, 0] >= 0.2 - 1e-9) & (d[:, 0] < 0.6 - 1e-9),
-                                                 12.5, 0.0))
+    np.testing.assert_allclose(
+        d[:, 4], np.where((d[:, 0] >= 0.2 - 1e-9) & (d[:, 0] < 0.6 - 1e-9), 12.5, 0.0)
+    )
     assert d[0, 1] == 0.0 and d[:, 1].max() > 0.5
 
 
@@ -98,13 +128,18 @@ def test_params_file_rebuilds_the_fitted_model(params_file):
     assert fitted.raw.size == fitted.covariance_raw.shape[0] == 8
 
 
-@pytest.mark.parametrize("argv, field", [
-    (["--waveform", "pulse:power_mW=25,period_ms=-3,n=2"], "--waveform"),
-    (["--waveform", "square:power_mW=25"], "--waveform"),
-    (["--waveform", "pulse:power_mW=25,period_ms=300,n=2", "--params", "missing.json"],
-     "missing.json"),
-    (["--waveform", "missing_trace.csv"], "missing_trace.csv"),
-])
+@pytest.mark.parametrize(
+    "argv, field",
+    [
+        (["--waveform", "pulse:power_mW=25,period_ms=-3,n=2"], "--waveform"),
+        (["--waveform", "square:power_mW=25"], "--waveform"),
+        (
+            ["--waveform", "pulse:power_mW=25,period_ms=300,n=2", "--params", "missing.json"],
+            "missing.json",
+        ),
+        (["--waveform", "missing_trace.csv"], "missing_trace.csv"),
+    ],
+)
 def test_bad_simulate_input_exit_2(params_file, tmp_path, capsys, argv, field):
     out = tmp_path / "sim"
     if "--params" not in argv:
@@ -124,10 +159,16 @@ def test_band_ignores_only_combinations_the_output_does_not_depend_on():
 
     jax.config.update("jax_enable_x64", True)
     model = chevron_laser.default_model(exact=False)  # linear kinematics: y exactly ~ A R
-    free = (FreeParameter("absorptance", unit="1", lower=0.05, upper=1.0),
-            FreeParameter("thermal.resistance_K_per_W", unit="K/W", lower=0.0))
-    raw = np.array([float(free[0].to_raw(0.67)),
-                    float(free[1].to_raw(get_value(model, "thermal.resistance_K_per_W")))])
+    free = (
+        FreeParameter("absorptance", unit="1", lower=0.05, upper=1.0),
+        FreeParameter("thermal.resistance_K_per_W", unit="K/W", lower=0.0),
+    )
+    raw = np.array(
+        [
+            float(free[0].to_raw(0.67)),
+            float(free[1].to_raw(get_value(model, "thermal.resistance_K_per_W"))),
+        ]
+    )
     wave = PulseTrain(20e-3, 0.4, 0.5, 2)
     t = np.linspace(0.01, 0.8, 40)
     # d/d raw of log(A R): the only direction the output depends on

@@ -42,14 +42,22 @@ def _last_cycle_reference(model, volts, freq, n_cycles, t_cycle):
     period = 1.0 / freq
     t = (n_cycles - 1) * period + t_cycle
     t[-1] -= 1e-12  # the cycle's end, just before the next rising edge
-    return simulate(model, PulseTrain(volts, period, 0.5, n_pulses=n_cycles), t,
-                    method="adaptive", rtol=1e-11, atol=1e-12)
+    return simulate(
+        model,
+        PulseTrain(volts, period, 0.5, n_pulses=n_cycles),
+        t,
+        method="adaptive",
+        rtol=1e-11,
+        atol=1e-12,
+    )
 
 
-@pytest.mark.parametrize("which,method,n_steps,tol", [
-    ("linear", "analytic", 16, 1e-8), ("tcr", "numerical", 32, 2e-6)])
-def test_periodic_cycle_matches_long_simulation(which, method, n_steps, tol, linear_model,
-                                                tcr_model):
+@pytest.mark.parametrize(
+    "which,method,n_steps,tol", [("linear", "analytic", 16, 1e-8), ("tcr", "numerical", 32, 2e-6)]
+)
+def test_periodic_cycle_matches_long_simulation(
+    which, method, n_steps, tol, linear_model, tcr_model
+):
     model = linear_model if which == "linear" else tcr_model
     volts, freq = 24.0, 50.0
     t_cycle, states = periodic.square_wave_cycle(model, volts, freq, n_steps=n_steps, method=method)
@@ -74,7 +82,9 @@ def test_thermal_swing_matches_closed_form(linear_model):
 def test_dc_limit_and_bad_input(tcr_model):
     mean, pp = periodic.square_wave_response(tcr_model, [24.0], [0.0])
     stroke = float(tcr_model.stroke(tcr_model.dc_rise_K(24.0)))
-    assert pp[0] == pytest.approx(stroke, rel=1e-10) and mean[0] == pytest.approx(stroke / 2, rel=1e-10)
+    assert pp[0] == pytest.approx(stroke, rel=1e-10) and mean[0] == pytest.approx(
+        stroke / 2, rel=1e-10
+    )
     with pytest.raises(ValueError, match="frequency_Hz"):
         periodic.square_wave_response(tcr_model, [10.0], [-5.0])
     with pytest.raises(ValueError, match="affine"):
@@ -95,13 +105,18 @@ def synthetic_table(tcr_model):
 def test_greybox_table_fit_recovers_parameters(tcr_model, synthetic_table):
     a, f, y, noise = synthetic_table
     respond = periodic.response_function(tcr_model, n_steps=16)
-    start = ec.default_model(thermal__tau_s=0.015, thermal__resistance_K_per_W=150.0,
-                             joule__tcr_per_K=0.0)
-    result = fit_table(start, lambda m, x: respond(m, x[0], x[1])[1], (a, f), y,
-                       ec.default_free_parameters())
+    start = ec.default_model(
+        thermal__tau_s=0.015, thermal__resistance_K_per_W=150.0, joule__tcr_per_K=0.0
+    )
+    result = fit_table(
+        start, lambda m, x: respond(m, x[0], x[1])[1], (a, f), y, ec.default_free_parameters()
+    )
     assert result.converged
-    truth = {"thermal.tau_s": ec.NOMINAL_TAU_S, "thermal.resistance_K_per_W":
-             ec.NOMINAL_RESISTANCE_K_PER_W, "joule.tcr_per_K": ec.NOMINAL_TCR_PER_K}
+    truth = {
+        "thermal.tau_s": ec.NOMINAL_TAU_S,
+        "thermal.resistance_K_per_W": ec.NOMINAL_RESISTANCE_K_PER_W,
+        "joule.tcr_per_K": ec.NOMINAL_TCR_PER_K,
+    }
     for p in result.parameters:
         assert p.verdict == "identifiable"
         assert p.ci95[0] < truth[p.path] < p.ci95[1], p

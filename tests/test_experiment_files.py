@@ -126,9 +126,16 @@ def test_logged_laser_trace_and_micrometre_column(good):
     y = np.full(t.size, np.nan)
     y[::33] = 201.0
     _write_csv(good / "est.csv", t, y, col="y_um", laser=laser)
-    text = (good / "experiment.toml").read_text().replace(
-        'waveform = { type = "pulse_train", power_mW = 20, period_ms = 400, n_pulses = 3, '
-        'delay_ms = 200 }', 'waveform = { type = "logged" }', 1)
+    text = (
+        (good / "experiment.toml")
+        .read_text()
+        .replace(
+            'waveform = { type = "pulse_train", power_mW = 20, period_ms = 400, n_pulses = 3, '
+            "delay_ms = 200 }",
+            'waveform = { type = "logged" }',
+            1,
+        )
+    )
     (good / "experiment.toml").write_text(text)
     fs = load_experiment_set(good)
     e = fs.estimation[0]
@@ -143,8 +150,11 @@ def test_tracker_csv_with_two_scales_needs_y_column(good, tmp_path, capsys):
     lines += [f"{a:.6f},{b:.4f},{b * 0.645:.5f},0.99,,0.05" for a, b in zip(t, y)]
     (good / "est.csv").write_text("\n".join(lines) + "\n")
     _bad(tmp_path, capsys, good, "est.csv", "y_px", "y_column", line=1)
-    text = (good / "experiment.toml").read_text().replace(
-        'file = "est.csv"', 'file = "est.csv"\ny_column = "y_um"')
+    text = (
+        (good / "experiment.toml")
+        .read_text()
+        .replace('file = "est.csv"', 'file = "est.csv"\ny_column = "y_um"')
+    )
     (good / "experiment.toml").write_text(text)
     fs = load_experiment_set(good)
     assert fs.run_info("est").y_column == "y_um"
@@ -152,11 +162,13 @@ def test_tracker_csv_with_two_scales_needs_y_column(good, tmp_path, capsys):
 
 
 def test_toml_line_locator():
-    text = ('[camera]\nfps = 30  # frames/s\n\n[[runs]]\nname = "a"\n'
-            'waveform = { power_mW = 5, duty = 0.5 }\n[[runs]]\nname = "b"\n[runs.waveform]\n'
-            'period_ms = 200\n[experiment.settings]\n"thermal.tau_s" = 0.04\n[fit]\n'
-            'free = [\n  "absorptance",\n  { path = "thermal.resistance_K_per_W", lower = 0 },\n'
-            ']\nloss = "l2"\n')
+    text = (
+        '[camera]\nfps = 30  # frames/s\n\n[[runs]]\nname = "a"\n'
+        'waveform = { power_mW = 5, duty = 0.5 }\n[[runs]]\nname = "b"\n[runs.waveform]\n'
+        'period_ms = 200\n[experiment.settings]\n"thermal.tau_s" = 0.04\n[fit]\n'
+        'free = [\n  "absorptance",\n  { path = "thermal.resistance_K_per_W", lower = 0 },\n'
+        ']\nloss = "l2"\n'
+    )
     where = TomlLines(text)
     assert where.line("camera", "fps") == 2
     assert where.line("runs", 0, "waveform", "duty") == 6
@@ -185,8 +197,9 @@ def test_bad_wrong_unit_suffix(good, tmp_path, capsys):
 
 def test_bad_time_in_milliseconds_column(good, tmp_path, capsys):
     t, y = _frames()
-    (good / "est.csv").write_text("t_ms,y_px\n" + "".join(
-        f"{a * 1e3:.3f},{b:.4f}\n" for a, b in zip(t, y)))
+    (good / "est.csv").write_text(
+        "t_ms,y_px\n" + "".join(f"{a * 1e3:.3f},{b:.4f}\n" for a, b in zip(t, y))
+    )
     _bad(tmp_path, capsys, good, good / "est.csv", "t_ms", "t_s", line=1)
 
 
@@ -229,8 +242,16 @@ def test_bad_decreasing_timestamp(good, tmp_path, capsys):
 def test_bad_unknown_device_model(good, tmp_path, capsys):
     text = (good / "experiment.toml").read_text().replace('"chevron_laser"', '"chevron_lazer"')
     (good / "experiment.toml").write_text(text)
-    _bad(tmp_path, capsys, good, good / "experiment.toml", "experiment.device", "chevron_lazer",
-         "chevron_laser", line=2)
+    _bad(
+        tmp_path,
+        capsys,
+        good,
+        good / "experiment.toml",
+        "experiment.device",
+        "chevron_lazer",
+        "chevron_laser",
+        line=2,
+    )
 
 
 def test_bad_waveform_contradicts_logged_trace(good, tmp_path, capsys):
@@ -241,8 +262,16 @@ def test_bad_waveform_contradicts_logged_trace(good, tmp_path, capsys):
     assert min(r, 0.2 - r) > 1 / 30
     laser[k] = 20.0 if laser[k] == 0 else 0.0
     _write_csv(good / "est.csv", t, y, laser=laser)
-    _bad(tmp_path, capsys, good, good / "est.csv", "laser_mW", "contradicts",
-         "experiment.toml:14", line=k + 2)
+    _bad(
+        tmp_path,
+        capsys,
+        good,
+        good / "est.csv",
+        "laser_mW",
+        "contradicts",
+        "experiment.toml:14",
+        line=k + 2,
+    )
 
 
 def test_logged_trace_matching_description_is_accepted(good):
@@ -254,25 +283,29 @@ def test_logged_trace_matching_description_is_accepted(good):
 
 
 def test_bad_unreadable_toml(good, tmp_path, capsys):
-    text = (good / "experiment.toml").read_text().replace("exposure_ms = 10",
-                                                          "exposure_ms = ten")
+    text = (good / "experiment.toml").read_text().replace("exposure_ms = 10", "exposure_ms = ten")
     (good / "experiment.toml").write_text(text)
-    _bad(tmp_path, capsys, good, good / "experiment.toml", "exposure_ms", "not valid TOML",
-         line=7)
+    _bad(tmp_path, capsys, good, good / "experiment.toml", "exposure_ms", "not valid TOML", line=7)
 
 
 def test_bad_negative_exposure(good, tmp_path, capsys):
-    text = (good / "experiment.toml").read_text().replace("exposure_ms = 10",
-                                                          "exposure_ms = -10")
+    text = (good / "experiment.toml").read_text().replace("exposure_ms = 10", "exposure_ms = -10")
     (good / "experiment.toml").write_text(text)
-    _bad(tmp_path, capsys, good, good / "experiment.toml", "camera.exposure_ms", ">= 0",
-         line=7)
+    _bad(tmp_path, capsys, good, good / "experiment.toml", "camera.exposure_ms", ">= 0", line=7)
 
 
 def test_bad_run_file_missing(good, tmp_path, capsys):
     (good / "val.csv").unlink()
-    _bad(tmp_path, capsys, good, good / "experiment.toml", "runs[1].file", "val.csv",
-         "does not exist", line=18)
+    _bad(
+        tmp_path,
+        capsys,
+        good,
+        good / "experiment.toml",
+        "runs[1].file",
+        "val.csv",
+        "does not exist",
+        line=18,
+    )
 
 
 def test_bad_non_numeric_cell(good, tmp_path, capsys):
@@ -285,8 +318,9 @@ def test_bad_non_numeric_cell(good, tmp_path, capsys):
 
 
 def test_bad_zero_frames_in_estimation_set(good, tmp_path, capsys):
-    text = (good / "experiment.toml").read_text().replace('role = "estimation"',
-                                                          'role = "validation"')
+    text = (
+        (good / "experiment.toml").read_text().replace('role = "estimation"', 'role = "validation"')
+    )
     (good / "experiment.toml").write_text(text)
     _bad(tmp_path, capsys, good, good / "experiment.toml", "runs[0].role", "zero frames")
 
@@ -294,8 +328,15 @@ def test_bad_zero_frames_in_estimation_set(good, tmp_path, capsys):
 def test_bad_unknown_key(good, tmp_path, capsys):
     text = (good / "experiment.toml").read_text().replace("um_per_px", "um_per_pixel")
     (good / "experiment.toml").write_text(text)
-    _bad(tmp_path, capsys, good, good / "experiment.toml", "camera.um_per_pixel",
-         "unknown key", line=8)
+    _bad(
+        tmp_path,
+        capsys,
+        good,
+        good / "experiment.toml",
+        "camera.um_per_pixel",
+        "unknown key",
+        line=8,
+    )
 
 
 def test_bad_missing_description_and_folder(tmp_path, capsys):
@@ -306,43 +347,73 @@ def test_bad_missing_description_and_folder(tmp_path, capsys):
 
 
 def test_bad_free_parameter_path(good, tmp_path, capsys):
-    text = (good / "experiment.toml").read_text().replace(
-        "[[runs]]", '[fit]\nfree = ["absorptance", { path = "thermal.tau", lower = 1e-4 }]\n\n'
-        "[[runs]]", 1)
+    text = (
+        (good / "experiment.toml")
+        .read_text()
+        .replace(
+            "[[runs]]",
+            '[fit]\nfree = ["absorptance", { path = "thermal.tau", lower = 1e-4 }]\n\n[[runs]]',
+            1,
+        )
+    )
     (good / "experiment.toml").write_text(text)
-    _bad(tmp_path, capsys, good, good / "experiment.toml", "fit.free[1].path", "thermal.tau_s",
-         line=11)
+    _bad(
+        tmp_path,
+        capsys,
+        good,
+        good / "experiment.toml",
+        "fit.free[1].path",
+        "thermal.tau_s",
+        line=11,
+    )
     text = text.replace('"absorptance"', '"spot.waist_m"')
     (good / "experiment.toml").write_text(text)
-    _bad(tmp_path, capsys, good, good / "experiment.toml", "fit.free[0]", "standard free",
-         line=11)
+    _bad(tmp_path, capsys, good, good / "experiment.toml", "fit.free[0]", "standard free", line=11)
 
 
 def test_free_list_with_a_prior(good):
-    text = (good / "experiment.toml").read_text().replace("[[runs]]", """[fit]
+    text = (
+        (good / "experiment.toml")
+        .read_text()
+        .replace(
+            "[[runs]]",
+            """[fit]
 free = [
   "absorptance",
   { path = "thermal.resistance_K_per_W", lower = 0.0, prior_median = 1355.0, prior_log_sd = 0.3 },
   "camera.offset_m",
 ]
 
-[[runs]]""", 1)
+[[runs]]""",
+            1,
+        )
+    )
     (good / "experiment.toml").write_text(text)
     fs = load_experiment_set(good)
-    assert [p.path for p in fs.free] == ["absorptance", "thermal.resistance_K_per_W",
-                                         "camera.offset_m"]
+    assert [p.path for p in fs.free] == [
+        "absorptance",
+        "thermal.resistance_K_per_W",
+        "camera.offset_m",
+    ]
     r = fs.free[1]
     assert (r.unit, r.lower, r.prior_median, r.prior_log_sd) == ("K/W", 0.0, 1355.0, 0.3)
     assert fs.free[2].per_experiment and fs.free[0].upper == 1.0  # the device's standard specs
 
 
 def test_missing_waveform_needs_description_or_log(good, tmp_path, capsys):
-    text = (good / "experiment.toml").read_text().replace(
-        'waveform = { type = "pulse_train", power_mW = 10, period_ms = 400, n_pulses = 3, '
-        'delay_ms = 200 }\n', "")
+    text = (
+        (good / "experiment.toml")
+        .read_text()
+        .replace(
+            'waveform = { type = "pulse_train", power_mW = 10, period_ms = 400, n_pulses = 3, '
+            "delay_ms = 200 }\n",
+            "",
+        )
+    )
     (good / "experiment.toml").write_text(text)
-    _bad(tmp_path, capsys, good, good / "experiment.toml", "runs[1].waveform", "laser_mW",
-         line=16)  # the run's [[runs]] line: the key is missing
+    _bad(
+        tmp_path, capsys, good, good / "experiment.toml", "runs[1].waveform", "laser_mW", line=16
+    )  # the run's [[runs]] line: the key is missing
 
 
 def test_input_error_format():
@@ -352,8 +423,12 @@ def test_input_error_format():
 
 def test_generate_script_reproduces_committed_data(tmp_path):
     """The embedded data are exactly what the committed script makes (provenance)."""
-    subprocess.run([sys.executable, str(EMBEDDED / "generate.py"), "--out", str(tmp_path)],
-                   check=True, capture_output=True, cwd=ROOT)
+    subprocess.run(
+        [sys.executable, str(EMBEDDED / "generate.py"), "--out", str(tmp_path)],
+        check=True,
+        capture_output=True,
+        cwd=ROOT,
+    )
     for name in ("experiment.toml", "truth.json"):
         assert (tmp_path / name).read_text() == (EMBEDDED / name).read_text(), name
     csvs = sorted(p.name for p in EMBEDDED.glob("*.csv"))
@@ -364,5 +439,8 @@ def test_generate_script_reproduces_committed_data(tmp_path):
         for col in a.dtype.names:
             np.testing.assert_allclose(a[col], b[col], atol=2e-4, equal_nan=True)
     truth = json.loads((EMBEDDED / "truth.json").read_text())
-    assert truth["seed"] and truth["parameters"]["thermal.tau_s"]["value"] != \
-        truth["parameters"]["thermal.tau_s"]["nominal"]
+    assert (
+        truth["seed"]
+        and truth["parameters"]["thermal.tau_s"]["value"]
+        != truth["parameters"]["thermal.tau_s"]["nominal"]
+    )

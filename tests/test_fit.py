@@ -7,7 +7,6 @@ from greybox.data import Experiment
 from greybox.fit import fit, validate
 from greybox.freeparams import FreeParameter
 from greybox.parameters import set_values
-from greybox.synthetic import CameraDefects
 from greybox.waveforms import PiecewiseConstant, PulseTrain
 from models.chevron_laser import default_free_parameters, default_model
 from tests.helpers import chevron_runs
@@ -51,14 +50,18 @@ def test_identifiable_parameters_recovered_within_3_se(thesis_fit):
 
 def test_validation_runs_are_scored_in_simulation(truth, thesis_fit):
     _, result = thesis_fit
-    val, clean = chevron_runs(truth, runs=((25, 0.3), (8, 0.7)), duration_s=4.0, seed=9,
-                              role="validation")
+    val, clean = chevron_runs(
+        truth, runs=((25, 0.3), (8, 0.7)), duration_s=4.0, seed=9, role="validation"
+    )
     v = validate(result, val)
     assert v.horizon == "simulation"
     for e, c in zip(val, clean):
         # the ceiling is the fit % of the noise-free truth itself
-        ceiling = 100 * (1 - np.linalg.norm(np.nan_to_num(e.y - c) * e.mask)
-                         / np.linalg.norm(np.nan_to_num(e.y - np.nanmean(e.y)) * e.mask))
+        ceiling = 100 * (
+            1
+            - np.linalg.norm(np.nan_to_num(e.y - c) * e.mask)
+            / np.linalg.norm(np.nan_to_num(e.y - np.nanmean(e.y)) * e.mask)
+        )
         assert v.fit_percent[e.name] == pytest.approx(ceiling, abs=1.0)
 
 
@@ -85,7 +88,8 @@ def test_gain_factors_are_reported_as_not_separable(truth, start):
     exps, _ = chevron_runs(truth, runs=((10, 0.3), (30, 0.6)), duration_s=4.0, seed=3)
     r_nom = float(truth.thermal.resistance_K_per_W)
     no_prior = default_free_parameters() + [
-        FreeParameter("thermal.resistance_K_per_W", unit="K/W", lower=0.0)]
+        FreeParameter("thermal.resistance_K_per_W", unit="K/W", lower=0.0)
+    ]
     result = fit(start, exps, no_prior)
     verdicts = {p.name: p.verdict for p in result.parameters}
     assert verdicts["thermal.tau_s"] == "identifiable"
@@ -93,17 +97,27 @@ def test_gain_factors_are_reported_as_not_separable(truth, start):
     assert np.isnan(result.estimate("absorptance").se)  # no confident-looking number
     weak = result.identifiability.weak_directions
     assert len(weak) == 1 and {k.split("(")[1].split(")")[0] for k in weak[0].combination} >= {
-        "absorptance", "thermal.resistance_K_per_W"}
+        "absorptance",
+        "thermal.resistance_K_per_W",
+    }
 
     with_prior = default_free_parameters() + [
-        FreeParameter("thermal.resistance_K_per_W", unit="K/W", lower=0.0,
-                      prior_median=r_nom, prior_log_sd=0.3)]
+        FreeParameter(
+            "thermal.resistance_K_per_W",
+            unit="K/W",
+            lower=0.0,
+            prior_median=r_nom,
+            prior_log_sd=0.3,
+        )
+    ]
     result = fit(start, exps, with_prior)
     verdicts = {p.name: p.verdict for p in result.parameters}
     assert verdicts["thermal.tau_s"] == "identifiable"
     assert verdicts["thermal.resistance_K_per_W"] == "prior-dominated"
     # the identifiable product absorptance * resistance is still pinned by the data
-    prod = result.estimate("absorptance").value * result.estimate("thermal.resistance_K_per_W").value
+    prod = (
+        result.estimate("absorptance").value * result.estimate("thermal.resistance_K_per_W").value
+    )
     assert prod == pytest.approx(TRUE["absorptance"] * r_nom, rel=0.02)
 
 

@@ -8,8 +8,9 @@ from greybox.force_sensor import ForceSensor, average_repeats
 from greybox.table_fit import fit_table
 from models import electrothermal_chevron as ec
 
-SENSOR = ForceSensor(length_m=1e-3, thickness_m=50e-6, gauge_factor=100.0, bridge_V=5.0,
-                     stiffness_N_per_m=1000.0)
+SENSOR = ForceSensor(
+    length_m=1e-3, thickness_m=50e-6, gauge_factor=100.0, bridge_V=5.0, stiffness_N_per_m=1000.0
+)
 
 
 def test_sensor_conversion_by_hand():

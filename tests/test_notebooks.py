@@ -23,11 +23,21 @@ def test_notebook_executes_headless(source, monkeypatch):
     monkeypatch.setenv("CI", "true")  # small problem sizes, as in CI
     monkeypatch.setenv("MPLBACKEND", "Agg")
     nb = build.execute(source, timeout_s=600)
-    errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
-              if o.get("output_type") == "error"]
+    errors = [
+        o
+        for c in nb.cells
+        if c.cell_type == "code"
+        for o in c.get("outputs", [])
+        if o.get("output_type") == "error"
+    ]
     assert not errors
-    images = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
-              if "image/png" in o.get("data", {})]
+    images = [
+        o
+        for c in nb.cells
+        if c.cell_type == "code"
+        for o in c.get("outputs", [])
+        if "image/png" in o.get("data", {})
+    ]
     assert images, "a notebook with no figure is not doing its job"
 
 
@@ -39,8 +49,13 @@ def test_committed_notebook_matches_its_source(source):
     committed = source.with_suffix(".ipynb")
     assert committed.exists(), f"run `.venv/bin/python notebooks/build.py {source.stem}`"
     expected = [c.source for c in jupytext.read(source).cells if c.cell_type == "code"]
-    actual = [c.source for c in nbformat.read(committed, as_version=4).cells if c.cell_type == "code"]
+    actual = [
+        c.source for c in nbformat.read(committed, as_version=4).cells if c.cell_type == "code"
+    ]
     assert actual == expected, f"stale: rerun `.venv/bin/python notebooks/build.py {source.stem}`"
-    assert any(o for c in nbformat.read(committed, as_version=4).cells
-               if c.cell_type == "code" for o in c.get("outputs", [])), "committed without outputs"
-
+    assert any(
+        o
+        for c in nbformat.read(committed, as_version=4).cells
+        if c.cell_type == "code"
+        for o in c.get("outputs", [])
+    ), "committed without outputs"

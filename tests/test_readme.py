@@ -20,8 +20,11 @@ def _commands(text: str) -> list[str]:
 
 
 def _ci_command() -> str:
-    lines = [line for line in (ROOT / ".ci" / "run").read_text().splitlines()
-             if line.strip() and not line.startswith("#") and not line.startswith(("set ", "cd "))]
+    lines = [
+        line
+        for line in (ROOT / ".ci" / "run").read_text().splitlines()
+        if line.strip() and not line.startswith("#") and not line.startswith(("set ", "cd "))
+    ]
     assert len(lines) == 1, lines
     return lines[0]
 
@@ -35,25 +38,42 @@ def test_readme_test_command_is_the_ci_command():
 
 def test_readme_demo_command_runs_the_demo():
     demo = [c for c in _commands(FIRST_SCREEN) if c.startswith("python3.11 -m venv .venv")][0]
-    assert demo == "python3.11 -m venv .venv && .venv/bin/pip install -q -e . && " \
-                   ".venv/bin/greybox demo"
+    assert (
+        demo == "python3.11 -m venv .venv && .venv/bin/pip install -q -e . && "
+        ".venv/bin/greybox demo"
+    )
     assert demo.split("&&")[-1].split() == [".venv/bin/greybox", "demo"]
 
 
-@pytest.mark.parametrize("command", [c for c in _commands(README)
-                                     if c.startswith(".venv/bin/greybox ")])
+@pytest.mark.parametrize(
+    "command", [c for c in _commands(README) if c.startswith(".venv/bin/greybox ")]
+)
 def test_readme_greybox_commands_parse(command):
     args = build_parser().parse_args(shlex.split(command)[1:])
     assert args.func is not None
 
 
-@pytest.mark.parametrize("argv, words", [
-    ([], ["t_s", "um", "mW", "simulation"]),
-    (["fit"], ["t_s [s]", "y_um [um]", "y_px [pixels", "laser_mW [mW]", "exposure_ms [ms]",
-               "um_per_px", "simulation", "Exit status"]),
-    (["simulate"], ["power_mW", "period_ms", "t_s [s]", "y_um [um]", "laser_mW [mW]", "95 %"]),
-    (["demo"], ["ms", "um", "mW", "SI", "simulation"]),
-])
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        ([], ["t_s", "um", "mW", "simulation"]),
+        (
+            ["fit"],
+            [
+                "t_s [s]",
+                "y_um [um]",
+                "y_px [pixels",
+                "laser_mW [mW]",
+                "exposure_ms [ms]",
+                "um_per_px",
+                "simulation",
+                "Exit status",
+            ],
+        ),
+        (["simulate"], ["power_mW", "period_ms", "t_s [s]", "y_um [um]", "laser_mW [mW]", "95 %"]),
+        (["demo"], ["ms", "um", "mW", "SI", "simulation"]),
+    ],
+)
 def test_help_explains_the_units(argv, words):
     parser = build_parser()
     if argv:

@@ -24,8 +24,12 @@ def linear_model(exposure_s=0.0):
 def gains(m):
     """(steady-state rise per W of laser [K/W], displacement per K [m/K]) for `linear_model`."""
     k_th = float(m.absorbed_fraction() * m.thermal.resistance_K_per_W)
-    k_mech = float(m.elongation.cte_per_K * m.elongation.length_m * m.elongation.beam_fraction
-                   / np.sin(m.kinematics.angle_rad))
+    k_mech = float(
+        m.elongation.cte_per_K
+        * m.elongation.length_m
+        * m.elongation.beam_fraction
+        / np.sin(m.kinematics.angle_rad)
+    )
     return k_th, k_mech
 
 
@@ -73,8 +77,10 @@ def test_exposure_average_matches_integral():
 
 def stitched_inputs():
     rng = np.random.default_rng(7)
-    runs = [(PulseTrain(p * 1e-3, per, 0.5, 8), np.sort(rng.uniform(0, 8 * per, 60)))
-            for p, per in [(5, 0.2), (20, 0.5), (30, 0.3)]]
+    runs = [
+        (PulseTrain(p * 1e-3, per, 0.5, 8), np.sort(rng.uniform(0, 8 * per, 60)))
+        for p, per in [(5, 0.2), (20, 0.5), (30, 0.3)]
+    ]
     return runs
 
 
@@ -119,8 +125,10 @@ def test_forward_and_reverse_mode_derivatives_agree(method):
     np.testing.assert_allclose(fwd, rev, rtol=1e-7, atol=1e-7 * float(jnp.max(jnp.abs(fwd))))
     # and a central finite difference with tight solver tolerances (STYLE G.3)
     eps = 1e-6
-    fd = (_output_of(p.at[0].add(eps), method, "forward")
-          - _output_of(p.at[0].add(-eps), method, "forward")) / (2 * eps)
+    fd = (
+        _output_of(p.at[0].add(eps), method, "forward")
+        - _output_of(p.at[0].add(-eps), method, "forward")
+    ) / (2 * eps)
     np.testing.assert_allclose(fwd[:, 0], fd, rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(fd))))
 
 

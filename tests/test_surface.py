@@ -7,8 +7,9 @@ from greybox import surface
 
 # Thesis eq. 5.1 coefficients as printed (poly32 in amplitude x [V] and frequency y [Hz]); the OCR
 # lost the last monomial, taken here as the ninth poly32 term x*y^2.
-THESIS_POLY32 = np.array([267.9, 4.359, -0.01172, -0.5892, 0.003353, 0.000032, 0.04129,
-                          -0.000359, -0.001318])
+THESIS_POLY32 = np.array(
+    [267.9, 4.359, -0.01172, -0.5892, 0.003353, 0.000032, 0.04129, -0.000359, -0.001318]
+)
 
 
 def _thesis_grid():
@@ -18,7 +19,16 @@ def _thesis_grid():
 
 def test_matlab_poly32_term_order():
     assert surface.polynomial_terms((3, 2)).tolist() == [
-        [0, 0], [1, 0], [0, 1], [2, 0], [1, 1], [0, 2], [3, 0], [2, 1], [1, 2]]
+        [0, 0],
+        [1, 0],
+        [0, 1],
+        [2, 0],
+        [1, 1],
+        [0, 2],
+        [3, 0],
+        [2, 1],
+        [1, 2],
+    ]
     assert len(surface.polynomial_terms(3)) == 4 and len(surface.polynomial_terms((3, 3))) == 10
 
 
@@ -32,8 +42,10 @@ def test_surface_fit_reproduces_known_coefficients_on_noise_free_data():
     xs, ys, zz = surface.grid(fit, (0, 25), (0, 400), dx=0.1, dy=1.0)
     assert zz.shape == (251, 401)
     i, j = 123, 257  # 12.3 V, 257 Hz
-    by_hand = sum(c * xs[i] ** p * ys[j] ** q
-                  for c, (p, q) in zip(THESIS_POLY32, surface.polynomial_terms((3, 2))))
+    by_hand = sum(
+        c * xs[i] ** p * ys[j] ** q
+        for c, (p, q) in zip(THESIS_POLY32, surface.polynomial_terms((3, 2)))
+    )
     assert zz[i, j] == pytest.approx(by_hand, rel=1e-10)
 
 
@@ -42,7 +54,9 @@ def test_r_squared_rmse_and_criteria_by_hand():
     fit = surface.fit_polynomial([0, 1, 2, 3], [0, 1, 1, 2], 1)
     np.testing.assert_allclose(fit.coefficients, [0.1, 0.6], atol=1e-12)
     assert fit.r_squared == pytest.approx(1 - 0.2 / 2.0)
-    assert fit.rmse == pytest.approx(np.sqrt(0.2 / 4)) and fit.rmse_dof == pytest.approx(np.sqrt(0.1))
+    assert fit.rmse == pytest.approx(np.sqrt(0.2 / 4)) and fit.rmse_dof == pytest.approx(
+        np.sqrt(0.1)
+    )
     assert fit.criteria["aic"] == pytest.approx(4 * np.log(0.05) + 4)
     assert fit.criteria["bic"] == pytest.approx(4 * np.log(0.05) + 2 * np.log(4))
     assert fit.criteria["aicc"] == pytest.approx(4 * np.log(0.05) + 4 + 12)

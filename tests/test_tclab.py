@@ -15,8 +15,9 @@ HERE = Path(__file__).resolve().parents[1] / "experiments" / "tclab"
 sys.path.insert(0, str(HERE))
 
 import study  # noqa: E402
-from models import tclab  # noqa: E402
 from tclab_data import load_folder  # noqa: E402
+
+from models import tclab  # noqa: E402
 
 PAPER_EST_SAE, PAPER_VAL_SAE = study.PAPER["two_heaters"]["physics-based energy balance"]
 
@@ -68,9 +69,10 @@ def test_paper_structure_fit_recovers_published_parameters(fits):
 def test_aic_selects_per_sensor_lag_and_it_beats_the_paper_on_validation(runs, fits):
     est, val = runs["estimation"], runs["validation"]
     # selection uses the estimation run only (AIC from simulation residuals)
-    candidates = {shared: (aic, None, r.converged,
-                           all(p.verdict == "identifiable" for p in r.parameters))
-                  for shared, (r, _, aic) in fits.items()}
+    candidates = {
+        shared: (aic, None, r.converged, all(p.verdict == "identifiable" for p in r.parameters))
+        for shared, (r, _, aic) in fits.items()
+    }
     assert study.select_by_aic(candidates) is False
     res, z_est, _ = fits[False]
     assert study.scores(est.y, z_est) <= PAPER_EST_SAE  # measured 247.5 vs the paper's 270.26
@@ -98,4 +100,6 @@ def test_arx_sign_convention_reproduces_published_gain():
     # tclab_farx.txt: steady-state gain matrix [[1.0005, 0.0453], [0.0514, 0.5199]] degC/%
     arx = study.paper_arx()
     gain = arx.b.sum(axis=2) / arx.a.sum(axis=1)[:, None]
-    np.testing.assert_allclose(gain, [[1.00052295, 0.04530986], [0.05142098, 0.51990829]], rtol=1e-3)
+    np.testing.assert_allclose(
+        gain, [[1.00052295, 0.04530986], [0.05142098, 0.51990829]], rtol=1e-3
+    )

@@ -29,8 +29,7 @@ EXPOSURE_S = 0.005
 FPS = 100.0
 # Laser off for the first 150 ms (15 frames: the reference), four 30 mW pulses of
 # 200 ms (tau = 50 ms spans five frames), 100 ms tail: 105 frames.
-PULSES = dict(power_W=0.030, period_s=0.200, duty=0.5, n_pulses=4, delay_s=0.150,
-              tail_s=0.100)
+PULSES = dict(power_W=0.030, period_s=0.200, duty=0.5, n_pulses=4, delay_s=0.150, tail_s=0.100)
 REST_FRAMES = 12
 GLARE_FRAME = 40
 
@@ -43,22 +42,41 @@ pytestmark = pytest.mark.filterwarnings("ignore:os.fork\\(\\) was called:Runtime
 def tracked_run(tmp_path_factory):
     """(experiment folder with the tracked CSV, the rendered sequence)."""
     wave = PulseTrain(**PULSES)
-    n = int(round((PULSES["delay_s"] + PULSES["n_pulses"] * PULSES["period_s"]
-                   + PULSES["tail_s"]) * FPS))
+    n = int(
+        round(
+            (PULSES["delay_s"] + PULSES["n_pulses"] * PULSES["period_s"] + PULSES["tail_s"]) * FPS
+        )
+    )
     t = np.arange(n) / FPS
     # Instantaneous camera (exposure 0, offset 0): the true position at each instant.
-    truth_model = chevron_laser.default_model(exposure_s=0.0, m_per_px=UM_PER_PX * 1e-6,
-                                              absorptance=TRUE_ABSORPTANCE,
-                                              thermal__tau_s=TRUE_TAU_S)
+    truth_model = chevron_laser.default_model(
+        exposure_s=0.0,
+        m_per_px=UM_PER_PX * 1e-6,
+        absorptance=TRUE_ABSORPTANCE,
+        thermal__tau_s=TRUE_TAU_S,
+    )
     t_sub = exposure_times(t, EXPOSURE_S, n_sub=8)
     y_m = np.asarray(simulate(truth_model, wave, t_sub.ravel())).reshape(t_sub.shape)
-    seq = render_shuttle(y_m / (UM_PER_PX * 1e-6), shape=(96, 128), seed=7,
-                         bad_frames={GLARE_FRAME: "glare"})
+    seq = render_shuttle(
+        y_m / (UM_PER_PX * 1e-6), shape=(96, 128), seed=7, bad_frames={GLARE_FRAME: "glare"}
+    )
     folder = tmp_path_factory.mktemp("e2e")
     video = write_video(folder / "video" / "run1.avi", seq.frames, fps=FPS)
     exp_dir = folder / "experiment"
-    rc = main(["track", str(video), "--roi", "32,16,64,64", "--um-per-px", str(UM_PER_PX),
-               "--ref-frames", str(REST_FRAMES), "--out", str(exp_dir / "run1.csv")])
+    rc = main(
+        [
+            "track",
+            str(video),
+            "--roi",
+            "32,16,64,64",
+            "--um-per-px",
+            str(UM_PER_PX),
+            "--ref-frames",
+            str(REST_FRAMES),
+            "--out",
+            str(exp_dir / "run1.csv"),
+        ]
+    )
     assert rc == 0
     p = PULSES
     (exp_dir / "experiment.toml").write_text(f"""\
@@ -80,7 +98,7 @@ name = "run1"
 file = "run1.csv"
 role = "estimation"
 y_column = "y_um"
-waveform = {{ type = "pulse_train", power_mW = {p['power_W'] * 1e3}, period_ms = {p['period_s'] * 1e3}, duty = {p['duty']}, n_pulses = {p['n_pulses']}, delay_ms = {p['delay_s'] * 1e3}, tail_ms = {p['tail_s'] * 1e3} }}
+waveform = {{ type = "pulse_train", power_mW = {p["power_W"] * 1e3}, period_ms = {p["period_s"] * 1e3}, duty = {p["duty"]}, n_pulses = {p["n_pulses"]}, delay_ms = {p["delay_s"] * 1e3}, tail_ms = {p["tail_s"] * 1e3} }}
 """)
     return exp_dir, seq
 

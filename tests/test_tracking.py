@@ -96,9 +96,17 @@ def test_every_injected_bad_frame_is_flagged_and_no_good_one():
 def _meas(y):
     n = len(y)
     one = np.ones(n)
-    return Measurements(dx_px=y, dy_px=0 * one, rho=0.99 * one, sharpness=one, contrast=one,
-                        saturation=0 * one, sigma_x_px=0.01 * one, sigma_y_px=0.01 * one,
-                        lost=np.zeros(n, bool))
+    return Measurements(
+        dx_px=y,
+        dy_px=0 * one,
+        rho=0.99 * one,
+        sharpness=one,
+        contrast=one,
+        saturation=0 * one,
+        sigma_x_px=0.01 * one,
+        sigma_y_px=0.01 * one,
+        lost=np.zeros(n, bool),
+    )
 
 
 def test_jump_test_flags_spikes_not_steps():
@@ -144,7 +152,7 @@ def test_cropped_frames_give_the_same_track():
         crop, inner = search_crop(roi, 16, seq.frames.shape[1:])
         x, y, w, h = crop
         assert (x, w) == ((16, 96) if roi is ROI else (0, 84))
-        cut = seq.frames[:, y:y + h, x:x + w]
+        cut = seq.frames[:, y : y + h, x : x + w]
         full = FeatureTracker(reference_frame(seq.frames, 0, REST), roi).measure(seq.frames)
         part = FeatureTracker(reference_frame(cut, 0, REST), inner).measure(cut)
         np.testing.assert_allclose(part.dx_px, full.dx_px, atol=1e-9)

@@ -33,8 +33,21 @@ def test_track_video_and_stack_end_to_end(tmp_path, shuttle, suffix, capsys):
         src = write_video(tmp_path / f"run{suffix}", shuttle.frames, fps=20.0)
         fps_args = []  # the container's timestamps
     out = tmp_path / "runs" / "run1.csv"
-    rc = main(["track", str(src), "--roi", "32,16,64,64", "--um-per-px", "0.645",
-               "--ref-frames", str(REST), "--out", str(out), *fps_args])
+    rc = main(
+        [
+            "track",
+            str(src),
+            "--roi",
+            "32,16,64,64",
+            "--um-per-px",
+            "0.645",
+            "--ref-frames",
+            str(REST),
+            "--out",
+            str(out),
+            *fps_args,
+        ]
+    )
     assert rc == 0
     header, cols = _read_csv(out)
     assert header == ["t_s", "y_px", "y_um", "quality", "reason", "sigma_px", "sigma_um"]
@@ -66,15 +79,41 @@ def test_two_features_cli(tmp_path):
     seq = render_markers(np.stack([centre - d, centre + d], 1), seed=22)
     src = write_video(tmp_path / "robot.mkv", seq.frames, fps=25.0)
     out = tmp_path / "robot.csv"
-    rc = main(["track", str(src), "--roi", "34,44,32,32", "--roi2", "94,44,32,32",
-               "--um-per-px", "0.5", "--ref-frames", str(REST), "--out", str(out)])
+    rc = main(
+        [
+            "track",
+            str(src),
+            "--roi",
+            "34,44,32,32",
+            "--roi2",
+            "94,44,32,32",
+            "--um-per-px",
+            "0.5",
+            "--ref-frames",
+            str(REST),
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     header, cols = _read_csv(out)
-    assert header == ["t_s", "f1_x_px", "f1_y_px", "f2_x_px", "f2_y_px", "x_um", "y_um",
-                      "heading_rad", "quality", "reason", "sigma_px"]
+    assert header == [
+        "t_s",
+        "f1_x_px",
+        "f1_y_px",
+        "f2_x_px",
+        "f2_y_px",
+        "x_um",
+        "y_um",
+        "heading_rad",
+        "quality",
+        "reason",
+        "sigma_px",
+    ]
     np.testing.assert_allclose(np.array(cols["heading_rad"], float), heading, atol=0.002)
-    np.testing.assert_allclose(np.array(cols["x_um"], float),
-                               0.5 * (centre[:, 0] - 80.0), atol=0.025)
+    np.testing.assert_allclose(
+        np.array(cols["x_um"], float), 0.5 * (centre[:, 0] - 80.0), atol=0.025
+    )
 
 
 def _bad(tmp_path, capsys, argv, *names):
@@ -100,8 +139,13 @@ def test_bad_inputs_exit_2_without_csv(tmp_path, shuttle, capsys):
     _bad(tmp_path, capsys, [video, "--roi", "100,16,64,64"], video, "--roi", "outside")
     _bad(tmp_path, capsys, [video, "--roi", "1,2,3"], "--roi", "X,Y,W,H")
     for scale in ("0", "-0.645"):
-        _bad(tmp_path, capsys, [video, "--roi", "32,16,64,64", "--um-per-px", scale],
-             "--um-per-px", "positive")
+        _bad(
+            tmp_path,
+            capsys,
+            [video, "--roi", "32,16,64,64", "--um-per-px", scale],
+            "--um-per-px",
+            "positive",
+        )
     one = str(write_video(tmp_path / "one.avi", shuttle.frames[:1], fps=10.0))
     _bad(tmp_path, capsys, [one, "--roi", "32,16,64,64"], one, "at least two")
     stack = tmp_path / "stack"
@@ -112,9 +156,11 @@ def test_bad_inputs_exit_2_without_csv(tmp_path, shuttle, capsys):
 def test_video_io_round_trip_is_lossless(tmp_path):
     frames16 = np.random.default_rng(0).integers(0, 65535, (5, 24, 40)).astype(np.uint16)
     frames8 = (frames16 >> 8).astype(np.uint8)
-    for path, frames, raw in ((tmp_path / "a.mkv", frames16, False),
-                              (tmp_path / "a.mp4", frames8, False),
-                              (tmp_path / "raw.avi", frames8, True)):
+    for path, frames, raw in (
+        (tmp_path / "a.mkv", frames16, False),
+        (tmp_path / "a.mp4", frames8, False),
+        (tmp_path / "raw.avi", frames8, True),
+    ):
         write_video(path, frames, fps=12.5, raw=raw)
         got, info = read_frames(path)
         np.testing.assert_array_equal(got, frames)
@@ -134,9 +180,11 @@ def test_decoder_crop_is_exact_for_every_codec(tmp_path):
     rng = np.random.default_rng(1)
     frames16 = rng.integers(0, 65535, (7, 30, 44)).astype(np.uint16)
     frames8 = (frames16 >> 8).astype(np.uint8)
-    for path, frames, raw in ((tmp_path / "a.mkv", frames16, False),
-                              (tmp_path / "a.mp4", frames8, False),
-                              (tmp_path / "raw.avi", frames8, True)):
+    for path, frames, raw in (
+        (tmp_path / "a.mkv", frames16, False),
+        (tmp_path / "a.mp4", frames8, False),
+        (tmp_path / "raw.avi", frames8, True),
+    ):
         write_video(path, frames, fps=10.0, raw=raw)
         got = np.concatenate(list(iter_frames(path, crop=(5, 3, 21, 17), chunk=3)))
         np.testing.assert_array_equal(got, frames[:, 3:20, 5:26])

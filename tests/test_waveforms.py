@@ -48,16 +48,18 @@ def test_prbs_is_deterministic_and_uses_only_given_levels():
 def test_stack_channels_merges_breakpoints():
     s = stack_channels([PulseTrain(1.0, 1.0, 0.5, 2), PulseTrain(2.0, 0.6, 0.5, 2)])
     assert s.n_channels == 2
-    np.testing.assert_allclose(s(np.array([0.2, 0.4, 0.7, 1.1])),
-                               [[1, 2], [1, 0], [0, 2], [1, 0]])
+    np.testing.assert_allclose(s(np.array([0.2, 0.4, 0.7, 1.1])), [[1, 2], [1, 0], [0, 2], [1, 0]])
 
 
-@pytest.mark.parametrize("kwargs, field", [
-    (dict(power_W=-0.01, period_s=0.2), "power_W"),
-    (dict(power_W=0.01, period_s=0.0), "period_s"),
-    (dict(power_W=0.01, period_s=0.2, duty=1.5), "duty"),
-    (dict(power_W=0.01, period_s=0.2, n_pulses=0), "n_pulses"),
-])
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        (dict(power_W=-0.01, period_s=0.2), "power_W"),
+        (dict(power_W=0.01, period_s=0.0), "period_s"),
+        (dict(power_W=0.01, period_s=0.2, duty=1.5), "duty"),
+        (dict(power_W=0.01, period_s=0.2, n_pulses=0), "n_pulses"),
+    ],
+)
 def test_pulse_train_rejects_bad_values(kwargs, field):
     with pytest.raises(ValueError, match=field):
         PulseTrain(**kwargs)

@@ -41,18 +41,29 @@ REST_SPREAD_PX = 4.0
 DELAY_MS, TAIL_MS = 300.0, 700.0  # laser off before the first and after the last pulse
 PULSE_SPAN_S = 10.0  # each run holds about 10 s of pulses
 # (name, power mW, period ms); the thesis's six estimation runs, then new settings
-ESTIMATION = [("e1_5mW_200ms", 5, 200), ("e2_10mW_200ms", 10, 200), ("e3_10mW_300ms", 10, 300),
-              ("e4_15mW_400ms", 15, 400), ("e5_20mW_600ms", 20, 600),
-              ("e6_30mW_1000ms", 30, 1000)]
+ESTIMATION = [
+    ("e1_5mW_200ms", 5, 200),
+    ("e2_10mW_200ms", 10, 200),
+    ("e3_10mW_300ms", 10, 300),
+    ("e4_15mW_400ms", 15, 400),
+    ("e5_20mW_600ms", 20, 600),
+    ("e6_30mW_1000ms", 30, 1000),
+]
 VALIDATION = [("v1_8mW_250ms", 8, 250), ("v2_12mW_500ms", 12, 500), ("v3_25mW_800ms", 25, 800)]
 BURST_RUN = "e4_15mW_400ms"  # eight corrupted frames (a tracking glitch), 2-4 um off
 LOGGED_RUN = "v2_12mW_500ms"  # also logs laser_mW (checked against its description)
 
 
 def _pulse(power_mW: float, period_ms: float) -> dict:
-    return {"type": "pulse_train", "power_mW": power_mW, "period_ms": period_ms, "duty": 0.5,
-            "n_pulses": int(round(PULSE_SPAN_S * 1e3 / period_ms)), "delay_ms": DELAY_MS,
-            "tail_ms": TAIL_MS}
+    return {
+        "type": "pulse_train",
+        "power_mW": power_mW,
+        "period_ms": period_ms,
+        "duty": 0.5,
+        "n_pulses": int(round(PULSE_SPAN_S * 1e3 / period_ms)),
+        "delay_ms": DELAY_MS,
+        "tail_ms": TAIL_MS,
+    }
 
 
 def _inline(desc: dict) -> str:
@@ -73,24 +84,35 @@ def main(argv=None) -> None:
     out.mkdir(parents=True, exist_ok=True)
 
     m_per_px = CAMERA["um_per_px"] * 1e-6
-    model = chevron_laser.default_model(exposure_s=CAMERA["exposure_ms"] * 1e-3,
-                                        m_per_px=m_per_px)
+    model = chevron_laser.default_model(exposure_s=CAMERA["exposure_ms"] * 1e-3, m_per_px=m_per_px)
     truth_model = set_values(model, list(TRUE), list(TRUE.values()))
     rng = np.random.default_rng(SEED)
     runs = [(*r, "estimation") for r in ESTIMATION] + [(*r, "validation") for r in VALIDATION]
     offsets_px, n_frames, run_toml = {}, {}, []
     for name, power, period, role in runs:
         desc = _pulse(power, period)
-        wave = PulseTrain(power * 1e-3, period * 1e-3, desc["duty"], desc["n_pulses"],
-                          delay_s=DELAY_MS * 1e-3, tail_s=TAIL_MS * 1e-3)
+        wave = PulseTrain(
+            power * 1e-3,
+            period * 1e-3,
+            desc["duty"],
+            desc["n_pulses"],
+            delay_s=DELAY_MS * 1e-3,
+            tail_s=TAIL_MS * 1e-3,
+        )
         rest_px = round(REST_PX + rng.uniform(-REST_SPREAD_PX, REST_SPREAD_PX), 2)
         offsets_px[name] = rest_px
         run_model = set_values(truth_model, ["camera.offset_m"], [rest_px * m_per_px])
-        defects = CameraDefects(fps=CAMERA["fps"], jitter_s=JITTER_S, noise_m=NOISE_UM * 1e-6,
-                                drop_fraction=DROP_FRACTION,
-                                burst_length=8 if name == BURST_RUN else 0, burst_size_m=2e-6)
-        exp, _ = record(run_model, wave, name=name, defects=defects,
-                        seed=int(rng.integers(2**31)), role=role)
+        defects = CameraDefects(
+            fps=CAMERA["fps"],
+            jitter_s=JITTER_S,
+            noise_m=NOISE_UM * 1e-6,
+            drop_fraction=DROP_FRACTION,
+            burst_length=8 if name == BURST_RUN else 0,
+            burst_size_m=2e-6,
+        )
+        exp, _ = record(
+            run_model, wave, name=name, defects=defects, seed=int(rng.integers(2**31)), role=role
+        )
         y_px = exp.y[:, 0] / m_per_px
         logged = name == LOGGED_RUN
         laser_mW = np.asarray(wave(exp.t_s)) * 1e3
@@ -100,15 +122,19 @@ def main(argv=None) -> None:
             lines.append(row + (f",{laser_mW[k]:g}" if logged else ""))
         (out / f"{name}.csv").write_text("\n".join(lines) + "\n")
         n_frames[name] = exp.n_frames
-        run_toml.append(f'[[runs]]\nname = "{name}"\nfile = "{name}.csv"\nrole = "{role}"\n'
-                        f"waveform = {_inline(desc)}\n")
+        run_toml.append(
+            f'[[runs]]\nname = "{name}"\nfile = "{name}.csv"\nrole = "{role}"\n'
+            f"waveform = {_inline(desc)}\n"
+        )
 
     n_est = sum(n_frames[r[0]] for r in ESTIMATION)
     n_val = sum(n_frames[r[0]] for r in VALIDATION)
-    description = (f"Laser-heated chevron actuator, shuttle tracked on a 30 fps camera: six "
-                   f"estimation runs (5-30 mW, 200-1000 ms, 50 % duty; {n_est} frames) and "
-                   f"three validation runs ({n_val} frames). Synthetic data with known truth "
-                   "(truth.json).")
+    description = (
+        f"Laser-heated chevron actuator, shuttle tracked on a 30 fps camera: six "
+        f"estimation runs (5-30 mW, 200-1000 ms, 50 % duty; {n_est} frames) and "
+        f"three validation runs ({n_val} frames). Synthetic data with known truth "
+        "(truth.json)."
+    )
     toml = f'''# Embedded default experiment set (synthetic; made by generate.py, seed {SEED}).
 # The file format is documented in experiments/README.md.
 
@@ -135,19 +161,33 @@ free = ["absorptance", "thermal.tau_s", "camera.offset_m"]
     units = {p.path: p.unit for p in chevron_laser.PARAMETERS}
     truth = {
         "note": "True values used by generate.py; a fit of this folder should recover the "
-                "free ones within their 95 % intervals.",
+        "free ones within their 95 % intervals.",
         "generator": "experiments/chevron_laser/generate.py",
         "seed": SEED,
         "device": chevron_laser.NAME,
-        "parameters": {p: {"value": v, "unit": units[p],
-                           "nominal": float(get_value(model, p))} for p, v in TRUE.items()},
-        "fixed_at_nominal": {p: {"value": float(get_value(model, p)), "unit": units[p]}
-                             for p in ("thermal.resistance_K_per_W", "spot.waist_m",
-                                       "elongation.beam_fraction", "kinematics.angle_rad")},
+        "parameters": {
+            p: {"value": v, "unit": units[p], "nominal": float(get_value(model, p))}
+            for p, v in TRUE.items()
+        },
+        "fixed_at_nominal": {
+            p: {"value": float(get_value(model, p)), "unit": units[p]}
+            for p in (
+                "thermal.resistance_K_per_W",
+                "spot.waist_m",
+                "elongation.beam_fraction",
+                "kinematics.angle_rad",
+            )
+        },
         "camera_offset_m": {n: round(px * m_per_px, 12) for n, px in offsets_px.items()},
         "camera_offset_px": offsets_px,
-        "camera": {**CAMERA, "jitter_ms": JITTER_S * 1e3, "noise_um": NOISE_UM,
-                   "drop_fraction": DROP_FRACTION, "burst_run": BURST_RUN, "burst_frames": 8},
+        "camera": {
+            **CAMERA,
+            "jitter_ms": JITTER_S * 1e3,
+            "noise_um": NOISE_UM,
+            "drop_fraction": DROP_FRACTION,
+            "burst_run": BURST_RUN,
+            "burst_frames": 8,
+        },
         "frames": n_frames,
     }
     (out / "truth.json").write_text(json.dumps(truth, indent=2) + "\n")

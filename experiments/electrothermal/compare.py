@@ -44,8 +44,10 @@ def read_csv(path: pathlib.Path, columns: tuple[str, ...]) -> dict:
 
 
 def fmt_param(p, scale=1.0, unit=""):
-    return (f"{p.value * scale:.5g} {unit} (95 % CI {p.ci95[0] * scale:.5g} to "
-            f"{p.ci95[1] * scale:.5g}; {p.verdict})")
+    return (
+        f"{p.value * scale:.5g} {unit} (95 % CI {p.ci95[0] * scale:.5g} to "
+        f"{p.ci95[1] * scale:.5g}; {p.verdict})"
+    )
 
 
 def surface_study(truth_info, lines, figures):
@@ -57,8 +59,9 @@ def surface_study(truth_info, lines, figures):
     poly33 = surface.fit_polynomial(x, y_um, (3, 3))
     xs, ys, fine = surface.grid(poly32, (0.0, amps[-1]), (0.0, freqs[-1]), dx=0.1, dy=1.0)
 
-    start = ec.default_model(thermal__tau_s=0.015, thermal__resistance_K_per_W=150.0,
-                             joule__tcr_per_K=0.0)
+    start = ec.default_model(
+        thermal__tau_s=0.015, thermal__resistance_K_per_W=150.0, joule__tcr_per_K=0.0
+    )
     respond = periodic.response_function(start, n_steps=N_STEPS)
     predict = lambda m, xx: respond(m, xx[0], xx[1])[1]  # noqa: E731
     free = ec.default_free_parameters()
@@ -69,32 +72,44 @@ def surface_study(truth_info, lines, figures):
     p_in = surface.fit_polynomial(x[inside], y_um[inside], (3, 2))
     gb_in = fit_table(start, predict, (a, f), y_um * 1e-6, free, weights=inside.astype(float))
     out = ~inside
-    ext = {"poly32": rmse(y_um[out], p_in(a[out], f[out])),
-           "greybox": rmse(y_um[out], gb_in.prediction[out] * 1e6)}
+    ext = {
+        "poly32": rmse(y_um[out], p_in(a[out], f[out])),
+        "greybox": rmse(y_um[out], gb_in.prediction[out] * 1e6),
+    }
 
     truth = truth_info["model"]
     lines += [
-        "## 1. Amplitude-frequency table (peak-to-peak displacement)", "",
+        "## 1. Amplitude-frequency table (peak-to-peak displacement)",
+        "",
         f"{a.size} cells, {amps.size} amplitudes ({amps[0]:g}-{amps[-1]:g} V) x {freqs.size} "
-        f"frequencies ({freqs[0]:g}-{freqs[-1]:g} Hz); synthetic noise {truth_info['table']['noise_um']} um.", "",
+        f"frequencies ({freqs[0]:g}-{freqs[-1]:g} Hz); synthetic noise {truth_info['table']['noise_um']} um.",
+        "",
         "| model | parameters | R^2 | RMSE (um) | held-out RMSE beyond "
-        f"{TRAIN_MAX_V:g} V / {TRAIN_MAX_HZ:g} Hz (um) |", "|---|---|---|---|---|",
+        f"{TRAIN_MAX_V:g} V / {TRAIN_MAX_HZ:g} Hz (um) |",
+        "|---|---|---|---|---|",
         f"| poly32 (thesis eq. 5.1 form) | 9 | {poly32.r_squared:.4f} | {poly32.rmse:.4f} | {ext['poly32']:.3f} |",
         f"| poly33 | 10 | {poly33.r_squared:.4f} | {poly33.rmse:.4f} | - |",
         f"| grey-box (steady-state simulation) | 3 | {gb.r_squared:.5f} | {gb.rmse * 1e6:.4f} | {ext['greybox']:.3f} |",
-        "", f"poly32 fit: z = {poly32.describe(('V', 'f'))} (um, V, Hz); interpolated on a "
-        f"{fine.shape[0]} x {fine.shape[1]} grid (0.1 V x 1 Hz) as in thesis fig. 5.2.", "",
+        "",
+        f"poly32 fit: z = {poly32.describe(('V', 'f'))} (um, V, Hz); interpolated on a "
+        f"{fine.shape[0]} x {fine.shape[1]} grid (0.1 V x 1 Hz) as in thesis fig. 5.2.",
+        "",
         f"Grey-box fit ({'converged' if gb.converged else gb.message}, noise estimated "
-        f"sigma = {gb.sigma[0] * 1e6:.4f} um):", "",
+        f"sigma = {gb.sigma[0] * 1e6:.4f} um):",
+        "",
         f"- tau = {fmt_param(gb.estimate('thermal.tau_s'), 1e3, 'ms')}; truth {truth['thermal.tau_s'] * 1e3:g} ms",
         f"- R_th = {fmt_param(gb.estimate('thermal.resistance_K_per_W'), 1, 'K/W')}; truth {truth['thermal.resistance_K_per_W']:g} K/W",
         f"- TCR = {fmt_param(gb.estimate('joule.tcr_per_K'), 1, '1/K')}; truth {truth['joule.tcr_per_K']:g} 1/K",
-        "", *[f"  {s}" for s in gb.identifiability.summary()], "",
+        "",
+        *[f"  {s}" for s in gb.identifiability.summary()],
+        "",
         f"Extrapolation fit on the {int(inside.sum())} cells with amplitude <= {TRAIN_MAX_V:g} V and "
         f"frequency <= {TRAIN_MAX_HZ:g} Hz, scored on the other {int(out.sum())}: grey-box "
         f"tau = {gb_in.estimate('thermal.tau_s').value * 1e3:.4g} ms, "
         f"R_th = {gb_in.estimate('thermal.resistance_K_per_W').value:.4g} K/W, "
-        f"TCR = {gb_in.estimate('joule.tcr_per_K').value:.3g} 1/K.", ""]
+        f"TCR = {gb_in.estimate('joule.tcr_per_K').value:.3g} 1/K.",
+        "",
+    ]
 
     import matplotlib
 
@@ -103,11 +118,20 @@ def surface_study(truth_info, lines, figures):
 
     fig, axes = plt.subplots(1, 3, figsize=(14, 4), constrained_layout=True)
     ext_extent = [freqs[0], freqs[-1], amps[0], amps[-1]]
-    for ax, z, title in [(axes[0], table, "data y_pp (um)"),
-                         (axes[1], table - poly32(*np.meshgrid(amps, freqs, indexing="ij")), "data - poly32 (um)"),
-                         (axes[2], table - gb_um.reshape(table.shape), "data - grey-box (um)")]:
-        im = ax.imshow(z, origin="lower", aspect="auto", extent=ext_extent, cmap="viridis" if ax is axes[0] else "RdBu_r",
-                       vmin=None if ax is axes[0] else -1.5, vmax=None if ax is axes[0] else 1.5)
+    for ax, z, title in [
+        (axes[0], table, "data y_pp (um)"),
+        (axes[1], table - poly32(*np.meshgrid(amps, freqs, indexing="ij")), "data - poly32 (um)"),
+        (axes[2], table - gb_um.reshape(table.shape), "data - grey-box (um)"),
+    ]:
+        im = ax.imshow(
+            z,
+            origin="lower",
+            aspect="auto",
+            extent=ext_extent,
+            cmap="viridis" if ax is axes[0] else "RdBu_r",
+            vmin=None if ax is axes[0] else -1.5,
+            vmax=None if ax is axes[0] else 1.5,
+        )
         ax.set(xlabel="frequency (Hz)", ylabel="amplitude (V)", title=title)
         fig.colorbar(im, ax=ax)
     fig.savefig(HERE / "fig_surface.png", dpi=110)
@@ -120,31 +144,49 @@ def surface_study(truth_info, lines, figures):
         ax[k].plot(f[row], p_in(a[row], f[row]), "C1-", label="poly32 (fit inside box)")
         ax[k].plot(f[row], gb_in.prediction[row] * 1e6, "C0-", label="grey-box (fit inside box)")
         ax[k].axvline(TRAIN_MAX_HZ, color="0.6", ls="--")
-        ax[k].set(xlabel="frequency (Hz)", ylabel="y_pp (um)", title=f"{v_show:g} V"
-                  + (" (outside training amplitudes)" if v_show > TRAIN_MAX_V else ""))
+        ax[k].set(
+            xlabel="frequency (Hz)",
+            ylabel="y_pp (um)",
+            title=f"{v_show:g} V"
+            + (" (outside training amplitudes)" if v_show > TRAIN_MAX_V else ""),
+        )
         ax[k].legend()
     fig.savefig(HERE / "fig_extrapolation.png", dpi=110)
     plt.close(fig)
     figures += ["fig_surface.png", "fig_extrapolation.png"]
-    return {"poly32": (poly32.r_squared, poly32.rmse), "greybox": (gb.r_squared, gb.rmse * 1e6),
-            "extrapolation_rmse_um": ext}
+    return {
+        "poly32": (poly32.r_squared, poly32.rmse),
+        "greybox": (gb.r_squared, gb.rmse * 1e6),
+        "extrapolation_rmse_um": ext,
+    }
 
 
 def force_study(truth_info, lines, figures):
     r = read_csv(HERE / "force_readings.csv", ("voltage_V", "repeat", "sensor_mV"))
     s = truth_info["force"]["sensor"]
-    sensor = ForceSensor(s["length_m"], s["thickness_m"], s["gauge_factor"], s["bridge_V"],
-                         s["stiffness_N_per_m"], s["resistor_position"])
-    avg = average_repeats(r["voltage_V"], sensor.force_N(r["sensor_mV"] * 1e-3) * 1e3,
-                          expected_repeats=truth_info["force"]["n_repeats"])  # mN
+    sensor = ForceSensor(
+        s["length_m"],
+        s["thickness_m"],
+        s["gauge_factor"],
+        s["bridge_V"],
+        s["stiffness_N_per_m"],
+        s["resistor_position"],
+    )
+    avg = average_repeats(
+        r["voltage_V"],
+        sensor.force_N(r["sensor_mV"] * 1e-3) * 1e3,
+        expected_repeats=truth_info["force"]["n_repeats"],
+    )  # mN
     v, fm, se = avg.voltage_V, avg.mean, avg.pooled_se
     rows, cv = [], {}
     for order in (2, 8):
         p = surface.fit_polynomial(v, fm, order)
         c = surface.cross_validate(surface.polynomial_predictor(order), v, fm)
         cv[order] = c.rmse
-        rows.append(f"| poly order {order} | {p.n_params} | {p.rmse:.4f} | {c.rmse:.4f} | "
-                    f"{c.rmse_interior:.4f} | {p.criteria['aicc']:.1f} | {p.criteria['bic']:.1f} |")
+        rows.append(
+            f"| poly order {order} | {p.n_params} | {p.rmse:.4f} | {c.rmse:.4f} | "
+            f"{c.rmse_interior:.4f} | {p.criteria['aicc']:.1f} | {p.criteria['bic']:.1f} |"
+        )
     start = ec.default_model(thermal__resistance_K_per_W=150.0, joule__tcr_per_K=0.0)
     predict = ec.force_predictor(sensor.stiffness_N_per_m)
     free = ec.force_free_parameters()
@@ -159,25 +201,34 @@ def force_study(truth_info, lines, figures):
     cv["greybox"] = cg.rmse
     rss = float(np.sum((gb.prediction - fm) ** 2))
     crit = surface.information_criteria(rss, v.size, len(free))
-    rows.append(f"| grey-box (R_th, TCR) | 2 | {gb.rmse:.4f} | {cg.rmse:.4f} | "
-                f"{cg.rmse_interior:.4f} | {crit['aicc']:.1f} | {crit['bic']:.1f} |")
+    rows.append(
+        f"| grey-box (R_th, TCR) | 2 | {gb.rmse:.4f} | {cg.rmse:.4f} | "
+        f"{cg.rmse_interior:.4f} | {crit['aicc']:.1f} | {crit['bic']:.1f} |"
+    )
     truth = truth_info["model"]
     vv = np.linspace(0, 25, 126)
     blocked = np.asarray(jax.vmap(gb.model.blocked_force_N)(vv)) * 1e3
     lines += [
-        "## 2. Force against DC voltage", "",
+        "## 2. Force against DC voltage",
+        "",
         f"{r['voltage_V'].size} sensor readings, {v.size} voltages x {int(avg.n[0])} repeats, converted "
         f"with eqs. 5.2-5.3 ({sensor.volts_per_m * 1e-3:.4g} mV/um, C = {sensor.stiffness_N_per_m:g} N/m) and "
-        f"averaged (mean standard error {np.sqrt(np.mean(se**2)):.4f} mN).", "",
+        f"averaged (mean standard error {np.sqrt(np.mean(se**2)):.4f} mN).",
+        "",
         "| model | parameters | RMSE in-sample (mN) | leave-one-voltage-out RMSE (mN) | "
-        "same, interior voltages only (mN) | AICc | BIC |", "|---|---|---|---|---|---|---|", *rows, "",
+        "same, interior voltages only (mN) | AICc | BIC |",
+        "|---|---|---|---|---|---|---|",
+        *rows,
+        "",
         f"Grey-box ({gb.message}; weights = 1 / pooled standard error): "
         f"R_th = {fmt_param(gb.estimate('thermal.resistance_K_per_W'), 1, 'K/W')} (truth "
         f"{truth['thermal.resistance_K_per_W']:g}); TCR = {fmt_param(gb.estimate('joule.tcr_per_K'), 1, '1/K')} "
         f"(truth {truth['joule.tcr_per_K']:g}).",
         f"Blocked force 2 n E A alpha dT sin(a) of the fitted model: {blocked[80]:.3f} mN at 16 V, "
         f"{blocked[-1]:.3f} mN at 25 V; the sensor reads C / (C + k_y) = "
-        f"{sensor.stiffness_N_per_m / (sensor.stiffness_N_per_m + float(gb.model.stiffness_N_per_m())):.3f} of it.", ""]
+        f"{sensor.stiffness_N_per_m / (sensor.stiffness_N_per_m + float(gb.model.stiffness_N_per_m())):.3f} of it.",
+        "",
+    ]
 
     import matplotlib.pyplot as plt
 
@@ -199,10 +250,14 @@ def force_study(truth_info, lines, figures):
 
 def main() -> None:
     truth_info = json.loads((HERE / "truth.json").read_text())
-    lines = ["# Electro-thermal chevron: polynomial against grey-box fits", "",
-             "Synthetic data from `generate.py` (seed in `truth.json`). Grey-box predictions are "
-             "steady-state simulations of the physics (periodic steady state under the square "
-             "wave; DC steady state for force); no measured value is fed back.", ""]
+    lines = [
+        "# Electro-thermal chevron: polynomial against grey-box fits",
+        "",
+        "Synthetic data from `generate.py` (seed in `truth.json`). Grey-box predictions are "
+        "steady-state simulations of the physics (periodic steady state under the square "
+        "wave; DC steady state for force); no measured value is fed back.",
+        "",
+    ]
     figures: list[str] = []
     s = surface_study(truth_info, lines, figures)
     fo = force_study(truth_info, lines, figures)

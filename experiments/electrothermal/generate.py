@@ -39,8 +39,9 @@ NOISE_UM = 0.1  # interferometer repeatability [assumed], the size of the thesis
 FORCE_VOLTAGES_V = np.arange(0.0, 21.0, 2.0)
 N_REPEATS = 5
 SENSOR_NOISE_MV = 2.0  # repeat scatter of the sensor reading ("wide deviations", thesis §5.5)
-SENSOR = ForceSensor(length_m=1e-3, thickness_m=50e-6, gauge_factor=100.0, bridge_V=5.0,
-                     stiffness_N_per_m=1000.0)  # [assumed]: the thesis gives no AE801 constants
+SENSOR = ForceSensor(
+    length_m=1e-3, thickness_m=50e-6, gauge_factor=100.0, bridge_V=5.0, stiffness_N_per_m=1000.0
+)  # [assumed]: the thesis gives no AE801 constants
 N_STEPS = 64
 
 
@@ -51,34 +52,65 @@ def main() -> None:
     _, pp = periodic.square_wave_response(truth, a, f, n_steps=N_STEPS)
     y_um = pp * 1e6 + rng.normal(0.0, NOISE_UM, pp.shape)
     with atomic_output_file(HERE / "table.csv") as tmp:
-        np.savetxt(tmp, np.column_stack([a, f, y_um]), delimiter=",", fmt=["%.1f", "%.1f", "%.5f"],
-                   header="amplitude_V,frequency_Hz,y_pp_um", comments="")
+        np.savetxt(
+            tmp,
+            np.column_stack([a, f, y_um]),
+            delimiter=",",
+            fmt=["%.1f", "%.1f", "%.5f"],
+            header="amplitude_V,frequency_Hz,y_pp_um",
+            comments="",
+        )
 
     volts = np.repeat(FORCE_VOLTAGES_V, N_REPEATS)
     repeat = np.tile(np.arange(1, N_REPEATS + 1), FORCE_VOLTAGES_V.size)
     force = np.asarray(ec.force_predictor(SENSOR.stiffness_N_per_m)(truth, volts))
     mv = SENSOR.sensor_V(force) * 1e3 + rng.normal(0.0, SENSOR_NOISE_MV, volts.size)
     with atomic_output_file(HERE / "force_readings.csv") as tmp:
-        np.savetxt(tmp, np.column_stack([volts, repeat, mv]), delimiter=",",
-                   fmt=["%.1f", "%d", "%.5f"], header="voltage_V,repeat,sensor_mV", comments="")
+        np.savetxt(
+            tmp,
+            np.column_stack([volts, repeat, mv]),
+            delimiter=",",
+            fmt=["%.1f", "%d", "%.5f"],
+            header="voltage_V,repeat,sensor_mV",
+            comments="",
+        )
 
     info = {
         "seed": SEED,
         "device": ec.NAME,
-        "model": {"thermal.tau_s": ec.NOMINAL_TAU_S,
-                  "thermal.resistance_K_per_W": ec.NOMINAL_RESISTANCE_K_PER_W,
-                  "joule.resistance_ohm": ec.NOMINAL_R0_OHM, "joule.tcr_per_K": ec.NOMINAL_TCR_PER_K,
-                  "beam_length_m": ec.BEAM_LENGTH_M, "angle_rad": ec.ANGLE_RAD,
-                  "beam_width_m": ec.BEAM_WIDTH_M, "beam_thickness_m": ec.BEAM_THICKNESS_M,
-                  "cte_per_K": ec.CTE_SI_PER_K, "youngs_Pa": ec.YOUNGS_SI_PA, "beam_fraction": 1.0},
-        "table": {"duty": 0.5, "noise_um": NOISE_UM, "n_steps_per_phase": N_STEPS,
-                  "amplitudes_V": AMPLITUDES_V.tolist(), "frequencies_Hz": FREQUENCIES_HZ.tolist()},
-        "force": {"voltages_V": FORCE_VOLTAGES_V.tolist(), "n_repeats": N_REPEATS,
-                  "sensor_noise_mV": SENSOR_NOISE_MV,
-                  "sensor": {"length_m": SENSOR.length_m, "thickness_m": SENSOR.thickness_m,
-                             "gauge_factor": SENSOR.gauge_factor, "bridge_V": SENSOR.bridge_V,
-                             "resistor_position": SENSOR.resistor_position,
-                             "stiffness_N_per_m": SENSOR.stiffness_N_per_m}},
+        "model": {
+            "thermal.tau_s": ec.NOMINAL_TAU_S,
+            "thermal.resistance_K_per_W": ec.NOMINAL_RESISTANCE_K_PER_W,
+            "joule.resistance_ohm": ec.NOMINAL_R0_OHM,
+            "joule.tcr_per_K": ec.NOMINAL_TCR_PER_K,
+            "beam_length_m": ec.BEAM_LENGTH_M,
+            "angle_rad": ec.ANGLE_RAD,
+            "beam_width_m": ec.BEAM_WIDTH_M,
+            "beam_thickness_m": ec.BEAM_THICKNESS_M,
+            "cte_per_K": ec.CTE_SI_PER_K,
+            "youngs_Pa": ec.YOUNGS_SI_PA,
+            "beam_fraction": 1.0,
+        },
+        "table": {
+            "duty": 0.5,
+            "noise_um": NOISE_UM,
+            "n_steps_per_phase": N_STEPS,
+            "amplitudes_V": AMPLITUDES_V.tolist(),
+            "frequencies_Hz": FREQUENCIES_HZ.tolist(),
+        },
+        "force": {
+            "voltages_V": FORCE_VOLTAGES_V.tolist(),
+            "n_repeats": N_REPEATS,
+            "sensor_noise_mV": SENSOR_NOISE_MV,
+            "sensor": {
+                "length_m": SENSOR.length_m,
+                "thickness_m": SENSOR.thickness_m,
+                "gauge_factor": SENSOR.gauge_factor,
+                "bridge_V": SENSOR.bridge_V,
+                "resistor_position": SENSOR.resistor_position,
+                "stiffness_N_per_m": SENSOR.stiffness_N_per_m,
+            },
+        },
     }
     with atomic_output_file(HERE / "truth.json") as tmp:
         tmp.write(json.dumps(info, indent=2) + "\n")

@@ -9,7 +9,7 @@ from load import load_dryer
 from greybox import blackbox as bb
 
 full = load_dryer()
-ze = bb.detrend(full.segment(0, 300))   # samples 1-300
+ze = bb.detrend(full.segment(0, 300))  # samples 1-300
 zv = bb.detrend(full.segment(799, 900))  # samples 800-900
 m = bb.fit_arx(ze, 2, 2, 3)
 np.set_printoptions(precision=4, suppress=True)

@@ -18,11 +18,11 @@ HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parents[1])]
 
 import numpy as np  # noqa: E402
-
 import study  # noqa: E402
+from tclab_data import load_folder, uniform  # noqa: E402
+
 from greybox import blackbox as bb  # noqa: E402
 from greybox.io.atomic import atomic_output_file  # noqa: E402
-from tclab_data import load_folder, uniform  # noqa: E402
 
 
 def analyse(folder: str, say=print) -> dict:
@@ -31,22 +31,43 @@ def analyse(folder: str, say=print) -> dict:
     runs = load_folder(HERE / folder)
     est, val = runs["estimation"], runs["validation"]
     outputs = (0,) if one else (0, 1)  # the paper scores T1 only for the single heater
-    out = {"folder": folder, "outputs": outputs, "est": est, "val": val, "rows": [], "sims": {},
-           "greybox": {}}
+    out = {
+        "folder": folder,
+        "outputs": outputs,
+        "est": est,
+        "val": val,
+        "rows": [],
+        "sims": {},
+        "greybox": {},
+    }
 
     def row(name, z_est, z_val, note="", k=None, ic_outputs=(0, 1)):
         """One table row; AIC/BIC from the estimation-run simulation residuals when fitted."""
-        ic = ((None, None) if k is None else study.information_criteria(
-            est.y[:, list(ic_outputs)], np.asarray(z_est)[:, list(ic_outputs)], k))
-        out["rows"].append((name, study.scores(est.y, z_est, outputs),
-                            study.scores(val.y, z_val, outputs), *ic, note))
+        ic = (
+            (None, None)
+            if k is None
+            else study.information_criteria(
+                est.y[:, list(ic_outputs)], np.asarray(z_est)[:, list(ic_outputs)], k
+            )
+        )
+        out["rows"].append(
+            (
+                name,
+                study.scores(est.y, z_est, outputs),
+                study.scores(val.y, z_val, outputs),
+                *ic,
+                note,
+            )
+        )
 
     # Candidate structures, selected by AIC on the estimation run; the two-heater set also
     # tries a free radiating area A (rejected variants stay in the selection table)
     variants = [(label, shared, ()) for label, shared in study.STRUCTURES.items()]
     if not one:
-        variants += [(f"{label} + free area A", shared, (study.AREA_FREE,))
-                     for label, shared in study.STRUCTURES.items()]
+        variants += [
+            (f"{label} + free area A", shared, (study.AREA_FREE,))
+            for label, shared in study.STRUCTURES.items()
+        ]
     candidates, out["variants"] = {}, []
     for label, shared, extra in variants:
         say(f"[{folder}] grey-box {label} (l2 loss, adaptive solver) on the estimation run")
@@ -55,18 +76,35 @@ def analyse(folder: str, say=print) -> dict:
         aic, bic = study.information_criteria(est.y, z_est, len(res.free))
         weak = [p.name for p in res.parameters if p.verdict != "identifiable"]
         candidates[label] = (aic, bic, res.converged, not weak)
-        out["variants"].append((label, len(res.free), study.scores(est.y, z_est, outputs),
-                                study.scores(val.y, z_val, outputs), aic, bic, res, weak))
+        out["variants"].append(
+            (
+                label,
+                len(res.free),
+                study.scores(est.y, z_est, outputs),
+                study.scores(val.y, z_val, outputs),
+                aic,
+                bic,
+                res,
+                weak,
+            )
+        )
         if extra:
             continue
         out["greybox"][label] = res
         out["sims"][f"grey-box, {label}"] = z_val
-        row(f"grey-box, {label}, {len(res.free)} parameters", z_est, z_val,
+        row(
+            f"grey-box, {label}, {len(res.free)} parameters",
+            z_est,
+            z_val,
             ("converged" if res.converged else f"NOT converged: {res.message}")
-            + (f"; not identifiable: {', '.join(weak)}" if weak else ""), k=len(res.free))
+            + (f"; not identifiable: {', '.join(weak)}" if weak else ""),
+            k=len(res.free),
+        )
     out["selected"] = study.select_by_aic(candidates)
-    out["rows"] = [(f"**{r[0]} (AIC-selected)**", *r[1:]) if out["selected"] in r[0] else r
-                   for r in out["rows"]]
+    out["rows"] = [
+        (f"**{r[0]} (AIC-selected)**", *r[1:]) if out["selected"] in r[0] else r
+        for r in out["rows"]
+    ]
     from models import tclab
 
     z_pub = [study.simulate_run(tclab.default_model(shared_sensor_lag=True), e) for e in (est, val)]
@@ -74,30 +112,50 @@ def analyse(folder: str, say=print) -> dict:
 
     u_est, u_val = uniform(est), uniform(val)
     if one:  # heater 2 is off: a single-input, single-output problem as in the paper
-        u_est, u_val = (bb.UniformData(d.u[:, :1], d.y[:, :1], d.dt, name=d.name) for d in (u_est, u_val))
+        u_est, u_val = (
+            bb.UniformData(d.u[:, :1], d.y[:, :1], d.dt, name=d.name) for d in (u_est, u_val)
+        )
     arx = study.fit_arx22(u_est)
     out["arx"] = arx
     z = [bb.simulate(arx, d) + 273.15 for d in (u_est, u_val)]
     if one:
         z = [np.column_stack([zz, np.full_like(zz, np.nan)]) for zz in z]
-    row("ARX [2 2 1] + offset, diagonal A", *z, "least squares (one-step) fit, simulated",
-        k=arx.parameters.size, ic_outputs=outputs)
+    row(
+        "ARX [2 2 1] + offset, diagonal A",
+        *z,
+        "least squares (one-step) fit, simulated",
+        k=arx.parameters.size,
+        ic_outputs=outputs,
+    )
     out["sims"]["ARX (least squares)"] = z[1]
     if not one:
         pub = study.paper_arx()
-        row("ARX, paper's published coefficients", *[bb.simulate(pub, d) + 273.15 for d in (u_est, u_val)],
-            "not fitted here")
-        for kind, label in (("armax", "ARMAX [2 2 2 1] per sensor"), ("oe", "OE [2 1 1] per sensor"),
-                            ("oe22", "OE [2 2 1] per sensor")):
+        row(
+            "ARX, paper's published coefficients",
+            *[bb.simulate(pub, d) + 273.15 for d in (u_est, u_val)],
+            "not fitted here",
+        )
+        for kind, label in (
+            ("armax", "ARMAX [2 2 2 1] per sensor"),
+            ("oe", "OE [2 1 1] per sensor"),
+            ("oe22", "OE [2 2 1] per sensor"),
+        ):
             say(f"[{folder}] {label}")
             models = study.fit_miso(u_est, kind)
             note = "simulation-error fit" if kind != "armax" else "one-step (PEM) fit, simulated"
-            bad = [f"T{j + 1} after {m.n_steps} LM steps" for j, m in enumerate(models)
-                   if not m.converged]
+            bad = [
+                f"T{j + 1} after {m.n_steps} LM steps"
+                for j, m in enumerate(models)
+                if not m.converged
+            ]
             if bad:
                 note += f"; NOT converged ({', '.join(bad)})"
-            row(label, *[study.simulate_miso(models, d) + 273.15 for d in (u_est, u_val)],
-                note, k=study.MISO[kind][1] * len(models))
+            row(
+                label,
+                *[study.simulate_miso(models, d) + 273.15 for d in (u_est, u_val)],
+                note,
+                k=study.MISO[kind][1] * len(models),
+            )
             out.setdefault("miso", {})[kind] = models
     return out
 
@@ -105,8 +163,10 @@ def analyse(folder: str, say=print) -> dict:
 def _param_lines(res) -> list[str]:
     lines = ["| parameter | value | 95 % interval | verdict |", "|---|---|---|---|"]
     for p in res.parameters:
-        lines.append(f"| {p.name} [{p.unit}] | {p.value:.5g} | {p.ci95[0]:.5g} – {p.ci95[1]:.5g} "
-                     f"| {p.verdict} |")
+        lines.append(
+            f"| {p.name} [{p.unit}] | {p.value:.5g} | {p.ci95[0]:.5g} – {p.ci95[1]:.5g} "
+            f"| {p.verdict} |"
+        )
     return lines
 
 
@@ -119,38 +179,59 @@ def report(result: dict) -> list[str]:
     paper = study.PAPER[folder]
     one = result["outputs"] == (0,)
     which = "T1 only (600 points)" if one else "T1 + T2 (1,200 points)"
-    lines = [f"## {folder.replace('_', ' ')}", "",
-             f"SAE in degC over {which}. **All numbers are free-run simulation results** (not "
-             "one-step prediction): grey-box from the first measured temperatures; ARX/ARMAX/OE "
-             "from their first 2 measured samples, then on their own outputs. Fitted on the "
-             "estimation run only; nothing is re-fitted on the validation run.", "",
-             "AIC/BIC: from the free-run simulation residuals on the **estimation run only** "
-             "(Gaussian log-likelihood with the ML noise variance, n residuals, k fitted "
-             "parameters: AIC = n ln(RSS/n) + 2k, BIC = n ln(RSS/n) + k ln n; lower is better; "
-             + ("grey-box rows over both sensors, n = 1,200, as fitted; the SISO ARX row over T1, "
-                "n = 600, so not comparable with them). " if one else "n = 1,200 residuals). ")
-             + "The headline grey-box structure is the AIC-selected one among fits that "
-             "converged with every parameter identifiable; the validation run was not used "
-             "for fitting or for this selection.", "",
-             "| model | estimation SAE | validation SAE | AIC (est.) | BIC (est.) | note |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        f"## {folder.replace('_', ' ')}",
+        "",
+        f"SAE in degC over {which}. **All numbers are free-run simulation results** (not "
+        "one-step prediction): grey-box from the first measured temperatures; ARX/ARMAX/OE "
+        "from their first 2 measured samples, then on their own outputs. Fitted on the "
+        "estimation run only; nothing is re-fitted on the validation run.",
+        "",
+        "AIC/BIC: from the free-run simulation residuals on the **estimation run only** "
+        "(Gaussian log-likelihood with the ML noise variance, n residuals, k fitted "
+        "parameters: AIC = n ln(RSS/n) + 2k, BIC = n ln(RSS/n) + k ln n; lower is better; "
+        + (
+            "grey-box rows over both sensors, n = 1,200, as fitted; the SISO ARX row over T1, "
+            "n = 600, so not comparable with them). "
+            if one
+            else "n = 1,200 residuals). "
+        )
+        + "The headline grey-box structure is the AIC-selected one among fits that "
+        "converged with every parameter identifiable; the validation run was not used "
+        "for fitting or for this selection.",
+        "",
+        "| model | estimation SAE | validation SAE | AIC (est.) | BIC (est.) | note |",
+        "|---|---|---|---|---|---|",
+    ]
     for name, (e, v) in paper.items():
         lines.append(f"| paper: {name} | {e:.2f} | {v:.2f} | — | — | Park et al. 2020 |")
     for name, e, v, aic, bic, note in result["rows"]:
         lines.append(f"| ours: {name} | {e:.2f} | {v:.2f} | {_num(aic)} | {_num(bic)} | {note} |")
-    lines += ["", "Grey-box structure selection (AIC/BIC on the estimation run; a candidate must "
-              "converge with every parameter identifiable to be eligible):", "",
-              "| candidate | k | est. SAE | val. SAE | AIC | BIC | converged | not identifiable |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "Grey-box structure selection (AIC/BIC on the estimation run; a candidate must "
+        "converge with every parameter identifiable to be eligible):",
+        "",
+        "| candidate | k | est. SAE | val. SAE | AIC | BIC | converged | not identifiable |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for label, k, e, v, aic, bic, res, weak in result["variants"]:
         mark = " **(selected)**" if label == result["selected"] else ""
-        bounds = [f"{p.name} = {p.value:.4g}" for p in res.parameters if p.verdict != "identifiable"]
-        lines.append(f"| {label}{mark} | {k} | {e:.2f} | {v:.2f} | {aic:.1f} | {bic:.1f} | "
-                     f"{'yes' if res.converged else 'NO'} | {', '.join(bounds) or '—'} |")
+        bounds = [
+            f"{p.name} = {p.value:.4g}" for p in res.parameters if p.verdict != "identifiable"
+        ]
+        lines.append(
+            f"| {label}{mark} | {k} | {e:.2f} | {v:.2f} | {aic:.1f} | {bic:.1f} | "
+            f"{'yes' if res.converged else 'NO'} | {', '.join(bounds) or '—'} |"
+        )
     for label, res in result["greybox"].items():
         tag = " — AIC-selected" if label == result["selected"] else ""
-        lines += ["", f"Grey-box, {label}{tag} (l2 loss, {res.method} solver, simulation error, "
-                  f"{res.n_data} points, {res.n_steps} LM steps, {res.message}):", ""]
+        lines += [
+            "",
+            f"Grey-box, {label}{tag} (l2 loss, {res.method} solver, simulation error, "
+            f"{res.n_data} points, {res.n_steps} LM steps, {res.message}):",
+            "",
+        ]
         lines += _param_lines(res)
         lines += ["", "Identifiability: " + "; ".join(res.identifiability.summary())]
     return lines + [""]
@@ -212,8 +293,12 @@ def notes(two: dict, one: dict) -> str:
     eligible = [v for v in two["variants"] if v[6].converged and not v[7]]
     bic_pick = min(eligible, key=lambda v: v[5])[0]
     val_pick = min(eligible, key=lambda v: v[3])[0]
-    weak_a = ", ".join(f"{p.name} = {p.value:.3g}" for p in both_a[6].parameters
-                       if p.verdict != "identifiable") or "none"
+    weak_a = (
+        ", ".join(
+            f"{p.name} = {p.value:.3g}" for p in both_a[6].parameters if p.verdict != "identifiable"
+        )
+        or "none"
+    )
     # largest pole modulus of any F in the OE [2 2 1] models, per sensor
     oe2_poles = [max(max(abs(np.roots(f))) for f in m.f[0]) for m in two["miso"]["oe22"]]
     return f"""## Notes
@@ -226,15 +311,15 @@ def notes(two: dict, one: dict) -> str:
   6 parameters); `shared_sensor_lag=True` is the paper's structure (one tau, 5 parameters). The
   two TMP36 sensors are separate parts glued on separately, so their lags need not agree; the
   two-heater fit gives tau1 = {ci(t1)} and tau2 = {ci(t2)}. Selection: **{sel}**, by AIC on
-  the estimation run only (BIC picks {'the same' if bic_pick == sel else bic_pick}); the
+  the estimation run only (BIC picks {"the same" if bic_pick == sel else bic_pick}); the
   validation run was never used for fitting or for the selection rule. Honest caveat: four variants were tried during development (the paper's
   structure, + free area A, per-sensor lag, per-sensor lag + free A) and their validation
   numbers were looked at then, so the selected structure's validation SAE is not a fully blind
   test. All four are recomputed above (selection table): the per-sensor lag + free A variant
   has the lowest AIC ({both_a[4]:.1f}) and validation SAE ({both_a[3]:.2f}) but is not eligible
-  (converged: {'yes' if both_a[6].converged else 'no'}; not identifiable: {weak_a}, at its
+  (converged: {"yes" if both_a[6].converged else "no"}; not identifiable: {weak_a}, at its
   lower bound: the free area and U trade off); the best eligible structure on validation is
-  {'also the AIC-selected one' if val_pick == sel else val_pick + ', not the AIC-selected one'}.
+  {"also the AIC-selected one" if val_pick == sel else val_pick + ", not the AIC-selected one"}.
 - The paper's own parameters (tclab_estimate.txt) simulated here give the "published
   parameters" row; its validation SAE is above the paper's 840.95, so the paper's table was not
   a plain simulation of those parameters (GEKKO's collocation and its input-timing convention,
@@ -255,8 +340,8 @@ def notes(two: dict, one: dict) -> str:
   Simulation-error fits here: OE [2 1 1] per sensor {oe1[0]:.2f} / {oe1[1]:.2f}
   ({100 * (oe1[1] / paper_arx - 1):+.1f} % from the paper's ARX validation SAE, a different
   structure, so supporting evidence only); OE [2 2 1] per sensor (nf = 2, the simulation-error
-  counterpart of ARX(2,2)) {oe2[0]:.2f} / {oe2[1]:.2f}, {'converged' if oe2_ok else 'NOT converged in 200 LM steps'},
-  largest F pole modulus {oe2_poles[0]:.3f} (T1 model) and {oe2_poles[1]:.3f} (T2 model){'' if max(oe2_poles) < 0.999 else ': the weak cross-heater path leaves a second-order F ill-determined and it reaches the stability boundary, so this row is not a trustworthy model'}.
+  counterpart of ARX(2,2)) {oe2[0]:.2f} / {oe2[1]:.2f}, {"converged" if oe2_ok else "NOT converged in 200 LM steps"},
+  largest F pole modulus {oe2_poles[0]:.3f} (T1 model) and {oe2_poles[1]:.3f} (T2 model){"" if max(oe2_poles) < 0.999 else ": the weak cross-heater path leaves a second-order F ill-determined and it reaches the stability boundary, so this row is not a trustworthy model"}.
   Its SAE is listed for completeness and not used to explain the paper's number.
 - Sensitivity of the paper-structure grey-box (explored after looking at the validation run,
   so not used for any headline row; measured once by hand, not recomputed by this script):
@@ -278,8 +363,12 @@ def notes(two: dict, one: dict) -> str:
 
 
 def main() -> None:
-    lines = ["# TCLab (Park et al. 2020): grey-box and black-box models vs the published table", "",
-             "Generated by `experiments/tclab/compare.py`; data provenance in PROVENANCE.md.", ""]
+    lines = [
+        "# TCLab (Park et al. 2020): grey-box and black-box models vs the published table",
+        "",
+        "Generated by `experiments/tclab/compare.py`; data provenance in PROVENANCE.md.",
+        "",
+    ]
     results = {}
     for folder in ("two_heaters", "one_heater"):
         result = results[folder] = analyse(folder)

@@ -24,14 +24,28 @@ ROLES = (("estimation", "initial_models.csv"), ("validation", "validation.csv"))
 
 
 def _toml(device_set: str, description: str, runs: list[tuple[str, np.ndarray]]) -> str:
-    lines = ["[experiment]", 'device = "tclab"',
-             f'description = "TCLab, Park et al. (2020) {device_set}: {description}"', "",
-             "[fit]", 'method = "adaptive"', 'loss = "l2"', "n_starts = 1", ""]
+    lines = [
+        "[experiment]",
+        'device = "tclab"',
+        f'description = "TCLab, Park et al. (2020) {device_set}: {description}"',
+        "",
+        "[fit]",
+        'method = "adaptive"',
+        'loss = "l2"',
+        "n_starts = 1",
+        "",
+    ]
     for role, data in runs:
         t1_k, t2_k = data[0, 3] + 273.15, data[0, 4] + 273.15
-        lines += ["[[runs]]", f'name = "{role}"', f'file = "{role}.csv"', f'role = "{role}"',
-                  'waveform = { type = "logged" }',
-                  f"settings = {{ initial_T1_K = {t1_k:.2f}, initial_T2_K = {t2_k:.2f} }}", ""]
+        lines += [
+            "[[runs]]",
+            f'name = "{role}"',
+            f'file = "{role}.csv"',
+            f'role = "{role}"',
+            'waveform = { type = "logged" }',
+            f"settings = {{ initial_T1_K = {t1_k:.2f}, initial_T2_K = {t2_k:.2f} }}",
+            "",
+        ]
     return "\n".join(lines)
 
 

@@ -23,8 +23,9 @@ def _column(header: list[str], channel, path: Path) -> tuple[int, str]:
     for unit in channel.units:
         if f"{channel.name}_{unit}" in header:
             return header.index(f"{channel.name}_{unit}"), unit
-    raise ValueError(f"{path}: no column for {channel.name}; add one of "
-                     f"{', '.join(channel.column_names())}")
+    raise ValueError(
+        f"{path}: no column for {channel.name}; add one of {', '.join(channel.column_names())}"
+    )
 
 
 def load_run(path: Path, *, name: str, role: str, settings: dict) -> Experiment:
@@ -35,13 +36,28 @@ def load_run(path: Path, *, name: str, role: str, settings: dict) -> Experiment:
     if "t_s" not in header:
         raise ValueError(f"{path}: needs a t_s column (time in s)")
     t = data[:, header.index("t_s")]
-    u = np.column_stack([tclab.INPUTS[k].to_si(data[:, i], unit) for k, (i, unit) in
-                         enumerate(_column(header, c, path) for c in tclab.INPUTS)])
-    y = np.column_stack([tclab.OUTPUTS[k].to_si(data[:, i], unit) for k, (i, unit) in
-                         enumerate(_column(header, c, path) for c in tclab.OUTPUTS)])
+    u = np.column_stack(
+        [
+            tclab.INPUTS[k].to_si(data[:, i], unit)
+            for k, (i, unit) in enumerate(_column(header, c, path) for c in tclab.INPUTS)
+        ]
+    )
+    y = np.column_stack(
+        [
+            tclab.OUTPUTS[k].to_si(data[:, i], unit)
+            for k, (i, unit) in enumerate(_column(header, c, path) for c in tclab.OUTPUTS)
+        ]
+    )
     inputs = from_samples(t, u, name=f"{path.name}: H1/H2")
-    return Experiment(name=name, t_s=t, y=y, inputs=inputs, t_start_s=float(t[0]), role=role,
-                      settings={k: float(v) for k, v in settings.items()})
+    return Experiment(
+        name=name,
+        t_s=t,
+        y=y,
+        inputs=inputs,
+        t_start_s=float(t[0]),
+        role=role,
+        settings={k: float(v) for k, v in settings.items()},
+    )
 
 
 def load_folder(folder: str | Path) -> dict[str, Experiment]:
@@ -54,8 +70,12 @@ def load_folder(folder: str | Path) -> dict[str, Experiment]:
     for run in spec["runs"]:
         if run.get("waveform", {}).get("type") != "logged":
             raise ValueError(f"{folder}/experiment.toml: run {run['name']}: TCLab runs are logged")
-        runs[run["name"]] = load_run(folder / run["file"], name=run["name"], role=run["role"],
-                                     settings=run.get("settings", {}))
+        runs[run["name"]] = load_run(
+            folder / run["file"],
+            name=run["name"],
+            role=run["role"],
+            settings=run.get("settings", {}),
+        )
     return runs
 
 

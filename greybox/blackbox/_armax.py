@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import jax
@@ -76,8 +76,9 @@ class ARMAX:
         return Polynomials(self.a, self.b, self.c, np.ones((1, nu, 1)), np.zeros(1))
 
     @classmethod
-    def from_coefficients(cls, a, b, c, *, dt: float, nk=None, noise_variance: float = 0.0,
-                          resampled: bool = False) -> ARMAX:
+    def from_coefficients(
+        cls, a, b, c, *, dt: float, nk=None, noise_variance: float = 0.0, resampled: bool = False
+    ) -> ARMAX:
         """A known ARMAX system (e.g. for simulation); `b` (nu, W) includes leading zeros."""
         a = np.atleast_1d(np.asarray(a, float))
         c = np.atleast_1d(np.asarray(c, float))
@@ -89,10 +90,23 @@ class ARMAX:
         nb = tuple(int(b.shape[1] - k) for k in nk)
         theta = np.concatenate([a[1:]] + [row[k:] for row, k in zip(b, nk)] + [c[1:]])
         p = len(theta)
-        return cls(a=a[None], b=b[None], c=c[None], na=len(a) - 1, nb=nb, nc=len(c) - 1,
-                   nk=nk, parameters=theta[None], covariance=np.zeros((1, p, p)),
-                   noise_variance=np.array([noise_variance]), dt=float(dt),
-                   resampled=resampled, n_rows=0, converged=True, n_steps=0)
+        return cls(
+            a=a[None],
+            b=b[None],
+            c=c[None],
+            na=len(a) - 1,
+            nb=nb,
+            nc=len(c) - 1,
+            nk=nk,
+            parameters=theta[None],
+            covariance=np.zeros((1, p, p)),
+            noise_variance=np.array([noise_variance]),
+            dt=float(dt),
+            resampled=resampled,
+            n_rows=0,
+            converged=True,
+            n_steps=0,
+        )
 
 
 def _armax_resid(theta, args):
@@ -159,26 +173,44 @@ def fit_armax(data: UniformData | Sequence[UniformData], na: int, nb, nc: int, n
     nk = as_per_input(nk, nu, "nk")
     rows, p_ab = _check_rows(data, na, nb, nk, False)
     if rows <= p_ab + nc:
-        raise ValueError(f"data: {rows} prediction errors for {p_ab + nc} parameters; use "
-                         "more samples or lower orders")
+        raise ValueError(
+            f"data: {rows} prediction errors for {p_ab + nc} parameters; use "
+            "more samples or lower orders"
+        )
     theta0 = _initial_armax(data, na, nb, nc, nk)
     parts = [arx_regressors(d, 0, na, nb, nk, False) for d in data]
     phi, mask = pad_experiments([p[0] for p in parts])
     yv, _ = pad_experiments([p[1] for p in parts])
-    theta, r, jac, g, ok, steps = _solve_armax(jnp.asarray(theta0), jnp.asarray(phi),
-                                               jnp.asarray(yv), jnp.asarray(mask))
+    theta, r, jac, g, ok, steps = _solve_armax(
+        jnp.asarray(theta0), jnp.asarray(phi), jnp.asarray(yv), jnp.asarray(mask)
+    )
     if not bool(ok):
-        warnings.warn(f"fit_armax: Levenberg-Marquardt stopped after {int(steps)} steps "
-                      "without converging; check `converged` and try other orders or scaled data",
-                      RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"fit_armax: Levenberg-Marquardt stopped after {int(steps)} steps "
+            "without converging; check `converged` and try other orders or scaled data",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     theta = np.asarray(theta)
     sigma2, cov = covariance_direct(r, jac, g, rows)
     c = np.asarray(stable_poly(jnp.asarray(theta[p_ab:])))
     direct = np.concatenate([theta[:p_ab], c[1:]])
     a = np.concatenate([[1.0], theta[:na]])
     b = b_from_theta(theta[na:p_ab], nb, nk)
-    return ARMAX(a=a[None], b=b[None], c=c[None], na=na, nb=nb, nc=nc, nk=nk,
-                 parameters=direct[None], covariance=cov[None],
-                 noise_variance=np.array([sigma2]), dt=data[0].dt,
-                 resampled=any(d.resampled for d in data), n_rows=rows,
-                 converged=bool(ok), n_steps=int(steps))
+    return ARMAX(
+        a=a[None],
+        b=b[None],
+        c=c[None],
+        na=na,
+        nb=nb,
+        nc=nc,
+        nk=nk,
+        parameters=direct[None],
+        covariance=cov[None],
+        noise_variance=np.array([sigma2]),
+        dt=data[0].dt,
+        resampled=any(d.resampled for d in data),
+        n_rows=rows,
+        converged=bool(ok),
+        n_steps=int(steps),
+    )

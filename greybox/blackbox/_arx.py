@@ -75,8 +75,16 @@ def _normalise_orders(data: tuple[UniformData, ...], na, nb, nk):
     return na, nb, nk
 
 
-def arx_regressors(data: UniformData, i: int, na: int, nb, nk, offset: bool,
-                   start: int | None = None, extra_lag: int = 0):
+def arx_regressors(
+    data: UniformData,
+    i: int,
+    na: int,
+    nb,
+    nk,
+    offset: bool,
+    start: int | None = None,
+    extra_lag: int = 0,
+):
     """Regressor matrix Phi and target for output i of one experiment (rows t >= start).
 
     Columns: [-y_i(t-1) .. -y_i(t-na), u_l(t-nk_l) .. u_l(t-nk_l-nb_l+1) per input, 1].
@@ -129,8 +137,9 @@ def _ls(phi: np.ndarray, target: np.ndarray):
     return theta, sigma2 * (rinv @ rinv.T), sigma2, resid
 
 
-def fit_arx(data: UniformData | Sequence[UniformData], na: int, nb, nk, *,
-            offset: bool = False) -> ARX:
+def fit_arx(
+    data: UniformData | Sequence[UniformData], na: int, nb, nk, *, offset: bool = False
+) -> ARX:
     """Estimate an ARX [na nb nk] model by linear least squares.
 
     **Arguments:**
@@ -156,12 +165,23 @@ def fit_arx(data: UniformData | Sequence[UniformData], na: int, nb, nk, *,
         sig.append(s2)
     thetas = np.array(thetas)
     a = np.concatenate([np.ones((ny, 1)), thetas[:, :na]], axis=1)
-    b = np.stack([b_from_theta(t[na:na + sum(nb)], nb, nk) for t in thetas])
+    b = np.stack([b_from_theta(t[na : na + sum(nb)], nb, nk) for t in thetas])
     off = thetas[:, -1] if offset else np.zeros(ny)
-    return ARX(a=a, b=b.reshape(ny, nu, -1), offset=off, na=na, nb=nb, nk=nk,
-               has_offset=bool(offset), parameters=thetas, covariance=np.array(covs),
-               noise_variance=np.array(sig), dt=data[0].dt,
-               resampled=any(d.resampled for d in data), n_rows=rows)
+    return ARX(
+        a=a,
+        b=b.reshape(ny, nu, -1),
+        offset=off,
+        na=na,
+        nb=nb,
+        nk=nk,
+        has_offset=bool(offset),
+        parameters=thetas,
+        covariance=np.array(covs),
+        noise_variance=np.array(sig),
+        dt=data[0].dt,
+        resampled=any(d.resampled for d in data),
+        n_rows=rows,
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -187,9 +207,15 @@ class OrderSearch:
     resampled: bool
 
 
-def arx_order_search(estimation, validation=None, *, na: Sequence[int] = range(1, 5),
-                     nb: Sequence[int] = range(1, 5), nk: Sequence[int] = range(0, 4),
-                     criterion: str = "aic") -> OrderSearch:
+def arx_order_search(
+    estimation,
+    validation=None,
+    *,
+    na: Sequence[int] = range(1, 5),
+    nb: Sequence[int] = range(1, 5),
+    nk: Sequence[int] = range(0, 4),
+    criterion: str = "aic",
+) -> OrderSearch:
     """Fit every ARX [na nb nk] on a grid and rank by AIC or MDL (single-output data).
 
     Losses are one-step prediction errors over a common set of rows (those valid for the
@@ -201,8 +227,10 @@ def arx_order_search(estimation, validation=None, *, na: Sequence[int] = range(1
     est = as_experiments(estimation)
     val = est if validation is None else as_experiments(validation)
     if est[0].ny != 1:
-        raise ValueError("estimation: order search is for single-output data; pass one "
-                         "output column at a time (y[:, [i]])")
+        raise ValueError(
+            "estimation: order search is for single-output data; pass one "
+            "output column at a time (y[:, [i]])"
+        )
     nu = est[0].nu
     grid = [(a, b, k) for a in na for b in nb for k in nk if a + b * nu > 0]
     if not grid:
@@ -223,7 +251,15 @@ def arx_order_search(estimation, validation=None, *, na: Sequence[int] = range(1
     mdl = n_rows * np.log(loss) + d * np.log(n_rows)
     score = aic if criterion == "aic" else mdl
     best = tuple(int(v) for v in grid[int(np.argmin(score))])
-    return OrderSearch(orders=np.array(grid), loss=loss, n_parameters=d, n_rows=n_rows,
-                       aic=aic, mdl=mdl, best=best, criterion=criterion,
-                       on_validation=validation is not None,
-                       resampled=any(x.resampled for x in est + val))
+    return OrderSearch(
+        orders=np.array(grid),
+        loss=loss,
+        n_parameters=d,
+        n_rows=n_rows,
+        aic=aic,
+        mdl=mdl,
+        best=best,
+        criterion=criterion,
+        on_validation=validation is not None,
+        resampled=any(x.resampled for x in est + val),
+    )

@@ -88,8 +88,10 @@ def poles(model) -> list[list[np.ndarray]]:
 def zeros(model) -> list[list[np.ndarray]]:
     """Finite zeros per channel [i][l] (leading delay zeros of B stripped)."""
     tf = _as_tf(model)
-    return [[np.roots(np.trim_zeros(n, "f")) if np.any(n) else np.zeros(0) for n in row]
-            for row in tf.num]
+    return [
+        [np.roots(np.trim_zeros(n, "f")) if np.any(n) else np.zeros(0) for n in row]
+        for row in tf.num
+    ]
 
 
 def dc_gain(model) -> np.ndarray:
@@ -105,6 +107,7 @@ def dc_gain(model) -> np.ndarray:
 
 
 # --- state space helpers (SISO, controllable canonical form) ---
+
 
 def _ss(num_desc, den_desc):
     """Controllable canonical (A, B, C, D) of num/den in descending powers, len equal."""
@@ -155,7 +158,8 @@ def _logm_real(M):
         )
     L = V @ np.diag(np.log(w)) @ np.linalg.inv(V)
     if np.max(np.abs(L.imag)) > 1e-8 * max(1.0, np.max(np.abs(L))) or not np.allclose(
-            _expm(L.real), M, atol=1e-9):
+        _expm(L.real), M, atol=1e-9
+    ):
         raise ValueError("model: ZOH inversion failed (repeated poles?); use method='tustin'")
     return L.real
 
@@ -203,8 +207,7 @@ def d2c(model, method: str = "tustin") -> ContinuousTF:
                 deg = len(dz) - 1
                 ns, ds = np.zeros(1), np.zeros(1)
                 for k in range(deg + 1):
-                    basis = (np.poly1d([dt, 2.0]) ** (deg - k)
-                             * np.poly1d([-dt, 2.0]) ** k).coeffs
+                    basis = (np.poly1d([dt, 2.0]) ** (deg - k) * np.poly1d([-dt, 2.0]) ** k).coeffs
                     ns = np.polyadd(ns, nz[k] * basis)
                     ds = np.polyadd(ds, dz[k] * basis)
             ns, ds = np.atleast_1d(np.real(ns)), np.atleast_1d(np.real(ds))
@@ -231,8 +234,10 @@ def c2d(model: ContinuousTF, dt: float, method: str = "zoh") -> DiscreteTF:
         for l, (n, d) in enumerate(zip(nrow, drow)):
             samples = model.delay_s[i, l] / dt
             if abs(samples - round(samples)) > 1e-6:
-                raise ValueError(f"dt: delay {model.delay_s[i, l]} s is not a whole number "
-                                 "of samples; choose dt dividing the delay")
+                raise ValueError(
+                    f"dt: delay {model.delay_s[i, l]} s is not a whole number "
+                    "of samples; choose dt dividing the delay"
+                )
             deg = len(d) - 1
             if len(n) > len(d):
                 raise ValueError("model: improper transfer function (num degree > den)")
@@ -248,8 +253,9 @@ def c2d(model: ContinuousTF, dt: float, method: str = "zoh") -> DiscreteTF:
             else:  # s = (2/dt)(z - 1)/(z + 1), multiply through by (z + 1)^deg
                 nz, dz = np.zeros(1), np.zeros(1)
                 for k in range(deg + 1):
-                    basis = (np.poly1d([2.0 / dt, -2.0 / dt]) ** (deg - k)
-                             * np.poly1d([1.0, 1.0]) ** k)
+                    basis = (
+                        np.poly1d([2.0 / dt, -2.0 / dt]) ** (deg - k) * np.poly1d([1.0, 1.0]) ** k
+                    )
                     nz = np.polyadd(nz, nd[k] * basis.coeffs)
                     dz = np.polyadd(dz, d[k] * basis.coeffs)
             nz, dz = np.asarray(nz, float), np.asarray(dz, float)
@@ -273,8 +279,9 @@ def to_control(model, form: str = "tf", pade_order: int | None = None):
     try:
         import control
     except ImportError as err:  # optional extra
-        raise ImportError("to_control needs python-control: pip install 'greybox[control]'") \
-            from err
+        raise ImportError(
+            "to_control needs python-control: pip install 'greybox[control]'"
+        ) from err
     if form not in ("tf", "ss"):
         raise ValueError(f"form: unknown {form!r}; use 'tf' or 'ss'")
     tf = _as_tf(model)
@@ -287,8 +294,10 @@ def to_control(model, form: str = "tf", pade_order: int | None = None):
         sys = control.tf(num, den, tf.dt)
     else:
         if np.any(tf.delay_s > 0) and pade_order is None:
-            raise ValueError("pade_order: the model has dead time; pass pade_order (e.g. 3) "
-                             "to approximate exp(-s delay), or use the DiscreteTF")
+            raise ValueError(
+                "pade_order: the model has dead time; pass pade_order (e.g. 3) "
+                "to approximate exp(-s delay), or use the DiscreteTF"
+            )
         rows = []
         for i, (nrow, drow) in enumerate(zip(tf.num, tf.den)):
             row = []
@@ -301,7 +310,8 @@ def to_control(model, form: str = "tf", pade_order: int | None = None):
         if len(rows) == 1 and len(rows[0]) == 1:
             sys = rows[0][0]
         else:
-            sys = control.tf([[list(np.atleast_1d(g.num[0][0])) for g in r] for r in rows],
-                             [[list(np.atleast_1d(g.den[0][0])) for g in r] for r in rows])
+            sys = control.tf(
+                [[list(np.atleast_1d(g.num[0][0])) for g in r] for r in rows],
+                [[list(np.atleast_1d(g.den[0][0])) for g in r] for r in rows],
+            )
     return control.ss(sys) if form == "ss" else sys
-

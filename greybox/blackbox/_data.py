@@ -84,14 +84,16 @@ class UniformData:
 
     def segment(self, start: int, stop: int) -> UniformData:
         """Samples `start <= k < stop` (0-based, like Python slicing) as a new experiment."""
-        return UniformData(self.u[start:stop], self.y[start:stop], self.dt, self.resampled,
-                           self.name)
+        return UniformData(
+            self.u[start:stop], self.y[start:stop], self.dt, self.resampled, self.name
+        )
 
 
 def detrend(data: UniformData) -> UniformData:
     """Remove the mean of every input and output channel (MATLAB `detrend(data, 0)`)."""
-    return UniformData(data.u - data.u.mean(0), data.y - data.y.mean(0), data.dt,
-                       data.resampled, data.name)
+    return UniformData(
+        data.u - data.u.mean(0), data.y - data.y.mean(0), data.dt, data.resampled, data.name
+    )
 
 
 def as_experiments(data: UniformData | Sequence[UniformData]) -> tuple[UniformData, ...]:

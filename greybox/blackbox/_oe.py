@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import functools as ft
-from collections.abc import Sequence
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import jax
@@ -68,11 +68,11 @@ def _oe_polys(theta, nb, nk, nf):
     pos = 0
     bs = []
     for n, k in zip(nb, nk):
-        bs.append(jnp.zeros(k + n).at[k:].set(theta[pos:pos + n]))
+        bs.append(jnp.zeros(k + n).at[k:].set(theta[pos : pos + n]))
         pos += n
     fs = []
     for n in nf:
-        fs.append(stable_poly(theta[pos:pos + n]))
+        fs.append(stable_poly(theta[pos : pos + n]))
         pos += n
     den = jnp.ones(1)
     for f in fs:
@@ -103,7 +103,7 @@ def _solve_oe(theta0, ulag, yv, mask, hist0, nb, nk, nf):
         parts = [th[:pb]]
         pos = pb
         for n in nf:
-            parts.append(stable_poly(th[pos:pos + n])[1:])
+            parts.append(stable_poly(th[pos : pos + n])[1:])
             pos += n
         return jnp.concatenate(parts)
 
@@ -133,12 +133,13 @@ def fit_oe(data: UniformData | Sequence[UniformData], nb, nf, nk) -> OE:
     p = sum(nb) + sum(nf)
     rows = sum(max(d.n_samples - n0, 0) for d in data)
     if rows <= p:
-        raise ValueError(f"data: {rows} usable samples for {p} parameters (each experiment "
-                         f"loses {n0} initial samples); use more data or lower orders")
+        raise ValueError(
+            f"data: {rows} usable samples for {p} parameters (each experiment "
+            f"loses {n0} initial samples); use more data or lower orders"
+        )
     arx = fit_arx(data, max(nf), nb, nk)
     k_arx = np.clip(reflection_from_poly(reflect_inside(arx.a[0])), -0.95, 0.95)
-    theta0 = np.concatenate([arx.parameters[0, max(nf):]]
-                            + [np.arctanh(k_arx[:n]) for n in nf])
+    theta0 = np.concatenate([arx.parameters[0, max(nf) :]] + [np.arctanh(k_arx[:n]) for n in nf])
     lags = np.arange(width)
     ulags, ys, hists = [], [], []
     for d in data:
@@ -149,12 +150,22 @@ def fit_oe(data: UniformData | Sequence[UniformData], nb, nf, nk) -> OE:
     ulag, mask = pad_experiments(ulags)
     yv, _ = pad_experiments(ys)
     theta, r, jac, g, ok, steps = _solve_oe(
-        jnp.asarray(theta0), jnp.asarray(ulag), jnp.asarray(yv), jnp.asarray(mask),
-        jnp.asarray(np.array(hists).reshape(len(data), nd)), nb, nk, nf)
+        jnp.asarray(theta0),
+        jnp.asarray(ulag),
+        jnp.asarray(yv),
+        jnp.asarray(mask),
+        jnp.asarray(np.array(hists).reshape(len(data), nd)),
+        nb,
+        nk,
+        nf,
+    )
     if not bool(ok):
-        warnings.warn(f"fit_oe: Levenberg-Marquardt stopped after {int(steps)} steps "
-                      "without converging; check `converged` and try other orders or scaled data",
-                      RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            f"fit_oe: Levenberg-Marquardt stopped after {int(steps)} steps "
+            "without converging; check `converged` and try other orders or scaled data",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     theta = np.asarray(theta)
     sigma2, cov = covariance_direct(r, jac, g, rows)
     pb = sum(nb)
@@ -162,12 +173,22 @@ def fit_oe(data: UniformData | Sequence[UniformData], nb, nf, nk) -> OE:
     direct = [theta[:pb]]
     pos = pb
     for l, n in enumerate(nf):
-        f = np.asarray(stable_poly(jnp.asarray(theta[pos:pos + n])))
+        f = np.asarray(stable_poly(jnp.asarray(theta[pos : pos + n])))
         fs[l, : n + 1] = f
         direct.append(f[1:])
         pos += n
-    return OE(b=b_from_theta(theta[:pb], nb, nk)[None], f=fs[None], nb=nb, nf=nf, nk=nk,
-              parameters=np.concatenate(direct)[None], covariance=cov[None],
-              noise_variance=np.array([sigma2]), dt=data[0].dt,
-              resampled=any(d.resampled for d in data), n_rows=rows, converged=bool(ok),
-              n_steps=int(steps))
+    return OE(
+        b=b_from_theta(theta[:pb], nb, nk)[None],
+        f=fs[None],
+        nb=nb,
+        nf=nf,
+        nk=nk,
+        parameters=np.concatenate(direct)[None],
+        covariance=cov[None],
+        noise_variance=np.array([sigma2]),
+        dt=data[0].dt,
+        resampled=any(d.resampled for d in data),
+        n_rows=rows,
+        converged=bool(ok),
+        n_steps=int(steps),
+    )

@@ -78,7 +78,7 @@ def _ar_recursion(a, w, y, start):
         out[start:] = w[start:]
         return out
     ar = -a[1:][::-1]  # so that dot(ar, out[t-n:t]) = -sum a_j y(t-j)
-    hist = list(np.concatenate([np.zeros(max(0, n - start)), out[max(0, start - n):start]]))
+    hist = list(np.concatenate([np.zeros(max(0, n - start)), out[max(0, start - n) : start]]))
     for t in range(start, len(w)):
         v = w[t] + float(np.dot(ar, hist[-n:]))
         out[t] = v
@@ -95,14 +95,16 @@ def as_per_input(value, nu: int, name: str) -> tuple[int, ...]:
     """Scalar or per-input integer order -> tuple of length nu, validated."""
     vals = (value,) * nu if np.isscalar(value) else tuple(value)
     if len(vals) != nu:
-        raise ValueError(f"{name}: got {len(vals)} values for {nu} inputs; pass a scalar or "
-                         f"one value per input")
+        raise ValueError(
+            f"{name}: got {len(vals)} values for {nu} inputs; pass a scalar or one value per input"
+        )
     out = []
     for v in vals:
         if int(v) != v or v < 0:
-            raise ValueError(f"{name}: orders and delays must be integers >= 0, got {v!r}"
-                             + ("; nk < 0 would make the model non-causal" if name == "nk"
-                                else ""))
+            raise ValueError(
+                f"{name}: orders and delays must be integers >= 0, got {v!r}"
+                + ("; nk < 0 would make the model non-causal" if name == "nk" else "")
+            )
         out.append(int(v))
     return tuple(out)
 
@@ -129,12 +131,13 @@ def b_from_theta(theta_b: np.ndarray, nb, nk) -> np.ndarray:
     b = np.zeros((len(nb), width))
     pos = 0
     for l, (n, k) in enumerate(zip(nb, nk)):
-        b[l, k:k + n] = theta_b[pos:pos + n]
+        b[l, k : k + n] = theta_b[pos : pos + n]
         pos += n
     return b
 
 
 # --- Stability-preserving parameterisation (reflection coefficients, Levinson step-up) ---
+
 
 def poly_from_reflection(k) -> np.ndarray:
     """Monic polynomial 1 + p_1 q^-1 + ... whose roots lie inside the unit circle iff
@@ -159,7 +162,7 @@ def reflection_from_poly(p: np.ndarray) -> np.ndarray:
         k[m - 1] = km
         if abs(km) >= 1:
             return np.full(n, np.inf)
-        p = (p[: m] - km * p[m::-1][: m]) / (1 - km**2)
+        p = (p[:m] - km * p[m::-1][:m]) / (1 - km**2)
     return k
 
 

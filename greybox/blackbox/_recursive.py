@@ -56,25 +56,50 @@ class RecursiveEstimate:
         th = self.final_parameters
         nbs = sum(self.nb)
         a = np.concatenate([[1.0], th[: self.na]])
-        b = b_from_theta(th[self.na:self.na + nbs], self.nb, self.nk)[None]
+        b = b_from_theta(th[self.na : self.na + nbs], self.nb, self.nk)[None]
         cov = (self.covariance * 1.0)[None]
         if self.kind == "arx":
-            return ARX(a=a[None], b=b, offset=np.zeros(1), na=self.na, nb=self.nb, nk=self.nk,
-                       has_offset=False, parameters=th[None], covariance=cov,
-                       noise_variance=np.array([self.noise_variance]), dt=self.dt,
-                       resampled=self.resampled, n_rows=len(self.errors))
-        c = np.concatenate([[1.0], th[self.na + nbs:]])
-        return ARMAX(a=a[None], b=b, c=c[None], na=self.na, nb=self.nb, nc=self.nc,
-                     nk=self.nk, parameters=th[None], covariance=cov,
-                     noise_variance=np.array([self.noise_variance]), dt=self.dt,
-                     resampled=self.resampled, n_rows=len(self.errors), converged=True,
-                     n_steps=len(self.errors))
+            return ARX(
+                a=a[None],
+                b=b,
+                offset=np.zeros(1),
+                na=self.na,
+                nb=self.nb,
+                nk=self.nk,
+                has_offset=False,
+                parameters=th[None],
+                covariance=cov,
+                noise_variance=np.array([self.noise_variance]),
+                dt=self.dt,
+                resampled=self.resampled,
+                n_rows=len(self.errors),
+            )
+        c = np.concatenate([[1.0], th[self.na + nbs :]])
+        return ARMAX(
+            a=a[None],
+            b=b,
+            c=c[None],
+            na=self.na,
+            nb=self.nb,
+            nc=self.nc,
+            nk=self.nk,
+            parameters=th[None],
+            covariance=cov,
+            noise_variance=np.array([self.noise_variance]),
+            dt=self.dt,
+            resampled=self.resampled,
+            n_rows=len(self.errors),
+            converged=True,
+            n_steps=len(self.errors),
+        )
 
 
 def _setup(data, p, theta0, P0, forgetting, process_noise, noise_variance, init, kind):
     if not isinstance(data, UniformData):
-        raise ValueError("data: pass one UniformData; to continue on new data pass "
-                         "init=<previous RecursiveEstimate>")
+        raise ValueError(
+            "data: pass one UniformData; to continue on new data pass "
+            "init=<previous RecursiveEstimate>"
+        )
     if data.ny != 1:
         raise ValueError("data: recursive estimation is single-output; pass y[:, [i]]")
     if init is not None:
@@ -110,9 +135,19 @@ def _kalman_step(theta, P, phi, y, lam, R1, R2):
     return theta, 0.5 * (P + P.T), eps
 
 
-def recursive_arx(data: UniformData, na: int, nb, nk, *, theta0=None, P0=None,
-                  forgetting: float = 1.0, process_noise=0.0, noise_variance: float = 1.0,
-                  init: RecursiveEstimate | None = None) -> RecursiveEstimate:
+def recursive_arx(
+    data: UniformData,
+    na: int,
+    nb,
+    nk,
+    *,
+    theta0=None,
+    P0=None,
+    forgetting: float = 1.0,
+    process_noise=0.0,
+    noise_variance: float = 1.0,
+    init: RecursiveEstimate | None = None,
+) -> RecursiveEstimate:
     """Recursive ARX [na nb nk] (Kalman filter / RLS), single output.
 
     **Arguments:** `theta0` (p,) initial parameters (default 0); `P0` initial covariance,
@@ -125,8 +160,9 @@ def recursive_arx(data: UniformData, na: int, nb, nk, *, theta0=None, P0=None,
     nb = as_per_input(nb, data.nu, "nb")
     nk = as_per_input(nk, data.nu, "nk")
     p = na + sum(nb)
-    theta, P, R1 = _setup(data, p, theta0, P0, forgetting, process_noise, noise_variance,
-                          init, "arx")
+    theta, P, R1 = _setup(
+        data, p, theta0, P0, forgetting, process_noise, noise_variance, init, "arx"
+    )
     n0 = max_lag(na, nb, nk)
     if data.n_samples <= n0:
         raise ValueError(f"data: {data.n_samples} samples, need more than {n0} for the lags")
@@ -138,18 +174,39 @@ def recursive_arx(data: UniformData, na: int, nb, nk, *, theta0=None, P0=None,
     for r in range(len(target)):
         t = n0 + r
         pred[t] = phi[r] @ theta
-        theta, P, err[t] = _kalman_step(theta, P, phi[r], target[r], forgetting, R1,
-                                        noise_variance)
+        theta, P, err[t] = _kalman_step(theta, P, phi[r], target[r], forgetting, R1, noise_variance)
         traj[t] = theta
-    return RecursiveEstimate(parameters=traj, covariance=P, prediction=pred, errors=err,
-                             kind="arx", na=na, nb=nb, nc=0, nk=nk, forgetting=forgetting,
-                             noise_variance=noise_variance, dt=data.dt,
-                             resampled=data.resampled)
+    return RecursiveEstimate(
+        parameters=traj,
+        covariance=P,
+        prediction=pred,
+        errors=err,
+        kind="arx",
+        na=na,
+        nb=nb,
+        nc=0,
+        nk=nk,
+        forgetting=forgetting,
+        noise_variance=noise_variance,
+        dt=data.dt,
+        resampled=data.resampled,
+    )
 
 
-def recursive_armax(data: UniformData, na: int, nb, nc: int, nk, *, theta0=None, P0=None,
-                    forgetting: float = 1.0, process_noise=0.0, noise_variance: float = 1.0,
-                    init: RecursiveEstimate | None = None) -> RecursiveEstimate:
+def recursive_armax(
+    data: UniformData,
+    na: int,
+    nb,
+    nc: int,
+    nk,
+    *,
+    theta0=None,
+    P0=None,
+    forgetting: float = 1.0,
+    process_noise=0.0,
+    noise_variance: float = 1.0,
+    init: RecursiveEstimate | None = None,
+) -> RecursiveEstimate:
     """Recursive ARMAX [na nb nc nk] by extended (pseudo-linear) least squares.
 
     The regressor holds the past a-posteriori residuals y - phi^T theta(t) in place of the
@@ -164,11 +221,14 @@ def recursive_armax(data: UniformData, na: int, nb, nc: int, nk, *, theta0=None,
     nb = as_per_input(nb, data.nu, "nb")
     nk = as_per_input(nk, data.nu, "nk")
     p = na + sum(nb) + nc
-    theta, P, R1 = _setup(data, p, theta0, P0, forgetting, process_noise, noise_variance,
-                          init, "armax")
+    theta, P, R1 = _setup(
+        data, p, theta0, P0, forgetting, process_noise, noise_variance, init, "armax"
+    )
     if not is_stable_poly(np.concatenate([[1.0], theta[-nc:]])):
-        raise ValueError("theta0: its C part has roots on or outside the unit circle; start "
-                         "from a minimum-phase C (e.g. zeros)")
+        raise ValueError(
+            "theta0: its C part has roots on or outside the unit circle; start "
+            "from a minimum-phase C (e.g. zeros)"
+        )
     n0 = max_lag(na, nb, nk)
     if data.n_samples <= n0:
         raise ValueError(f"data: {data.n_samples} samples, need more than {n0} for the lags")
@@ -182,11 +242,21 @@ def recursive_armax(data: UniformData, na: int, nb, nc: int, nk, *, theta0=None,
         t = n0 + r
         phi = np.concatenate([phi_ab[r], past])
         pred[t] = phi @ theta
-        theta, P, err[t] = _kalman_step(theta, P, phi, target[r], forgetting, R1,
-                                        noise_variance)
+        theta, P, err[t] = _kalman_step(theta, P, phi, target[r], forgetting, R1, noise_variance)
         past = np.concatenate([[target[r] - phi @ theta], past[:-1]])
         traj[t] = theta
-    return RecursiveEstimate(parameters=traj, covariance=P, prediction=pred, errors=err,
-                             kind="armax", na=na, nb=nb, nc=nc, nk=nk, forgetting=forgetting,
-                             noise_variance=noise_variance, dt=data.dt,
-                             resampled=data.resampled)
+    return RecursiveEstimate(
+        parameters=traj,
+        covariance=P,
+        prediction=pred,
+        errors=err,
+        kind="armax",
+        na=na,
+        nb=nb,
+        nc=nc,
+        nk=nk,
+        forgetting=forgetting,
+        noise_variance=noise_variance,
+        dt=data.dt,
+        resampled=data.resampled,
+    )

@@ -34,8 +34,7 @@ def _pchip_slopes(t: np.ndarray, v: np.ndarray) -> np.ndarray:
     def edge(h0, h1, m0, m1):
         de = ((2 * h0 + h1) * m0 - h0 * m1) / (h0 + h1)
         de = np.where(np.sign(de) != np.sign(m0), 0.0, de)
-        return np.where((np.sign(m0) != np.sign(m1)) & (np.abs(de) > 3 * np.abs(m0)),
-                        3 * m0, de)
+        return np.where((np.sign(m0) != np.sign(m1)) & (np.abs(de) > 3 * np.abs(m0)), 3 * m0, de)
 
     d[0] = edge(h[0], h[1], m[0], m[1])
     d[-1] = edge(h[-1], h[-2], m[-1], m[-2])
@@ -65,8 +64,9 @@ def interpolate(t_s, values, t_new_s, method: str = "linear") -> np.ndarray:
     if t.ndim != 1 or len(t) != v.shape[0] or len(t) < 2:
         raise ValueError(f"t_s: need a 1-D array of >= 2 times matching values ({v.shape[0]})")
     if not (np.all(np.isfinite(t)) and np.all(np.diff(t) > 0)):
-        raise ValueError("t_s: times must be finite and strictly increasing; sort them and "
-                         "drop duplicate frames")
+        raise ValueError(
+            "t_s: times must be finite and strictly increasing; sort them and drop duplicate frames"
+        )
     if not np.all(np.isfinite(v)):
         raise ValueError("values: contains NaN/inf; drop those samples (and their times) first")
     if tq.size and (tq.min() < t[0] - 1e-12 * abs(t[0]) or tq.max() > t[-1] + 1e-9):
@@ -90,8 +90,9 @@ def interpolate(t_s, values, t_new_s, method: str = "linear") -> np.ndarray:
     return out[:, 0] if one_d else out
 
 
-def resample(t_s, u, y, dt: float, *, method: str = "linear", input_method: str | None = None,
-             name: str = "") -> UniformData:
+def resample(
+    t_s, u, y, dt: float, *, method: str = "linear", input_method: str | None = None, name: str = ""
+) -> UniformData:
     """Interpolate (possibly irregular) samples onto the grid t_s[0] + k dt, flagged resampled.
 
     **Arguments:**

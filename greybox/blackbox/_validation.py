@@ -23,11 +23,14 @@ def _check(model, data: UniformData) -> None:
         raise ValueError("data: pass one UniformData experiment (loop over experiments)")
     pol = model.polynomials()
     if data.nu != pol.nu or data.ny != pol.ny:
-        raise ValueError(f"data: has nu={data.nu}, ny={data.ny} but the model expects "
-                         f"nu={pol.nu}, ny={pol.ny}")
+        raise ValueError(
+            f"data: has nu={data.nu}, ny={data.ny} but the model expects nu={pol.nu}, ny={pol.ny}"
+        )
     if data.n_samples <= n_initial(model):
-        raise ValueError(f"data: {data.n_samples} samples, need more than the model's "
-                         f"{n_initial(model)} initial samples")
+        raise ValueError(
+            f"data: {data.n_samples} samples, need more than the model's "
+            f"{n_initial(model)} initial samples"
+        )
 
 
 def n_initial(model) -> int:
@@ -91,8 +94,10 @@ def predict(model, data: UniformData, k: int = 1) -> np.ndarray:
     **Returns:** (N, ny) predictions.
     """
     if int(k) != k or k < 1:
-        raise ValueError(f"k: prediction horizon must be an integer >= 1, got {k!r}; use "
-                         "`simulate` for the infinite horizon")
+        raise ValueError(
+            f"k: prediction horizon must be an integer >= 1, got {k!r}; use "
+            "`simulate` for the infinite horizon"
+        )
     e = innovations(model, data)
     pol = model.polynomials()
     N = data.n_samples
@@ -126,8 +131,9 @@ class Comparison:
     data_name: str
 
 
-def compare(model, data: UniformData, k: int | None = None, *,
-            skip_initial: bool = False) -> Comparison:
+def compare(
+    model, data: UniformData, k: int | None = None, *, skip_initial: bool = False
+) -> Comparison:
     """Fit % of free-run simulation (`k=None`, MATLAB `compare` default) or k-step prediction.
 
     The `n_initial` leading samples are initial conditions copied from the measurement. By
@@ -138,12 +144,16 @@ def compare(model, data: UniformData, k: int | None = None, *,
     n = n_initial(model)
     s = n if skip_initial else 0
     fits = np.array([fit_percent(data.y[s:, i], y_hat[s:, i]) for i in range(data.ny)])
-    return Comparison(y_hat=y_hat, fit_percent=fits,
-                      horizon="simulation" if k is None else "k-step",
-                      k=None if k is None else int(k), n_initial=n,
-                      skipped_initial=bool(skip_initial),
-                      resampled=bool(model.resampled or data.resampled),
-                      data_name=data.name)
+    return Comparison(
+        y_hat=y_hat,
+        fit_percent=fits,
+        horizon="simulation" if k is None else "k-step",
+        k=None if k is None else int(k),
+        n_initial=n,
+        skipped_initial=bool(skip_initial),
+        resampled=bool(model.resampled or data.resampled),
+        data_name=data.name,
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -180,8 +190,9 @@ def _chi2_quantile(p: float, dof: int) -> float:
     return dof * (1 - 2 / (9 * dof) + z * np.sqrt(2 / (9 * dof))) ** 3
 
 
-def residual_test(model, data: UniformData, max_lag: int = 25,
-                  confidence: float = 0.99) -> ResidualTest:
+def residual_test(
+    model, data: UniformData, max_lag: int = 25, confidence: float = 0.99
+) -> ResidualTest:
     """Whiteness of residuals and their independence from past inputs, with bands."""
     if int(max_lag) != max_lag or max_lag < 1:
         raise ValueError(f"max_lag: must be an integer >= 1, got {max_lag!r}")
@@ -202,24 +213,34 @@ def residual_test(model, data: UniformData, max_lag: int = 25,
     for i in range(ny):
         ei = e[:, i] - e[:, i].mean()
         r0 = ei @ ei / N
-        full = np.correlate(ei, ei, "full")[N - 1:N + M] / N
+        full = np.correlate(ei, ei, "full")[N - 1 : N + M] / N
         auto[i] = full / r0
         for l in range(nu):
             ul = u[:, l]
             # r_ue(tau) = (1/N) sum_t e(t) u(t - tau)
             c = np.correlate(ei, ul, "full") / N  # index N-1 is tau = 0
-            cross[i, l] = c[N - 1 - M:N + M] / np.sqrt(r0 * (ul @ ul / N))
+            cross[i, l] = c[N - 1 - M : N + M] / np.sqrt(r0 * (ul @ ul / N))
     z = NormalDist().inv_cdf(0.5 + confidence / 2)
     q_auto = N * np.sum(auto[:, 1:] ** 2, axis=1)
     q_cross = N * np.sum(cross**2, axis=2)
     qa_lim = _chi2_quantile(confidence, M)
     qc_lim = _chi2_quantile(confidence, 2 * M + 1)
-    return ResidualTest(lags=lags, autocorrelation=auto, cross_lags=cross_lags,
-                        cross_correlation=cross, band=float(z / np.sqrt(N)),
-                        confidence=confidence, q_auto=q_auto, q_cross=q_cross,
-                        q_auto_limit=qa_lim, q_cross_limit=qc_lim, white=q_auto <= qa_lim,
-                        independent=q_cross <= qc_lim, n_samples=N,
-                        resampled=bool(model.resampled or data.resampled))
+    return ResidualTest(
+        lags=lags,
+        autocorrelation=auto,
+        cross_lags=cross_lags,
+        cross_correlation=cross,
+        band=float(z / np.sqrt(N)),
+        confidence=confidence,
+        q_auto=q_auto,
+        q_cross=q_cross,
+        q_auto_limit=qa_lim,
+        q_cross_limit=qc_lim,
+        white=q_auto <= qa_lim,
+        independent=q_cross <= qc_lim,
+        n_samples=N,
+        resampled=bool(model.resampled or data.resampled),
+    )
 
 
 def step_response(model, n_samples: int) -> np.ndarray:

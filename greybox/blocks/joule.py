@@ -1,4 +1,4 @@
-"""Joule heating of a resistive structure driven by a voltage (thesis ch. 5 electro-thermal chevrons).
+"""Joule heating of a resistive structure driven by a voltage (thesis ch. 5 chevrons).
 
 q = V^2 / R(theta),  R(theta) = R0 (1 + tcr theta)
 
@@ -16,7 +16,7 @@ import jax.numpy as jnp
 
 
 class JouleHeating(eqx.Module):
-    """- `resistance_ohm`: electrical resistance R0 at ambient [ohm] (> 0; measured with an ohmmeter).
+    """- `resistance_ohm`: electrical resistance R0 at ambient [ohm] (> 0; an ohmmeter reading).
     - `tcr_per_K`: temperature coefficient of resistance [1/K] (0 = constant resistance).
     """
 

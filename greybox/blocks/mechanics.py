@@ -64,10 +64,16 @@ def chevron_stiffness_N_per_m(youngs_Pa, width_m, thickness_m, length_m, angle_r
     area = width_m * thickness_m
     inertia = thickness_m * width_m**3 / 12.0
     s, c = jnp.sin(angle_rad), jnp.cos(angle_rad)
-    return 2 * n_pairs * (youngs_Pa * area / length_m * s**2 + 12 * youngs_Pa * inertia / length_m**3 * c**2)
+    return (
+        2
+        * n_pairs
+        * (youngs_Pa * area / length_m * s**2 + 12 * youngs_Pa * inertia / length_m**3 * c**2)
+    )
 
 
-def chevron_blocked_force_N(youngs_Pa, width_m, thickness_m, cte_per_K, rise_K, angle_rad, n_pairs=1):
+def chevron_blocked_force_N(
+    youngs_Pa, width_m, thickness_m, cte_per_K, rise_K, angle_rad, n_pairs=1
+):
     """Blocked force of n beam pairs: 2 n E A alpha dT sin a [N]."""
     return 2 * n_pairs * youngs_Pa * width_m * thickness_m * cte_per_K * rise_K * jnp.sin(angle_rad)
 

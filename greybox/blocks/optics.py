@@ -32,8 +32,11 @@ def slab_absorptance(n, k, wavelength_m, thickness_m):
 def material_absorptance(material: str, wavelength_m: float, thickness_m: float = 1.0):
     """Absorptance of bare Si or Au at 800 or 532 nm from the tabulated constants."""
     key = (material, round(wavelength_m, 12))
-    matches = [v for (m, lam), v in OPTICAL_CONSTANTS.items() if m == material
-               and abs(lam - wavelength_m) < 1e-12]
+    matches = [
+        v
+        for (m, lam), v in OPTICAL_CONSTANTS.items()
+        if m == material and abs(lam - wavelength_m) < 1e-12
+    ]
     if not matches:
         known = sorted({f"{m} @ {lam * 1e9:.0f} nm" for m, lam in OPTICAL_CONSTANTS})
         raise ValueError(f"material/wavelength: no optical constants for {key}; known: {known}")

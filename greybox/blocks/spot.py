@@ -48,7 +48,9 @@ class Rectangle(eqx.Module):
 
     @staticmethod
     def centred(x_m: float, y_m: float, width_m: float, height_m: float) -> Rectangle:
-        return Rectangle(x_m - width_m / 2, x_m + width_m / 2, y_m - height_m / 2, y_m + height_m / 2)
+        return Rectangle(
+            x_m - width_m / 2, x_m + width_m / 2, y_m - height_m / 2, y_m + height_m / 2
+        )
 
     def fraction(self, spot: GaussianSpot):
         """Fraction (0..1) of the spot's power falling on this rectangle (closed form)."""

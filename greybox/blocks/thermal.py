@@ -118,9 +118,15 @@ class ThermalNetwork(AbstractThermal):
             raise ValueError("ground_conductance_W_per_K: needs one value per node")
         if jnp.shape(self.coupling_conductance_W_per_K) != (len(self.couplings),):
             raise ValueError("coupling_conductance_W_per_K: needs one value per coupling")
-        for node in (*self.input_nodes, *self.sensor_nodes, *(i for e in self.couplings for i in e)):
+        for node in (
+            *self.input_nodes,
+            *self.sensor_nodes,
+            *(i for e in self.couplings for i in e),
+        ):
             if not 0 <= node < n:
-                raise ValueError(f"couplings/input_nodes/sensor_nodes: node {node} not in 0..{n - 1}")
+                raise ValueError(
+                    f"couplings/input_nodes/sensor_nodes: node {node} not in 0..{n - 1}"
+                )
         if self.sensor_nodes and jnp.shape(self.sensor_tau_s) != (len(self.sensor_nodes),):
             raise ValueError("sensor_tau_s: needs one time constant per sensor node")
 
@@ -183,7 +189,8 @@ class ThermalNetwork(AbstractThermal):
         if not self.is_linear:
             raise ValueError(
                 "method: the exact ZOH path needs a linear thermal network but radiation is on; "
-                "use method='adaptive' (or switch radiation off)")
+                "use method='adaptive' (or switch radiation off)"
+            )
         return self._matrices(self._conductance_matrix())
 
     def linearised_matrices(self):
@@ -203,6 +210,10 @@ class ThermalNetwork(AbstractThermal):
         a = jnp.zeros((n + ns, n + ns)).at[:n, :n].set(-k / c[:, None])
         b = jnp.zeros((n + ns, self.n_inputs)).at[:n].set(self._input_matrix() / c[:, None])
         for s, node in enumerate(self.sensor_nodes):
-            a = a.at[n + s, node].set(1.0 / self.sensor_tau_s[s]).at[n + s, n + s].set(
-                -1.0 / self.sensor_tau_s[s])
+            a = (
+                a.at[n + s, node]
+                .set(1.0 / self.sensor_tau_s[s])
+                .at[n + s, n + s]
+                .set(-1.0 / self.sensor_tau_s[s])
+            )
         return a, b

@@ -22,10 +22,14 @@ in mW; params.json holds SI values. Fit % are free-run simulation.
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "demo", help="fit the embedded chevron data set and show recovered vs true values",
-        description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", metavar="DIR", default="results/demo",
-                   help="result folder (default results/demo)")
+        "demo",
+        help="fit the embedded chevron data set and show recovered vs true values",
+        description=HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--out", metavar="DIR", default="results/demo", help="result folder (default results/demo)"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.set_defaults(func=run)
     return p
@@ -45,8 +49,10 @@ def truth_rows(outcome, truth: dict) -> tuple[list[str], bool]:
     value lies inside its reported 95 % interval."""
     from greybox.report import display_unit, estimate_texts, fmt
 
-    lines = [f"{'parameter':<20} {'true':>9} {'recovered':>10}  {'95 % interval':<20} "
-             f"{'inside':<6} verdict"]
+    lines = [
+        f"{'parameter':<20} {'true':>9} {'recovered':>10}  {'95 % interval':<20} "
+        f"{'inside':<6} verdict"
+    ]
     ok = True
     r = outcome.result
     for path, t in truth["parameters"].items():
@@ -60,16 +66,23 @@ def truth_rows(outcome, truth: dict) -> tuple[list[str], bool]:
         if p.verdict == "identifiable":
             ok &= inside
         label = f"{path} [{unit}]" if unit != "1" else path
-        lines.append(f"{label:<20} {fmt(t['value'] * f, 5):>9} {value:>10}  "
-                     f"{ci:<20} {'yes' if inside else 'NO':<6} {p.verdict}")
+        lines.append(
+            f"{label:<20} {fmt(t['value'] * f, 5):>9} {value:>10}  "
+            f"{ci:<20} {'yes' if inside else 'NO':<6} {p.verdict}"
+        )
     offsets = truth.get("camera_offset_m", {})
-    errors = [((p.value - offsets[p.experiment]), p.se) for p in r.parameters
-              if p.path == "camera.offset_m" and p.experiment in offsets]
+    errors = [
+        ((p.value - offsets[p.experiment]), p.se)
+        for p in r.parameters
+        if p.path == "camera.offset_m" and p.experiment in offsets
+    ]
     if errors:
         worst = max(errors, key=lambda e: abs(e[0] / e[1]))
-        lines.append(f"camera offsets, one per run ({len(errors)}): largest error "
-                     f"{abs(worst[0]) * 1e9:.1f} nm = {abs(worst[0] / worst[1]):.1f} standard "
-                     "errors (nuisance values, ~200 um each)")
+        lines.append(
+            f"camera offsets, one per run ({len(errors)}): largest error "
+            f"{abs(worst[0]) * 1e9:.1f} nm = {abs(worst[0] / worst[1]):.1f} standard "
+            "errors (nuisance values, ~200 um each)"
+        )
     return lines, ok
 
 
@@ -83,9 +96,12 @@ def run(args) -> int:
     say = Progress(args.quiet)
     data = embedded_dir()
     if not (data / "experiment.toml").is_file():
-        raise InputError("the embedded data set is not installed with this copy of greybox; "
-                         "run the demo from a source checkout (pip install -e .)",
-                         file=str(data), field="demo data")
+        raise InputError(
+            "the embedded data set is not installed with this copy of greybox; "
+            "run the demo from a source checkout (pip install -e .)",
+            file=str(data),
+            field="demo data",
+        )
     out = Path(args.out)
     outcome = fit_experiment_dir(data, out, say)
     truth = json.loads((data / "truth.json").read_text())
@@ -95,8 +111,10 @@ def run(args) -> int:
     print("\n".join(rows))
     print()
     print("\n".join(fit_lines(outcome)))
-    print(("recovered: each true physical parameter lies inside its reported 95 % interval")
-          if ok else "WARNING: a true physical parameter lies outside its 95 % interval")
-    print(f"report: {out / 'report.md'}; figures: {out / 'figures'}/ "
-          f"(done in {say.elapsed:.1f} s)")
+    print(
+        ("recovered: each true physical parameter lies inside its reported 95 % interval")
+        if ok
+        else "WARNING: a true physical parameter lies outside its 95 % interval"
+    )
+    print(f"report: {out / 'report.md'}; figures: {out / 'figures'}/ (done in {say.elapsed:.1f} s)")
     return 0 if ok and outcome.result.converged else 1

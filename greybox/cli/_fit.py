@@ -36,13 +36,22 @@ Exit status: 0 done; 1 written but the fit did not converge (see report.md); 2 b
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "fit", help="fit physical parameters to an experiment folder (TOML + CSV runs)",
-        description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("experiment_dir", metavar="EXPERIMENT_DIR",
-                   help="folder with experiment.toml and the run CSVs")
-    p.add_argument("--out", metavar="DIR",
-                   help="result folder (default results/<experiment folder name>); replaced "
-                        "as a whole when the new result is complete")
+        "fit",
+        help="fit physical parameters to an experiment folder (TOML + CSV runs)",
+        description=HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "experiment_dir",
+        metavar="EXPERIMENT_DIR",
+        help="folder with experiment.toml and the run CSVs",
+    )
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        help="result folder (default results/<experiment folder name>); replaced "
+        "as a whole when the new result is complete",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.set_defaults(func=run)
     return p
@@ -57,8 +66,9 @@ class Progress:
 
     def __call__(self, message: str) -> None:
         if not self.quiet:
-            print(f"[{time.perf_counter() - self.t0:6.1f} s] {message}", file=sys.stderr,
-                  flush=True)
+            print(
+                f"[{time.perf_counter() - self.t0:6.1f} s] {message}", file=sys.stderr, flush=True
+            )
 
     @property
     def elapsed(self) -> float:
@@ -89,16 +99,20 @@ def fit_experiment_dir(experiment_dir, out, say) -> FitOutcome:
     fs = load_experiment_set(experiment_dir)
     n_est = sum(e.n_frames for e in fs.estimation)
     n_val = sum(e.n_frames for e in fs.validation)
-    say(f"{fs.device_name}: {len(fs.estimation)} estimation runs ({n_est} frames), "
+    say(
+        f"{fs.device_name}: {len(fs.estimation)} estimation runs ({n_est} frames), "
         f"{len(fs.validation)} validation runs ({n_val} frames); fitting "
-        f"{', '.join(p.path + (' (per run)' if p.per_experiment else '') for p in fs.free)}")
+        f"{', '.join(p.path + (' (per run)' if p.per_experiment else '') for p in fs.free)}"
+    )
     say("fitting (the first solve includes compiling the model, a few seconds)")
     result = fit(fs.model, fs.estimation, fs.free, progress=say, **fs.fit_options)
     validation = None
     if fs.validation:
         per_run = sorted({p.path for p in fs.free if p.per_experiment})
-        say(f"validating on {len(fs.validation)} runs (physics fixed"
-            + (f"; per-run {', '.join(per_run)} re-fitted)" if per_run else ")"))
+        say(
+            f"validating on {len(fs.validation)} runs (physics fixed"
+            + (f"; per-run {', '.join(per_run)} re-fitted)" if per_run else ")")
+        )
         validation = validate(result, fs.validation)
     document = params_document(fs, result, validation)
     say(f"writing {out}")
@@ -123,9 +137,17 @@ def render_report(fs, result, validation, figures) -> str:
 
     notes = {p.path: p.identifiability for p in getattr(fs.device, "PARAMETERS", ())}
     source = " ".join(filter(None, [fs.description, f"Data: `{fs.directory}`."]))
-    return fit_report(result, validation, title=fs.name, device_name=fs.device_name,
-                      runs=fs.runs, parameter_notes=notes, figures=figures, source=source,
-                      output_unit=fs.device.OUTPUTS[0].si_unit)
+    return fit_report(
+        result,
+        validation,
+        title=fs.name,
+        device_name=fs.device_name,
+        runs=fs.runs,
+        parameter_notes=notes,
+        figures=figures,
+        source=source,
+        output_unit=fs.device.OUTPUTS[0].si_unit,
+    )
 
 
 def write_figures(folder: Path, fs, result, validation) -> list[str]:
@@ -137,23 +159,41 @@ def write_figures(folder: Path, fs, result, validation) -> list[str]:
     inp = (in_ch.description or in_ch.name, in_ch.si_unit)
     (folder / "figures").mkdir()
     sigma = float(result.sigma[0])
-    runs = [(e, "estimation", result.predict(i), result.fit_percent[e.name])
-            for i, e in enumerate(result.experiments)]
+    runs = [
+        (e, "estimation", result.predict(i), result.fit_percent[e.name])
+        for i, e in enumerate(result.experiments)
+    ]
     if validation is not None:
-        runs += [(e, "validation", z, validation.fit_percent[e.name])
-                 for e, z in zip(validation.experiments, validation.predictions)]
+        runs += [
+            (e, "validation", z, validation.fit_percent[e.name])
+            for e, z in zip(validation.experiments, validation.predictions)
+        ]
     names = []
     for e, role, z, pct in runs:
         name = f"figures/fit_{e.name}.png"
-        plots.run_figure(folder / name, name=e.name, role=role, t_s=e.t_s, y=e.y[:, 0],
-                         y_model=z[:, 0], inputs=e.inputs, sigma=sigma, fit_percent=pct,
-                         output_label=output, input_label=inp)
+        plots.run_figure(
+            folder / name,
+            name=e.name,
+            role=role,
+            t_s=e.t_s,
+            y=e.y[:, 0],
+            y_model=z[:, 0],
+            inputs=e.inputs,
+            sigma=sigma,
+            fit_percent=pct,
+            output_label=output,
+            input_label=inp,
+        )
         names.append(name)
-    plots.residuals_figure(folder / "figures/residuals.png",
-                           [(e.name, role, e.t_s, e.y[:, 0], z[:, 0]) for e, role, z, _ in runs],
-                           sigma=sigma, output_label=output)
-    plots.correlation_figure(folder / "figures/correlation.png",
-                             [p.name for p in result.parameters], result.correlation)
+    plots.residuals_figure(
+        folder / "figures/residuals.png",
+        [(e.name, role, e.t_s, e.y[:, 0], z[:, 0]) for e, role, z, _ in runs],
+        sigma=sigma,
+        output_label=output,
+    )
+    plots.correlation_figure(
+        folder / "figures/correlation.png", [p.name for p in result.parameters], result.correlation
+    )
     return names + ["figures/residuals.png", "figures/correlation.png"]
 
 
@@ -166,8 +206,9 @@ def parameter_lines(result) -> list[str]:
         if p.experiment is not None:
             continue
         value, ci, unit = estimate_texts(p)
-        lines.append(f"{p.name:<26} {value:>8} {unit if unit != '1' else '':<3} {ci:<27} "
-                     f"{p.verdict}")
+        lines.append(
+            f"{p.name:<26} {value:>8} {unit if unit != '1' else '':<3} {ci:<27} {p.verdict}"
+        )
     return lines
 
 
@@ -177,15 +218,21 @@ def fit_lines(outcome: FitOutcome) -> list[str]:
 
     r, v = outcome.result, outcome.validation
     f, unit = display_unit(outcome.fitset.device.OUTPUTS[0].si_unit)
-    lines = ["simulation fit % (estimation): "
-             + ", ".join(f"{k} {fmt(x, 3)}" for k, x in r.fit_percent.items())]
+    lines = [
+        "simulation fit % (estimation): "
+        + ", ".join(f"{k} {fmt(x, 3)}" for k, x in r.fit_percent.items())
+    ]
     if v is not None:
-        lines.append("simulation fit % (validation): "
-                     + ", ".join(f"{k} {fmt(x, 3)}" for k, x in v.fit_percent.items()))
-    lines.append(f"noise sigma {', '.join(fmt(float(s) * f, 3) for s in r.sigma)} {unit} "
-                 "(estimated), "
-                 f"{sum(r.n_outliers.values())} outliers flagged, "
-                 f"{'converged' if r.converged else 'NOT CONVERGED: ' + r.message}")
+        lines.append(
+            "simulation fit % (validation): "
+            + ", ".join(f"{k} {fmt(x, 3)}" for k, x in v.fit_percent.items())
+        )
+    lines.append(
+        f"noise sigma {', '.join(fmt(float(s) * f, 3) for s in r.sigma)} {unit} "
+        "(estimated), "
+        f"{sum(r.n_outliers.values())} outliers flagged, "
+        f"{'converged' if r.converged else 'NOT CONVERGED: ' + r.message}"
+    )
     return lines
 
 
@@ -199,7 +246,10 @@ def run(args) -> int:
     print("\n".join(parameter_lines(outcome.result) + fit_lines(outcome)))
     print(f"wrote {out}/ (params.json, report.md, figures/) in {say.elapsed:.1f} s")
     if not outcome.result.converged:
-        print(f"greybox fit: warning: the fit did not converge ({outcome.result.message}); "
-              "the result is written but its numbers are not trustworthy", file=sys.stderr)
+        print(
+            f"greybox fit: warning: the fit did not converge ({outcome.result.message}); "
+            "the result is written but its numbers are not trustworthy",
+            file=sys.stderr,
+        )
         return 1
     return 0

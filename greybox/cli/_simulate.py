@@ -37,18 +37,37 @@ prediction interval for new camera readings.
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "simulate", help="simulate a new laser waveform with fitted params.json (95 %% band)",
-        description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--params", required=True, metavar="PARAMS_JSON",
-                   help="params.json written by `greybox fit`")
-    p.add_argument("--waveform", required=True, metavar="SPEC",
-                   help="pulse:power_mW=..,period_ms=..,duty=..,n=.. or a CSV with t_s,laser_mW")
-    p.add_argument("--out", metavar="DIR", default="results/simulation",
-                   help="output folder (default results/simulation)")
-    p.add_argument("--dt-ms", type=float, default=1.0, metavar="MS",
-                   help="output time step in ms (default 1)")
-    p.add_argument("--noise", action="store_true",
-                   help="include measurement noise: prediction interval for camera readings")
+        "simulate",
+        help="simulate a new laser waveform with fitted params.json (95 %% band)",
+        description=HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--params",
+        required=True,
+        metavar="PARAMS_JSON",
+        help="params.json written by `greybox fit`",
+    )
+    p.add_argument(
+        "--waveform",
+        required=True,
+        metavar="SPEC",
+        help="pulse:power_mW=..,period_ms=..,duty=..,n=.. or a CSV with t_s,laser_mW",
+    )
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        default="results/simulation",
+        help="output folder (default results/simulation)",
+    )
+    p.add_argument(
+        "--dt-ms", type=float, default=1.0, metavar="MS", help="output time step in ms (default 1)"
+    )
+    p.add_argument(
+        "--noise",
+        action="store_true",
+        help="include measurement noise: prediction interval for camera readings",
+    )
     p.set_defaults(func=run)
     return p
 
@@ -77,9 +96,12 @@ def run(args) -> int:
     if spec.startswith("pulse:") or not spec.lower().endswith(".csv"):
         wave, text = parse_waveform_spec(spec, in_ch)
     elif not Path(spec).is_file():
-        raise InputError("no such file; give pulse:power_mW=..,period_ms=..,duty=..,n=.. or "
-                         f"the path of a CSV with t_s,{in_ch.column_names()[0]} columns",
-                         file=spec, field="--waveform")
+        raise InputError(
+            "no such file; give pulse:power_mW=..,period_ms=..,duty=..,n=.. or "
+            f"the path of a CSV with t_s,{in_ch.column_names()[0]} columns",
+            file=spec,
+            field="--waveform",
+        )
     else:
         wave, text = waveform_from_csv(spec, in_ch)
     dt = args.dt_ms * 1e-3
@@ -88,25 +110,45 @@ def run(args) -> int:
         raise InputError(f"{n} output samples; raise --dt-ms", field="--dt-ms")
     t = np.arange(n) * dt
     sigma = fitted.sigma if args.noise else None
-    band = prediction_band(fitted.model, fitted.free, fitted.raw, fitted.covariance_raw, wave, t,
-                           sigma=sigma, null_directions=fitted.null_directions,
-                           method=fitted.method)
+    band = prediction_band(
+        fitted.model,
+        fitted.free,
+        fitted.raw,
+        fitted.covariance_raw,
+        wave,
+        t,
+        sigma=sigma,
+        null_directions=fitted.null_directions,
+        method=fitted.method,
+    )
     fy, uy = display_unit(out_ch.si_unit)
     fu, uu = display_unit(in_ch.si_unit)
     y_name = f"{out_ch.name}"
-    header = ["t_s", f"{y_name}_{uy}", f"{y_name}_lo95_{uy}", f"{y_name}_hi95_{uy}",
-              f"{in_ch.name}_{uu}"]
+    header = [
+        "t_s",
+        f"{y_name}_{uy}",
+        f"{y_name}_lo95_{uy}",
+        f"{y_name}_hi95_{uy}",
+        f"{in_ch.name}_{uu}",
+    ]
     level = np.asarray(wave(t)).reshape(n, -1)[:, 0] * fu
     meta = {
         "params": str(args.params),
         "device": fitted.device_name,
         "waveform": {"spec": spec, "description": text},
-        "band": {"kind": band.kind, "level": band.level, "includes_noise": band.includes_noise,
-                 "sigma_m": [float(s) for s in fitted.sigma] if args.noise else None},
-        "columns": {header[0]: "time [s]", header[1]: f"{out_ch.description} from rest [{uy}]",
-                    header[2]: f"lower end of the band [{uy}]",
-                    header[3]: f"upper end of the band [{uy}]",
-                    header[4]: f"{in_ch.description} [{uu}]"},
+        "band": {
+            "kind": band.kind,
+            "level": band.level,
+            "includes_noise": band.includes_noise,
+            "sigma_m": [float(s) for s in fitted.sigma] if args.noise else None,
+        },
+        "columns": {
+            header[0]: "time [s]",
+            header[1]: f"{out_ch.description} from rest [{uy}]",
+            header[2]: f"lower end of the band [{uy}]",
+            header[3]: f"upper end of the band [{uy}]",
+            header[4]: f"{in_ch.description} [{uu}]",
+        },
         "peak": {"y": float(np.max(band.y[:, 0]) * fy), "unit": uy},
     }
     with atomic_output_dir(args.out) as tmp:
@@ -115,18 +157,32 @@ def run(args) -> int:
         usual_permissions(tmp)
         rows = [",".join(header)]
         for k in range(n):
-            rows.append(",".join([f"{t[k]:.6f}", _fmt(band.y[k, 0] * fy),
-                                  _fmt(band.lower[k, 0] * fy), _fmt(band.upper[k, 0] * fy),
-                                  f"{level[k]:.6g}"]))
+            rows.append(
+                ",".join(
+                    [
+                        f"{t[k]:.6f}",
+                        _fmt(band.y[k, 0] * fy),
+                        _fmt(band.lower[k, 0] * fy),
+                        _fmt(band.upper[k, 0] * fy),
+                        f"{level[k]:.6g}",
+                    ]
+                )
+            )
         (tmp / "simulation.csv").write_text("\n".join(rows) + "\n")
         (tmp / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
-        plots.band_figure(tmp / "simulation.png", band, wave,
-                          title=f"{fitted.device_name}: {text}",
-                          output_label=(out_ch.description, out_ch.si_unit),
-                          input_label=(in_ch.description, in_ch.si_unit))
+        plots.band_figure(
+            tmp / "simulation.png",
+            band,
+            wave,
+            title=f"{fitted.device_name}: {text}",
+            output_label=(out_ch.description, out_ch.si_unit),
+            input_label=(in_ch.description, in_ch.si_unit),
+        )
     width = float(np.nanmax(band.upper[:, 0] - band.lower[:, 0]) * fy)
-    print(f"simulated {text}: {n} samples, peak {meta['peak']['y']:.4g} {uy}, widest band "
-          f"{width:.3g} {uy}")
+    print(
+        f"simulated {text}: {n} samples, peak {meta['peak']['y']:.4g} {uy}, widest band "
+        f"{width:.3g} {uy}"
+    )
     print(f"band: {band.kind}")
     print(f"wrote {Path(args.out)}/ (simulation.csv, simulation.png, simulation.json)")
     return 0

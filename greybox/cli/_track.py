@@ -43,23 +43,47 @@ the frame's displacement (px), from its noise level and the texture's gradients.
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "track", help="microscope video -> displacement CSV (sub-pixel tracking)",
-        description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+        "track",
+        help="microscope video -> displacement CSV (sub-pixel tracking)",
+        description=HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("video", metavar="VIDEO", help="video file, multi-page TIFF or image folder")
     p.add_argument("--roi", required=True, metavar="X,Y,W,H", help="feature ROI, px")
-    p.add_argument("--roi2", metavar="X,Y,W,H",
-                   help="second feature ROI, px: two-feature pose tracking (x, y, heading)")
-    p.add_argument("--axis", choices=("x", "y"), default="x",
-                   help="motion axis of the shuttle (default x); one-feature mode only")
+    p.add_argument(
+        "--roi2",
+        metavar="X,Y,W,H",
+        help="second feature ROI, px: two-feature pose tracking (x, y, heading)",
+    )
+    p.add_argument(
+        "--axis",
+        choices=("x", "y"),
+        default="x",
+        help="motion axis of the shuttle (default x); one-feature mode only",
+    )
     p.add_argument("--um-per-px", type=float, metavar="S", help="scale, um per px (> 0)")
-    p.add_argument("--fps", type=float, metavar="F",
-                   help="frame rate, frames/s (> 0); overrides the container's timing")
-    p.add_argument("--ref-frames", type=int, default=1, metavar="K",
-                   help="average the first K frames as the reference (device at rest); "
-                        "cuts the reference's noise by sqrt(K) (default 1)")
-    p.add_argument("--search-px", type=int, default=16, metavar="M",
-                   help="largest displacement searched, px: from the reference position "
-                        "(one feature) or from the previous frame (two features); default 16")
+    p.add_argument(
+        "--fps",
+        type=float,
+        metavar="F",
+        help="frame rate, frames/s (> 0); overrides the container's timing",
+    )
+    p.add_argument(
+        "--ref-frames",
+        type=int,
+        default=1,
+        metavar="K",
+        help="average the first K frames as the reference (device at rest); "
+        "cuts the reference's noise by sqrt(K) (default 1)",
+    )
+    p.add_argument(
+        "--search-px",
+        type=int,
+        default=16,
+        metavar="M",
+        help="largest displacement searched, px: from the reference position "
+        "(one feature) or from the previous frame (two features); default 16",
+    )
     p.add_argument("--out", metavar="CSV", help="output run CSV (default runs/<VIDEO stem>.csv)")
     p.set_defaults(func=run)
     return p
@@ -72,8 +96,9 @@ def _parse_roi(text: str, field: str):
     try:
         x, y, w, h = (int(v) for v in text.split(","))
     except ValueError:
-        raise InputError(f"expected four integers X,Y,W,H in px, got {text!r}",
-                         field=field) from None
+        raise InputError(
+            f"expected four integers X,Y,W,H in px, got {text!r}", field=field
+        ) from None
     if w < 8 or h < 8 or x < 0 or y < 0:
         raise InputError(f"needs X, Y >= 0 and W, H >= 8 px, got {text!r}", field=field)
     return Roi(x, y, w, h)
@@ -96,8 +121,9 @@ def _times(info, n: int, fps: float | None, video: str) -> np.ndarray:
     if info.fps is not None:
         return np.arange(n) / info.fps
     what = "an image stack has" if info.kind == "stack" else "the container has"
-    raise InputError(f"{what} no frame timing; give the frame rate with --fps",
-                     file=video, field="--fps")
+    raise InputError(
+        f"{what} no frame timing; give the frame rate with --fps", file=video, field="--fps"
+    )
 
 
 def _fmt(v: float, digits: int) -> str:
@@ -108,9 +134,15 @@ def run(args) -> int:
     from greybox.errors import InputError
     from greybox.io.atomic import atomic_output_file
     from greybox.io.video import iter_frames, prefetch, probe
-    from greybox.tracking import (FeatureTracker, measure_sequence, pose_track,
-                                  reference_frame, saturation_level_for, search_crop,
-                                  shuttle_track)
+    from greybox.tracking import (
+        FeatureTracker,
+        measure_sequence,
+        pose_track,
+        reference_frame,
+        saturation_level_for,
+        search_crop,
+        shuttle_track,
+    )
 
     # Cheap checks first, so bad options fail before any decoding.
     _positive(args.um_per_px, "--um-per-px")
@@ -128,9 +160,12 @@ def run(args) -> int:
     info = probe(video)
     for roi, field in zip(rois, ("--roi", "--roi2")):
         if not roi.inside(info.shape):
-            raise InputError(f"ROI {roi.x},{roi.y},{roi.w},{roi.h} is outside the "
-                             f"{info.shape[1]}x{info.shape[0]} px frame", file=video,
-                             field=field)
+            raise InputError(
+                f"ROI {roi.x},{roi.y},{roi.w},{roi.h} is outside the "
+                f"{info.shape[1]}x{info.shape[0]} px frame",
+                file=video,
+                field=field,
+            )
     follow = len(rois) == 2
     if follow:  # each feature's window moves with it: decode whole frames
         crop, track_rois = None, rois
@@ -145,13 +180,18 @@ def run(args) -> int:
             n = 0 if first is None else len(first)
             raise InputError(f"has {n} frame(s); tracking needs at least two", file=video)
         if args.ref_frames > len(first):
-            raise InputError(f"must be <= {len(first)} (frames available)",
-                             field="--ref-frames")
+            raise InputError(f"must be <= {len(first)} (frames available)", field="--ref-frames")
         ref = reference_frame(first, 0, args.ref_frames)
         try:
-            trackers = [FeatureTracker(ref, roi, search_px=args.search_px,
-                                       saturation_level=saturation_level_for(info.dtype))
-                        for roi in track_rois]
+            trackers = [
+                FeatureTracker(
+                    ref,
+                    roi,
+                    search_px=args.search_px,
+                    saturation_level=saturation_level_for(info.dtype),
+                )
+                for roi in track_rois
+            ]
         except ValueError as err:
             raise InputError(f"ROI {args.roi}: {err}", file=video, field="--roi") from None
         meas = measure_sequence(trackers, itertools.chain([first], chunks), follow=follow)
@@ -162,9 +202,15 @@ def run(args) -> int:
         if len(rois) == 1:
             tr = shuttle_track(meas[0], args.axis)
             # The run format names the tracked coordinate y whatever the image axis.
-            fh.write(",".join(["t_s", "y_px"] + (["y_um"] if s else [])
-                              + ["quality", "reason", "sigma_px"]
-                              + (["sigma_um"] if s else [])) + "\n")
+            fh.write(
+                ",".join(
+                    ["t_s", "y_px"]
+                    + (["y_um"] if s else [])
+                    + ["quality", "reason", "sigma_px"]
+                    + (["sigma_um"] if s else [])
+                )
+                + "\n"
+            )
             for k in range(n):
                 row = [_fmt(t[k], 6), _fmt(tr.y_px[k], 4)]
                 row += [_fmt(tr.y_px[k] * s, 5)] if s else []
@@ -174,19 +220,30 @@ def run(args) -> int:
             reason, sigma = tr.reason, tr.sigma_px
         else:
             pt = pose_track(meas[0], meas[1], rois[0], rois[1])
-            fh.write(",".join(["t_s", "f1_x_px", "f1_y_px", "f2_x_px", "f2_y_px"]
-                              + (["x_um", "y_um"] if s else [])
-                              + ["heading_rad", "quality", "reason", "sigma_px"]) + "\n")
+            fh.write(
+                ",".join(
+                    ["t_s", "f1_x_px", "f1_y_px", "f2_x_px", "f2_y_px"]
+                    + (["x_um", "y_um"] if s else [])
+                    + ["heading_rad", "quality", "reason", "sigma_px"]
+                )
+                + "\n"
+            )
             for k in range(n):
                 row = [_fmt(t[k], 6)] + [_fmt(v, 4) for v in (*pt.f1[k], *pt.f2[k])]
                 row += [_fmt(pt.x_px[k] * s, 5), _fmt(pt.y_px[k] * s, 5)] if s else []
-                row += [_fmt(pt.heading_rad[k], 6), _fmt(pt.quality[k], 4), pt.reason[k],
-                        _fmt(pt.sigma_px[k], 4)]
+                row += [
+                    _fmt(pt.heading_rad[k], 6),
+                    _fmt(pt.quality[k], 4),
+                    pt.reason[k],
+                    _fmt(pt.sigma_px[k], 4),
+                ]
                 fh.write(",".join(row) + "\n")
             reason, sigma = pt.reason, pt.sigma_px
     bad = reason != ""
     kinds = ", ".join(f"{r} {int(np.sum(reason == r))}" for r in sorted(set(reason[bad])))
     med = np.nanmedian(sigma) if np.any(~bad) else float("nan")
-    print(f"wrote {out}: {n} frames, {int(bad.sum())} flagged{' (' + kinds + ')' if kinds else ''}"
-          f", median sigma {med:.4f} px" + ("" if s else "; no --um-per-px: px columns only"))
+    print(
+        f"wrote {out}: {n} frames, {int(bad.sum())} flagged{' (' + kinds + ')' if kinds else ''}"
+        f", median sigma {med:.4f} px" + ("" if s else "; no --um-per-px: px columns only")
+    )
     return 0

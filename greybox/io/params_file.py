@@ -57,14 +57,20 @@ def params_document(fitset, result, validation=None) -> dict:
     fitted = {p.path: _num(result.estimate(p.path).value) for p in shared}
     runs = {}
     for e in result.experiments:
-        runs[e.name] = {"role": "estimation", "frames": e.n_frames,
-                        "valid_frames": int(e.mask.all(axis=1).sum()),
-                        "outliers_flagged": int(result.n_outliers[e.name])}
+        runs[e.name] = {
+            "role": "estimation",
+            "frames": e.n_frames,
+            "valid_frames": int(e.mask.all(axis=1).sum()),
+            "outliers_flagged": int(result.n_outliers[e.name]),
+        }
     if validation is not None:
         for e in validation.experiments:
-            runs[e.name] = {"role": "validation", "frames": e.n_frames,
-                            "valid_frames": int(e.mask.all(axis=1).sum()),
-                            "outliers_flagged": int(validation.n_outliers[e.name])}
+            runs[e.name] = {
+                "role": "validation",
+                "frames": e.n_frames,
+                "valid_frames": int(e.mask.all(axis=1).sum()),
+                "outliers_flagged": int(validation.n_outliers[e.name]),
+            }
     ident = result.identifiability
     return {
         "schema": SCHEMA,
@@ -72,47 +78,73 @@ def params_document(fitset, result, validation=None) -> dict:
         "experiment": {"name": fitset.name, "description": fitset.description},
         "device": fitset.device_name,
         "model": {
-            "camera": {"m_per_px": fitset.camera["m_per_px"],
-                       "exposure_s": fitset.camera["exposure_s"], "fps": fitset.camera["fps"]},
+            "camera": {
+                "m_per_px": fitset.camera["m_per_px"],
+                "exposure_s": fitset.camera["exposure_s"],
+                "fps": fitset.camera["fps"],
+            },
             "fixed": dict(fitset.fixed),
             "fitted": fitted,
             "method": result.method,
         },
         "parameters": [
-            {"name": p.name, "path": p.path, "unit": p.unit, "value": _num(p.value),
-             "se": _num(p.se), "ci95": [_num(p.ci95[0]), _num(p.ci95[1])],
-             "verdict": p.verdict, "experiment": p.experiment,
-             "prior": None if p.prior is None else {"median": p.prior[0], "log_sd": p.prior[1]}}
-            for p in result.parameters],
+            {
+                "name": p.name,
+                "path": p.path,
+                "unit": p.unit,
+                "value": _num(p.value),
+                "se": _num(p.se),
+                "ci95": [_num(p.ci95[0]), _num(p.ci95[1])],
+                "verdict": p.verdict,
+                "experiment": p.experiment,
+                "prior": None if p.prior is None else {"median": p.prior[0], "log_sd": p.prior[1]},
+            }
+            for p in result.parameters
+        ],
         "free": [{k: getattr(p, k) for k in _FREE_FIELDS} for p in result.free],
         "raw": _nums(result.raw),
         "raw_labels": list(ident.raw_labels),
         "covariance_raw": _nums(result.covariance_raw),
-        "null_directions_raw": _nums(np.reshape(
-            getattr(ident, "null_directions", np.zeros((0, result.raw.size))),
-            (-1, result.raw.size))),
-        "sigma": {"value": _nums(result.sigma),
-                  "unit": [c.si_unit for c in fitset.device.OUTPUTS],
-                  "estimated": True, "how": "robust (MAD) scale of the residuals"},
+        "null_directions_raw": _nums(
+            np.reshape(
+                getattr(ident, "null_directions", np.zeros((0, result.raw.size))),
+                (-1, result.raw.size),
+            )
+        ),
+        "sigma": {
+            "value": _nums(result.sigma),
+            "unit": [c.si_unit for c in fitset.device.OUTPUTS],
+            "estimated": True,
+            "how": "robust (MAD) scale of the residuals",
+        },
         "fit_percent": {
             "horizon": "simulation",
             "estimation": {k: _num(v) for k, v in result.fit_percent.items()},
-            "validation": ({k: _num(v) for k, v in validation.fit_percent.items()}
-                           if validation is not None else {}),
+            "validation": (
+                {k: _num(v) for k, v in validation.fit_percent.items()}
+                if validation is not None
+                else {}
+            ),
         },
         "runs": runs,
         "n_data": int(result.n_data),
         "convergence": {
-            "converged": bool(result.converged), "message": result.message,
-            "steps": int(result.n_steps), "cost": _num(result.cost), "loss": result.loss,
-            "multistart": [{"cost": _num(c), "converged": bool(ok)}
-                           for c, ok in result.multistart_costs],
+            "converged": bool(result.converged),
+            "message": result.message,
+            "steps": int(result.n_steps),
+            "cost": _num(result.cost),
+            "loss": result.loss,
+            "multistart": [
+                {"cost": _num(c), "converged": bool(ok)} for c, ok in result.multistart_costs
+            ],
         },
         "identifiability": {
             "singular_values": _nums(ident.singular_values),
             "condition_number": _num(ident.condition_number),
-            "weak_directions": [{"combination": w.combination, "sd_raw": _num(w.sd_raw),
-                                 "text": w.describe()} for w in ident.weak_directions],
+            "weak_directions": [
+                {"combination": w.combination, "sd_raw": _num(w.sd_raw), "text": w.describe()}
+                for w in ident.weak_directions
+            ],
             "summary": ident.summary(),
         },
     }
@@ -155,19 +187,29 @@ def load_params(path) -> FittedModel:
     path = Path(path)
     file = str(path)
     if not path.is_file():
-        raise InputError("does not exist; give the params.json written by `greybox fit`",
-                         file=file, field="--params")
+        raise InputError(
+            "does not exist; give the params.json written by `greybox fit`",
+            file=file,
+            field="--params",
+        )
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         line = getattr(err, "lineno", None)
-        raise InputError(f"not valid JSON ({err}); use the file `greybox fit` wrote",
-                         file=file, line=line, field="--params") from None
+        raise InputError(
+            f"not valid JSON ({err}); use the file `greybox fit` wrote",
+            file=file,
+            line=line,
+            field="--params",
+        ) from None
 
     def need(obj, key, kind, where):
         if not isinstance(obj, dict) or key not in obj or not isinstance(obj[key], kind):
-            raise InputError(f"missing or malformed; this is not a {SCHEMA} file written by "
-                             "`greybox fit`", file=file, field=f"{where}{key}")
+            raise InputError(
+                f"missing or malformed; this is not a {SCHEMA} file written by `greybox fit`",
+                file=file,
+                field=f"{where}{key}",
+            )
         return obj[key]
 
     schema = need(doc, "schema", str, "")
@@ -188,17 +230,21 @@ def load_params(path) -> FittedModel:
     cov_list = need(doc, "covariance_raw", list, "")
     sigma = np.asarray(need(need(doc, "sigma", dict, ""), "value", list, "sigma."), dtype=float)
     try:
-        free = tuple(FreeParameter(**{k: f[k] for k in _FREE_FIELDS if k in f})
-                     for f in free_docs)
-        cov = np.array([[np.nan if v is None else v for v in row] for row in cov_list],
-                       dtype=float)
+        free = tuple(FreeParameter(**{k: f[k] for k in _FREE_FIELDS if k in f}) for f in free_docs)
+        cov = np.array([[np.nan if v is None else v for v in row] for row in cov_list], dtype=float)
         nulls = np.array(doc.get("null_directions_raw") or [], dtype=float).reshape(-1, raw.size)
         model = configure_model(device, camera, fixed)
         model = set_values(model, list(fitted), [float(v) for v in fitted.values()])
     except (TypeError, ValueError, KeyError) as err:
-        raise InputError(f"cannot rebuild the fitted model ({err}); regenerate it with "
-                         "`greybox fit`", file=file, field="model") from None
+        raise InputError(
+            f"cannot rebuild the fitted model ({err}); regenerate it with `greybox fit`",
+            file=file,
+            field="model",
+        ) from None
     if cov.shape != (raw.size, raw.size):
-        raise InputError(f"covariance_raw is {cov.shape}, raw has {raw.size} entries",
-                         file=file, field="covariance_raw")
+        raise InputError(
+            f"covariance_raw is {cov.shape}, raw has {raw.size} entries",
+            file=file,
+            field="covariance_raw",
+        )
     return FittedModel(device_name, device, model, free, raw, cov, nulls, sigma, method, doc)

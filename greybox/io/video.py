@@ -74,11 +74,13 @@ def _natural_key(p: Path):
 
 
 def _stack_files(path: Path) -> list[Path]:
-    files = sorted((p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
-                   key=_natural_key)
+    files = sorted(
+        (p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=_natural_key
+    )
     if not files:
-        raise InputError(f"folder holds no image files ({', '.join(IMAGE_SUFFIXES)})",
-                         file=str(path))
+        raise InputError(
+            f"folder holds no image files ({', '.join(IMAGE_SUFFIXES)})", file=str(path)
+        )
     return files
 
 
@@ -97,15 +99,30 @@ def container_timestamps(path: str | os.PathLike) -> np.ndarray | None:
     Reads packet pts with ffmpeg's framecrc muxer and ``-c copy`` (no decoding), sorted
     into presentation order.
     """
-    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-i", str(path), "-map", "0:v:0",
-           "-c", "copy", "-f", "framecrc", "-"]
+    cmd = [
+        imageio_ffmpeg.get_ffmpeg_exe(),
+        "-v",
+        "error",
+        "-i",
+        str(path),
+        "-map",
+        "0:v:0",
+        "-c",
+        "copy",
+        "-f",
+        "framecrc",
+        "-",
+    ]
     try:
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=120).stdout
     except (OSError, subprocess.SubprocessError):
         return None
     tb = re.search(r"^#tb 0: (\d+)/(\d+)", out, re.M)
-    pts = [int(line.split(",")[2]) for line in out.splitlines()
-           if line and not line.startswith("#") and line.split(",")[2].strip().lstrip("-").isdigit()]
+    pts = [
+        int(line.split(",")[2])
+        for line in out.splitlines()
+        if line and not line.startswith("#") and line.split(",")[2].strip().lstrip("-").isdigit()
+    ]
     if tb is None or len(pts) < 2:
         return None
     t = np.sort(np.array(pts, dtype=float)) * int(tb.group(1)) / int(tb.group(2))
@@ -126,14 +143,16 @@ def probe(path: str | os.PathLike) -> VideoInfo:
     try:
         meta = _ffmpeg_meta(path)
     except (OSError, RuntimeError, StopIteration) as err:
-        raise InputError(f"cannot be read as a video or image stack "
-                         f"({_first_line(err)})", file=str(path)) from None
+        raise InputError(
+            f"cannot be read as a video or image stack ({_first_line(err)})", file=str(path)
+        ) from None
     w, h = meta["size"]
     deep = re.search(r"(gray|yuv\w*|rgb\w*|bgr\w*)(1[0-6])(le|be)", meta.get("pix_fmt", ""))
     dtype = np.dtype(np.uint16 if deep else np.uint8)
     fps = float(meta["fps"]) if meta.get("fps") and np.isfinite(meta["fps"]) else None
-    return VideoInfo("video", (h, w), dtype, fps if fps and fps > 0 else None,
-                     container_timestamps(path))
+    return VideoInfo(
+        "video", (h, w), dtype, fps if fps and fps > 0 else None, container_timestamps(path)
+    )
 
 
 def _first_line(err: BaseException) -> str:
@@ -145,13 +164,18 @@ def _read_image(path: Path) -> np.ndarray:
     try:
         return np.asarray(iio.imread(path))
     except Exception:  # imageio raises many types (and plugin hints) for unreadable files
-        raise InputError("cannot be read as an image (not a valid PNG/TIFF/JPEG/BMP file)",
-                         file=str(path)) from None
+        raise InputError(
+            "cannot be read as an image (not a valid PNG/TIFF/JPEG/BMP file)", file=str(path)
+        ) from None
 
 
-def iter_frames(path: str | os.PathLike, info: VideoInfo | None = None, *,
-                chunk: int = 256, crop: tuple[int, int, int, int] | None = None
-                ) -> Iterator[np.ndarray]:
+def iter_frames(
+    path: str | os.PathLike,
+    info: VideoInfo | None = None,
+    *,
+    chunk: int = 256,
+    crop: tuple[int, int, int, int] | None = None,
+) -> Iterator[np.ndarray]:
     """Yield grey frames in chunks, each (n <= chunk, H, W), of ``info.dtype``.
 
     Streaming keeps memory bounded for long videos; frames of a different size than the
@@ -165,16 +189,25 @@ def iter_frames(path: str | os.PathLike, info: VideoInfo | None = None, *,
     info = probe(path) if info is None else info
     if crop is not None:
         cx, cy, cw, ch = (int(v) for v in crop)
-        if cx < 0 or cy < 0 or cw < 1 or ch < 1 or cx + cw > info.shape[1] \
-                or cy + ch > info.shape[0]:
-            raise ValueError(f"crop {crop} (x, y, w, h px) is outside the "
-                             f"{info.shape[1]}x{info.shape[0]} px frame")
+        if (
+            cx < 0
+            or cy < 0
+            or cw < 1
+            or ch < 1
+            or cx + cw > info.shape[1]
+            or cy + ch > info.shape[0]
+        ):
+            raise ValueError(
+                f"crop {crop} (x, y, w, h px) is outside the "
+                f"{info.shape[1]}x{info.shape[0]} px frame"
+            )
     if info.kind == "video":
         deep = info.dtype == np.uint16
         pix = "gray16le" if deep else "gray"
         params = [] if crop is None else ["-vf", f"format={pix},crop={cw}:{ch}:{cx}:{cy}"]
-        gen = imageio_ffmpeg.read_frames(str(path), pix_fmt=pix, output_params=params,
-                                         bits_per_pixel=16 if deep else 8)
+        gen = imageio_ffmpeg.read_frames(
+            str(path), pix_fmt=pix, output_params=params, bits_per_pixel=16 if deep else 8
+        )
         h, w = info.shape if crop is None else (ch, cw)
         try:
             # imageio-ffmpeg warns that a cropped size differs from the source: intended.
@@ -187,39 +220,42 @@ def iter_frames(path: str | os.PathLike, info: VideoInfo | None = None, *,
                 quiet.setLevel(level)
             buf = []
             for raw in gen:
-                buf.append(np.frombuffer(raw, dtype="<u2" if deep else np.uint8)
-                           .reshape(h, w))
+                buf.append(np.frombuffer(raw, dtype="<u2" if deep else np.uint8).reshape(h, w))
                 if len(buf) == chunk:
                     yield np.stack(buf).astype(info.dtype, copy=False)
                     buf = []
             if buf:
                 yield np.stack(buf).astype(info.dtype, copy=False)
         except (OSError, RuntimeError) as err:
-            raise InputError(f"video decoding failed ({_first_line(err)})",
-                             file=str(path)) from None
+            raise InputError(
+                f"video decoding failed ({_first_line(err)})", file=str(path)
+            ) from None
         finally:
             gen.close()
         return
     if path.is_dir():
         files = _stack_files(path)
         for i in range(0, len(files), chunk):
-            frames = [_grey(_read_image(f)) for f in files[i:i + chunk]]
-            for f, fr in zip(files[i:i + chunk], frames):
+            frames = [_grey(_read_image(f)) for f in files[i : i + chunk]]
+            for f, fr in zip(files[i : i + chunk], frames):
                 if fr.shape != info.shape:
-                    raise InputError(f"image is {fr.shape[1]}x{fr.shape[0]} px, the stack's "
-                                     f"first is {info.shape[1]}x{info.shape[0]}", file=str(f))
+                    raise InputError(
+                        f"image is {fr.shape[1]}x{fr.shape[0]} px, the stack's "
+                        f"first is {info.shape[1]}x{info.shape[0]}",
+                        file=str(f),
+                    )
             yield _crop(np.stack(frames), crop)
         return
     pages = _tiff_pages(path)
     for i in range(0, len(pages), chunk):
-        yield _crop(pages[i:i + chunk], crop)
+        yield _crop(pages[i : i + chunk], crop)
 
 
 def _crop(frames: np.ndarray, crop) -> np.ndarray:
     if crop is None:
         return frames
     x, y, w, h = crop
-    return np.ascontiguousarray(frames[:, y:y + h, x:x + w])
+    return np.ascontiguousarray(frames[:, y : y + h, x : x + w])
 
 
 def prefetch(chunks: Iterable[np.ndarray], depth: int = 2) -> Iterator[np.ndarray]:
@@ -290,8 +326,9 @@ def read_frames(path: str | os.PathLike) -> tuple[np.ndarray, VideoInfo]:
     return np.concatenate(list(iter_frames(path, info))), info
 
 
-def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, *,
-                raw: bool = False) -> Path:
+def write_video(
+    path: str | os.PathLike, frames: np.ndarray, fps: float, *, raw: bool = False
+) -> Path:
     """Write grey ``frames`` (N, H, W) uint8/uint16 losslessly at ``fps`` frames/s.
 
     ``.avi``/``.mkv``: FFV1 (8- or 16-bit grey; ~6x smaller than raw, but decodes at only
@@ -304,8 +341,9 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, *,
     suffix = path.suffix.lower()
     deep = frames.dtype == np.uint16
     if frames.dtype not in (np.uint8, np.uint16) or frames.ndim != 3:
-        raise ValueError(f"frames must be (N, H, W) uint8 or uint16, got {frames.dtype} "
-                         f"{frames.shape}")
+        raise ValueError(
+            f"frames must be (N, H, W) uint8 or uint16, got {frames.dtype} {frames.shape}"
+        )
     if raw and suffix == ".avi":
         codec, params = "rawvideo", []
     elif suffix in (".avi", ".mkv"):
@@ -313,14 +351,24 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, *,
     elif suffix == ".mp4" and not deep:
         codec, params = "libx264", ["-qp", "0", "-preset", "ultrafast"]
     else:
-        raise ValueError(f"cannot write {frames.dtype} frames losslessly to {suffix!r}; "
-                         "use .avi or .mkv (FFV1), or .mp4 for uint8")
+        raise ValueError(
+            f"cannot write {frames.dtype} frames losslessly to {suffix!r}; "
+            "use .avi or .mkv (FFV1), or .mp4 for uint8"
+        )
     pix = "gray16le" if deep else "gray"
     path.parent.mkdir(parents=True, exist_ok=True)
     writer = imageio_ffmpeg.write_frames(
-        str(path), (frames.shape[2], frames.shape[1]), fps=fps, codec=codec,
-        pix_fmt_in=pix, pix_fmt_out=pix, macro_block_size=1, quality=None,
-        output_params=params, ffmpeg_log_level="error")
+        str(path),
+        (frames.shape[2], frames.shape[1]),
+        fps=fps,
+        codec=codec,
+        pix_fmt_in=pix,
+        pix_fmt_out=pix,
+        macro_block_size=1,
+        quality=None,
+        output_params=params,
+        ffmpeg_log_level="error",
+    )
     writer.send(None)
     for frame in frames:
         writer.send(np.ascontiguousarray(frame.astype("<u2") if deep else frame))
@@ -328,8 +376,9 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, *,
     return path
 
 
-def write_image_stack(folder: str | os.PathLike, frames: np.ndarray,
-                      suffix: str = ".png") -> list[Path]:
+def write_image_stack(
+    folder: str | os.PathLike, frames: np.ndarray, suffix: str = ".png"
+) -> list[Path]:
     """Write ``frames`` (N, H, W) as ``folder/frame_00000.png`` ... (or ``.tif``)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

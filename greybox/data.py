@@ -59,6 +59,27 @@ class Experiment:
         object.__setattr__(self, "t_s", t)
         object.__setattr__(self, "y", y)
 
+    def input_onset_s(self) -> float:
+        """Time [s] at which the input first leaves zero (inf if it never does)."""
+        levels = np.asarray(self.inputs.values).reshape(len(self.inputs.times_s), -1)
+        on = self.inputs.times_s[np.any(levels != 0, axis=1)]
+        return float(on[0]) if on.size else float("inf")
+
+    def rest_level(self, min_frames: int = 3) -> np.ndarray:
+        """(n_y,) median reading of each output before the input first switches on.
+
+        The rest position of a shuttle in the image, i.e. its camera offset; NaN for an output
+        with fewer than `min_frames` valid frames before the onset.
+        """
+        before = self.t_s < self.input_onset_s()
+        out = np.full(self.y.shape[1], np.nan)
+        for j in range(self.y.shape[1]):
+            vals = self.y[before, j]
+            vals = vals[np.isfinite(vals)]
+            if vals.size >= min_frames:
+                out[j] = np.median(vals)
+        return out
+
     @property
     def n_frames(self) -> int:
         return self.t_s.size

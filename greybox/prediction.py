@@ -130,11 +130,9 @@ def prediction_band(
     sched = pad_schedules([schedule_for(model, inputs, t, t_start_s=t_start_s)])
     row = {k: v[0] for k, v in sched.items()}
     base = as_arrays(model)
-    paths = [p.path for p in shared]
 
     def observe(r):
-        values = [p.to_value(r[i]) for i, p in enumerate(shared)]
-        return observe_schedule(set_values(base, paths, values), row, method=method)
+        return observe_schedule(with_shared(base, shared, r), row, method=method)
 
     @jax.jit
     def response_and_jacobian(r):
@@ -166,3 +164,45 @@ def prediction_band(
     sd = np.sqrt(total)
     zq = float(jax.scipy.special.ndtri((1.0 + level) / 2.0))
     return Band(t, y, y - zq * sd, y + zq * sd, sd_model, sd, float(level), includes_noise)
+
+
+def with_shared(model, free, raw):
+    """`model` with each shared (not per-experiment) free parameter set from its raw value.
+
+    `raw` holds the shared raw coordinates first, in the order of `free` (as a fit's `raw`);
+    jit/vmap-able, so functions of the fitted model can be mapped over parameter draws.
+    """
+    shared = [p for p in free if not p.per_experiment]
+    values = [p.to_value(raw[i]) for i, p in enumerate(shared)]
+    return set_values(model, [p.path for p in shared], values)
+
+
+def raw_draws(raw, covariance_raw, free, n: int, *, seed: int = 0) -> np.ndarray:
+    """`n` Gaussian draws (n, n_shared) of the shared raw coordinates from a fit's covariance.
+
+    Raw coordinates are log/logit/linear transforms of the parameters, so draws respect bounds
+    and positivity once mapped back. Raises ValueError when a shared parameter's covariance is
+    not finite (not identifiable): there is nothing honest to draw from.
+    """
+    n_shared = sum(not p.per_experiment for p in free)
+    mean = np.asarray(raw, dtype=float)[:n_shared]
+    cov = np.asarray(covariance_raw, dtype=float)[:n_shared, :n_shared]
+    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))):
+        raise ValueError(
+            "covariance_raw: not finite for the shared parameters (a parameter is "
+            "not identifiable or the fit diverged); free fewer parameters or add "
+            "priors before propagating uncertainty"
+        )
+    rng = np.random.default_rng(seed)
+    return rng.multivariate_normal(mean, (cov + cov.T) / 2, size=int(n))
+
+
+def propagate(fn, model, free, raw, covariance_raw, n: int, *, seed: int = 0) -> np.ndarray:
+    """Push `n` parameter draws through `fn(model) -> array`: (n, ...) samples of `fn`.
+
+    The Monte Carlo counterpart of the delta method: use it for quantities that are not
+    smooth enough (an optimum, a threshold) or when the interval may be asymmetric.
+    """
+    draws = jnp.asarray(raw_draws(raw, covariance_raw, free, n, seed=seed))
+    base = as_arrays(model)
+    return np.asarray(jax.jit(jax.vmap(lambda r: fn(with_shared(base, free, r))))(draws))

@@ -10,6 +10,7 @@ Run: .venv/bin/python notebooks/build.py            (all notebooks, full problem
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -33,7 +34,10 @@ def execute(source: Path, timeout_s: int = 1800):
     nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
     client = nbclient.NotebookClient(nb, timeout=timeout_s, kernel_name="python3",
                                      resources={"metadata": {"path": str(HERE)}})
-    client.execute()
+    # The kernel must use its own inline backend (headless, figures become PNG outputs); a
+    # MPLBACKEND=Agg inherited from a test run would silently swallow every plt.show().
+    env = {k: v for k, v in os.environ.items() if k != "MPLBACKEND"}
+    client.execute(env=env)
     return nb
 
 

@@ -164,3 +164,37 @@ def test_bad_inputs_raise_clear_errors(truth):
         fit(truth, [], default_free_parameters())
     with pytest.raises(ValueError, match="loss"):
         fit(truth, exps, default_free_parameters(), loss="cauchy")
+
+
+def test_parameter_draws_reproduce_the_reported_uncertainty(thesis_fit):
+    from greybox.prediction import propagate
+
+    _, result = thesis_fit
+    taus = propagate(lambda m: m.thermal.tau_s, result.model, result.free, result.raw,
+                     result.covariance_raw, 4000, seed=3)
+    est = result.estimate("thermal.tau_s")
+    assert np.mean(taus) == pytest.approx(est.value, abs=0.1 * est.se)
+    assert np.std(taus) == pytest.approx(est.se, rel=0.1)
+    lo, hi = np.percentile(taus, [2.5, 97.5])
+    assert lo == pytest.approx(est.ci95[0], abs=0.15 * est.se)
+    assert hi == pytest.approx(est.ci95[1], abs=0.15 * est.se)
+
+
+def test_rest_level_and_uniform_grid_for_blackbox_models():
+    from greybox import blackbox as bb
+
+    w = PiecewiseConstant(np.array([0.0, 0.3, 0.5]), np.array([0.0, 0.02, 0.0]), 1.0)
+    t = np.array([0.05, 0.1, 0.15, 0.2, 0.25, 0.35, 0.45, 0.6, 0.8])
+    y = np.array([2.0, 2.2, np.nan, 1.9, 2.1, 3.0, 3.5, 2.8, 2.4]) * 1e-6
+    e = Experiment("r", t, y, w)
+    assert e.input_onset_s() == 0.3
+    assert e.rest_level()[0] == pytest.approx(2.05e-6)  # median of 2.0, 2.2, 1.9, 2.1
+    data, grid, rest = bb.uniform_from_experiment(e, 0.05, input_scale=1e3, output_scale=1e6)
+    assert data.resampled and rest[0] == pytest.approx(2.05e-6)
+    np.testing.assert_allclose(grid, 0.05 + 0.05 * np.arange(data.n_samples))
+    # the input is the exact waveform on the grid (mW), not an interpolation of samples
+    np.testing.assert_allclose(data.u[:, 0], np.where((grid >= 0.3) & (grid < 0.5), 20.0, 0.0))
+    # outputs pass through the valid frames (um, rest removed)
+    np.testing.assert_allclose(np.interp([0.1, 0.35], grid, data.y[:, 0]), [0.15, 0.95], atol=1e-9)
+    with pytest.raises(ValueError, match="rest level"):
+        bb.uniform_from_experiment(Experiment("late", t[5:], y[5:], w), 0.05)

@@ -21,7 +21,6 @@ NOTEBOOKS = build.sources()
 @pytest.mark.parametrize("source", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_executes_headless(source, monkeypatch):
     monkeypatch.setenv("CI", "true")  # small problem sizes, as in CI
-    monkeypatch.setenv("MPLBACKEND", "Agg")
     nb = build.execute(source, timeout_s=600)
     errors = [
         o

@@ -30,6 +30,7 @@ from ._recursive import recursive_armax as recursive_armax
 from ._recursive import recursive_arx as recursive_arx
 from ._resample import interpolate as interpolate
 from ._resample import resample as resample
+from ._resample import uniform_from_experiment as uniform_from_experiment
 from ._validation import Comparison as Comparison
 from ._validation import ResidualTest as ResidualTest
 from ._validation import compare as compare

@@ -117,3 +117,42 @@ def resample(
         resampled=True,
         name=name,
     )
+
+
+def uniform_from_experiment(
+    exp,
+    dt: float,
+    *,
+    method: str = "pchip",
+    remove_rest: bool = True,
+    input_scale: float = 1.0,
+    output_scale: float = 1.0,
+):
+    """A camera run prepared for black-box models, the way the thesis did it.
+
+    Frames with a NaN reading are dropped, the rest level (the reading before the input first
+    switches on, `Experiment.rest_level`) is removed, the outputs are interpolated onto a
+    uniform grid (flagged `resampled`), and the known input waveform is evaluated exactly on
+    the grid (no interpolation of the input).
+
+    **Arguments:**
+    - `exp`: a `greybox.data.Experiment` (SI units).
+    - `dt`: grid interval [s]; `method`: "pchip" (shape-preserving cubic) or "linear".
+    - `remove_rest`: subtract the rest level; needs >= 3 valid frames before the input onset.
+    - `input_scale`, `output_scale`: factors applied to the SI values (e.g. 1e3 for mW and
+      1e6 for um keep ARX coefficients well scaled).
+
+    **Returns:** (`UniformData`, grid times [s] (n,), removed rest level in SI (n_y,)).
+    """
+    valid = np.all(np.isfinite(exp.y), axis=1)
+    t, y = exp.t_s[valid], exp.y[valid]
+    rest = exp.rest_level() if remove_rest else np.zeros(y.shape[1])
+    if not np.all(np.isfinite(rest)):
+        raise ValueError(
+            f"{exp.name}: fewer than 3 valid frames before the input switches on, "
+            "so the rest level is unknown; pass remove_rest=False"
+        )
+    d = resample(t, np.zeros_like(t), (y - rest) * output_scale, dt, method=method, name=exp.name)
+    t_grid = t[0] + dt * np.arange(d.n_samples)
+    u = np.asarray(exp.inputs(t_grid), dtype=float).reshape(t_grid.size, -1) * input_scale
+    return UniformData(u, d.y, dt, resampled=True, name=exp.name), t_grid, rest

@@ -1132,8 +1132,8 @@ def _initial_offset(free: tuple, estimation: tuple) -> tuple:
 
     The fitter starts every run's offset from one value; a camera reading is the image
     position (hundreds of um), so starting from 0 puts the fit far from the data (it then
-    fails). A run's rest reading is the median of its frames before the input first
-    switches on (all its frames if fewer than three come before).
+    fails). A run's rest reading is `Experiment.rest_level` (the median before the input
+    first switches on), or the median of all its frames if fewer than three come before.
     """
     if not any(
         p.path == "camera.offset_m" and p.per_experiment and p.initial is None for p in free
@@ -1141,11 +1141,8 @@ def _initial_offset(free: tuple, estimation: tuple) -> tuple:
         return free
     rest = []
     for e in estimation:
-        levels = np.asarray(e.inputs.values).reshape(len(e.inputs.times_s), -1)
-        on = e.inputs.times_s[np.any(levels != 0, axis=1)]
-        y = e.y[:, 0]
-        pick = y[(e.t_s < (on[0] if on.size else np.inf)) & np.isfinite(y)]
-        rest.append(np.median(pick) if pick.size >= 3 else np.nanmedian(y))
+        level = e.rest_level()[0]
+        rest.append(level if np.isfinite(level) else np.nanmedian(e.y[:, 0]))
     start = float(np.median(rest))
     return tuple(
         dataclasses.replace(p, initial=start)

@@ -31,9 +31,14 @@ def execute(source: Path, timeout_s: int = 1800):
     import nbclient
 
     nb = jupytext.read(source)
-    nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
-    client = nbclient.NotebookClient(nb, timeout=timeout_s, kernel_name="python3",
-                                     resources={"metadata": {"path": str(HERE)}})
+    nb.metadata["kernelspec"] = {
+        "name": "python3",
+        "display_name": "Python 3",
+        "language": "python",
+    }
+    client = nbclient.NotebookClient(
+        nb, timeout=timeout_s, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}
+    )
     # The kernel must use its own inline backend (headless, figures become PNG outputs); a
     # MPLBACKEND=Agg inherited from a test run would silently swallow every plt.show().
     env = {k: v for k, v in os.environ.items() if k != "MPLBACKEND"}

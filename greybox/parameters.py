@@ -55,3 +55,11 @@ def set_values(model, paths, values):
     getters = [getter(p) for p in paths]
     converted = [jnp.asarray(v, dtype=float) for v in values]
     return eqx.tree_at(lambda m: [g(m) for g in getters], model, converted)
+
+
+def with_overrides(model, overrides: dict):
+    """`model` with keyword overrides applied: ``thermal__tau_s=0.05`` sets ``thermal.tau_s``
+    (what every device module's ``default_model(**overrides)`` accepts)."""
+    if not overrides:
+        return model
+    return set_values(model, [k.replace("__", ".") for k in overrides], list(overrides.values()))

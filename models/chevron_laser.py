@@ -27,9 +27,9 @@ from greybox.blocks.mechanics import (
 from greybox.blocks.spot import GaussianSpot, RectangularFrame
 from greybox.blocks.thermal import AbstractThermal, FirstOrderThermal
 from greybox.channels import DISPLACEMENT, LASER_POWER
-from greybox.device import AbstractDevice
 from greybox.freeparams import FreeParameter
-from greybox.parameters import ParameterInfo
+from greybox.parameters import ParameterInfo, with_overrides
+from models._thermal_chevron import AbstractThermalChevron
 
 NAME = "chevron_laser"
 INPUTS = (LASER_POWER,)
@@ -54,7 +54,7 @@ NOMINAL_TAU_S = 0.040
 NOMINAL_RESISTANCE_K_PER_W = NOMINAL_TAU_S / _nominal_heat_capacity()
 
 
-class LaserChevron(AbstractDevice):
+class LaserChevron(AbstractThermalChevron):
     """A chevron actuator heated by a laser spot on its pad; output = shuttle displacement [m]."""
 
     spot: GaussianSpot
@@ -69,18 +69,6 @@ class LaserChevron(AbstractDevice):
     heated_node: int = eqx.field(static=True, default=0)
 
     @property
-    def n_states(self) -> int:
-        return self.thermal.n_states
-
-    @property
-    def n_inputs(self) -> int:
-        return 1
-
-    @property
-    def n_outputs(self) -> int:
-        return 1
-
-    @property
     def is_linear(self) -> bool:
         return self.thermal.is_linear
 
@@ -88,23 +76,13 @@ class LaserChevron(AbstractDevice):
         """Absorbed watts per watt of laser at the sample: A F."""
         return self.absorptance * self.target.fraction(self.spot)
 
-    def initial_state(self):
-        return jnp.full((self.n_states,), self.initial_rise_K, dtype=float)
-
-    def vector_field(self, t, x, u):
-        q = self.absorbed_fraction() * u
-        return self.thermal.derivative(x, jnp.broadcast_to(q, (self.thermal.n_inputs,)))
+    def heat_W(self, u, x):
+        q = self.absorbed_fraction() * jnp.reshape(u, (-1,))[0]
+        return jnp.broadcast_to(q, (self.thermal.n_inputs,))
 
     def linear_dynamics(self):
         a, b = self.thermal.linear_matrices()
         return a, b * self.absorbed_fraction()
-
-    def stroke(self, theta_node_K):
-        """Shuttle displacement [m] for a heated-node rise [K] (the static nonlinearity)."""
-        return self.shuttle(self.kinematics(self.elongation(theta_node_K)))
-
-    def output(self, x):
-        return jnp.reshape(self.stroke(x[self.heated_node]), (1,))
 
     def static_gain_m_per_W(self):
         """Small-signal steady-state displacement per watt of laser [m/W] (linearised at 0)."""
@@ -137,13 +115,7 @@ def default_model(
         shuttle=QuasiStaticShuttle(stiffness_N_per_m=241.5),
         camera=Camera(m_per_px=m_per_px, exposure_s=exposure_s),
     )
-    if overrides:
-        from greybox.parameters import set_values
-
-        model = set_values(
-            model, [k.replace("__", ".") for k in overrides], list(overrides.values())
-        )
-    return model
+    return with_overrides(model, overrides)
 
 
 PARAMETERS = (

@@ -44,9 +44,9 @@ from greybox.blocks.mechanics import (
 )
 from greybox.blocks.thermal import AbstractThermal, FirstOrderThermal
 from greybox.channels import DISPLACEMENT, Channel
-from greybox.device import AbstractDevice
 from greybox.freeparams import FreeParameter
-from greybox.parameters import ParameterInfo
+from greybox.parameters import ParameterInfo, with_overrides
+from models._thermal_chevron import AbstractThermalChevron
 
 NAME = "electrothermal_chevron"
 VOLTAGE = Channel("V", "V", {"V": (1.0, 0.0), "mV": (1e-3, 0.0)}, "voltage across the chevron")
@@ -66,7 +66,7 @@ NOMINAL_R0_OHM = 2000.0
 NOMINAL_TCR_PER_K = 1e-3
 
 
-class ElectrothermalChevron(AbstractDevice):
+class ElectrothermalChevron(AbstractThermalChevron):
     """A Joule-heated chevron; input = voltage [V], output = shuttle displacement [m].
 
     Never `is_linear` in the `simulate` sense (the input enters as V^2); when the TCR is 0 and the
@@ -88,18 +88,6 @@ class ElectrothermalChevron(AbstractDevice):
     heated_node: int = eqx.field(static=True, default=0)
 
     @property
-    def n_states(self) -> int:
-        return self.thermal.n_states
-
-    @property
-    def n_inputs(self) -> int:
-        return 1
-
-    @property
-    def n_outputs(self) -> int:
-        return 1
-
-    @property
     def is_linear(self) -> bool:
         return False  # the heat input is V^2 / R: nonlinear in the input even at tcr = 0
 
@@ -108,16 +96,10 @@ class ElectrothermalChevron(AbstractDevice):
         """True when dx/dt = A x + B g(u) (constant resistance, linear thermal block)."""
         return self.thermal.is_linear and self.joule.is_state_independent
 
-    def initial_state(self):
-        return jnp.full((self.n_states,), self.initial_rise_K, dtype=float)
-
     def heat_W(self, u, x):
         """Heat input (thermal.n_inputs,) [W] for input `u` (1,) [V] and state `x`."""
         q = self.joule.power_W(jnp.reshape(u, (-1,))[0], x[self.heated_node])
         return jnp.broadcast_to(q, (self.thermal.n_inputs,))
-
-    def vector_field(self, t, x, u):
-        return self.thermal.derivative(x, self.heat_W(u, x))
 
     def linear_dynamics(self):
         raise ValueError(
@@ -133,13 +115,6 @@ class ElectrothermalChevron(AbstractDevice):
             return self.heat_W(u, jnp.zeros(self.n_states))
 
         return a, b, heat
-
-    def stroke(self, theta_node_K):
-        """Shuttle displacement [m] for a heated-node rise [K] (the static nonlinearity)."""
-        return self.shuttle(self.kinematics(self.elongation(theta_node_K)))
-
-    def output(self, x):
-        return jnp.reshape(self.stroke(x[self.heated_node]), (1,))
 
     def dc_rise_K(self, voltage_V):
         """Steady heated-node rise [K] under a constant voltage (closed form, one-node model)."""
@@ -207,13 +182,7 @@ def default_model(*, exact: bool = True, **overrides) -> ElectrothermalChevron:
         shuttle=QuasiStaticShuttle(stiffness_N_per_m=stiffness),
         camera=Camera(m_per_px=1e-6, exposure_s=0.0),
     )
-    if overrides:
-        from greybox.parameters import set_values
-
-        model = set_values(
-            model, [k.replace("__", ".") for k in overrides], list(overrides.values())
-        )
-    return model
+    return with_overrides(model, overrides)
 
 
 PARAMETERS = (

@@ -33,7 +33,7 @@ from greybox.blocks.thermal import STEFAN_BOLTZMANN, ThermalNetwork
 from greybox.channels import Channel
 from greybox.device import AbstractDevice
 from greybox.freeparams import FreeParameter
-from greybox.parameters import ParameterInfo
+from greybox.parameters import ParameterInfo, with_overrides
 
 NAME = "tclab"
 _PCT = {"pct": (1.0, 0.0)}
@@ -175,13 +175,7 @@ def default_model(*, radiation: bool = True, shared_sensor_lag: bool = False, **
         radiation=radiation,
         shared_sensor_lag=shared_sensor_lag,
     )
-    if overrides:
-        from greybox.parameters import set_values
-
-        model = set_values(
-            model, [k.replace("__", ".") for k in overrides], list(overrides.values())
-        )
-    return model
+    return with_overrides(model, overrides)
 
 
 PARAMETERS = (

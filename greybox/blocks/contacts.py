@@ -73,7 +73,13 @@ class PlayContacts(eqx.Module):
     - `dimple_forward_N`, `dimple_backward_N`: body (dimple) capacities F_d+ / F_d- [N].
     - `stiffness_N_per_m`: actuator-plus-leg stiffness k [N/m].
     - `clip_eps_m`: play clip smoothing width [m] (<= 0.2 nm converges, §8.2).
-    - `force_scale_N`, `beta`: soft-min / contact-selection sharpness (s = 1 uN, beta = 50).
+    - `slip_eps_m`: width of the slip-direction split; far below any per-step increment (a
+      width near the increments of a slowly cooling tail books part of them to neither
+      direction), and harmless for gradients since d(du sigmoid(du/eps))/d(du) <= 1.1.
+    - `force_scale_N`, `beta`: soft-min / contact-selection sharpness, width s/beta (s = 1 uN,
+      beta = 500: 2 nN). A width comparable to the gap between two capacities (beta = 50,
+      20 nN, against F_d-/2 - F_f+ = 50 nN) books ~8 % of every increment to the wrong
+      contact, biases the step and makes F_f+ seem identifiable apart from W (it is not).
     """
 
     foot_forward_N: float
@@ -82,13 +88,18 @@ class PlayContacts(eqx.Module):
     dimple_backward_N: float
     stiffness_N_per_m: float
     clip_eps_m: float = 1e-10
+    slip_eps_m: float = 1e-14
     force_scale_N: float = 1e-6
-    beta: float = 50.0
+    beta: float = 500.0
 
     def band_N(self):
         """(F_a, F_b): forward / backward actuator force at which a contact first slips."""
-        fa = soft_min_force(self.foot_forward_N, self.dimple_backward_N, self.force_scale_N, self.beta)
-        fb = soft_min_force(self.foot_backward_N, self.dimple_forward_N, self.force_scale_N, self.beta)
+        fa = soft_min_force(
+            self.foot_forward_N, self.dimple_backward_N, self.force_scale_N, self.beta
+        )
+        fb = soft_min_force(
+            self.foot_backward_N, self.dimple_forward_N, self.force_scale_N, self.beta
+        )
         return fa, fb
 
     def play_width_m(self):
@@ -104,10 +115,14 @@ class PlayContacts(eqx.Module):
         fa, fb = self.band_N()
         k = self.stiffness_N_per_m
         new = smooth_clip(offset_m, stroke_m - fa / k, stroke_m + fb / k, self.clip_eps_m)
-        pos, neg = split_increment(new - offset_m, self.clip_eps_m)
+        pos, neg = split_increment(new - offset_m, self.slip_eps_m)
         s = self.force_scale_N
-        feet_slip_fwd = jax.nn.sigmoid(self.beta * (self.dimple_backward_N - self.foot_forward_N) / s)
-        body_slip_fwd = jax.nn.sigmoid(self.beta * (self.foot_backward_N - self.dimple_forward_N) / s)
+        feet_slip_fwd = jax.nn.sigmoid(
+            self.beta * (self.dimple_backward_N - self.foot_forward_N) / s
+        )
+        body_slip_fwd = jax.nn.sigmoid(
+            self.beta * (self.foot_backward_N - self.dimple_forward_N) / s
+        )
         return new, body_m - pos * (1.0 - feet_slip_fwd) + neg * body_slip_fwd
 
 
@@ -123,30 +138,40 @@ def _stop(tree):
     return jax.tree.map(jax.lax.stop_gradient, tree)
 
 
-def solve_convex(residual, x0, params, *, tol, max_iter=60, n_search=48):
+def solve_convex(residual, x0, params, *, tol, max_iter=60, n_search=48, jacobian=None):
     """Root of `residual(x, params)`, the gradient of a strictly convex potential.
 
     Damped Newton: along the Newton direction d the potential's slope phi'(t) = d.r(x + t d)
-    increases monotonically, so the step t is the largest of 1, 1/2, 1/4, ... with
-    phi'(t) <= 0 (all candidates evaluated at once): a guaranteed decrease, within a factor two
-    of the exact line minimum, and t = 1 (quadratic convergence) near the root. Iterations run
-    on stopped gradients; the result then gets an implicit-function correction whose value is
-    zero and whose derivative is -J^{-1} dr/dparams (the implicit-function theorem, in forward
-    and reverse mode) without differentiating the iterations. Stops at |r|_inf <= `tol` or
-    after `max_iter` Newton steps.
+    increases monotonically, so the step t is the largest of 1, 1/2, 1/4, ... (at most
+    `n_search` halvings) with phi'(t) <= 0, found by backtracking: a guaranteed decrease,
+    within a factor two of the exact line minimum, and t = 1 (quadratic convergence) near the
+    root; one or two residual evaluations per Newton step on average. Iterations run on stopped
+    gradients; the result then gets an implicit-function correction whose value is zero and
+    whose derivative is -J^{-1} dr/dparams (the implicit-function theorem, in forward and
+    reverse mode) without differentiating the iterations. Stops at |r|_inf <= `tol` or after
+    `max_iter` Newton steps. `jacobian(x, params)` (default: `jax.jacfwd(residual)`) may be a
+    cheaper closed form.
     """
     p_stop = _stop(params)
-    jac = jax.jacfwd(residual)
-    ts = 0.5 ** jnp.arange(n_search)
+    jac = jax.jacfwd(residual) if jacobian is None else jacobian
 
     def body(carry):
         x, r, it = carry
         d = -jnp.linalg.solve(jac(x, p_stop), r)
-        trial = x[None] + ts[:, None] * d[None]
-        rs = jax.vmap(lambda xt: residual(xt, p_stop))(trial)
-        descending = rs @ d <= 0.0
-        k = jnp.where(jnp.any(descending), jnp.argmax(descending), n_search - 1)
-        return trial[k], rs[k], it + 1
+
+        def shorter(c):
+            t, _, _, k = c
+            trial = x + 0.5 * t * d
+            return 0.5 * t, trial, residual(trial, p_stop), k + 1
+
+        def uphill(c):
+            _, _, rt, k = c
+            return (rt @ d > 0.0) & (k < n_search - 1)
+
+        full = x + d
+        start = (1.0, full, residual(full, p_stop), 0)
+        _, x_new, r_new, _ = jax.lax.while_loop(uphill, shorter, start)
+        return x_new, r_new, it + 1
 
     def cond(carry):
         _, r, it = carry
@@ -173,12 +198,25 @@ class FrictionLaw(eqx.Module):
     viscous_N_s_per_m: float = 1e-5
 
     def __call__(self, v, forward_N, backward_N):
-        return directional_friction_N(v, forward_N, backward_N, self.v_eps_m_per_s, self.delta,
-                                      self.viscous_N_s_per_m)
+        return directional_friction_N(
+            v, forward_N, backward_N, self.v_eps_m_per_s, self.delta, self.viscous_N_s_per_m
+        )
 
 
-def implicit_friction_step(law: FrictionLaw, jacobian, forward_N, backward_N, spring_N_per_m,
-                           coords, rest, h_s, v_guess, *, tol_N=1e-15, max_iter=40):
+def implicit_friction_step(
+    law: FrictionLaw,
+    jacobian,
+    forward_N,
+    backward_N,
+    spring_N_per_m,
+    coords,
+    rest,
+    h_s,
+    v_guess,
+    *,
+    tol_N=1e-15,
+    max_iter=40,
+):
     """Generalised velocities v (n,) [m/s or rad/s] of one implicit-Euler quasi-static step.
 
     Solves J^T f(J v) + K (coords + h v - rest) = 0: contact slip velocities J v (m,) with
@@ -190,8 +228,17 @@ def implicit_friction_step(law: FrictionLaw, jacobian, forward_N, backward_N, sp
         jac, fwd, bwd, k, q, r, h = p
         return jac.T @ law(jac @ v, fwd, bwd) + k * (q + h * v - r)
 
+    def residual_jacobian(v, p):
+        # J^T diag(f'(J v)) J + diag(k h): one elementwise derivative of the law instead of
+        # differentiating the whole residual along n directions
+        jac, fwd, bwd, k, _, _, h = p
+        slope = jax.jvp(lambda w: law(w, fwd, bwd), (jac @ v,), (jnp.ones(jac.shape[0]),))[1]
+        return jac.T @ (slope[:, None] * jac) + jnp.diag(k * h)
+
     params = (jacobian, forward_N, backward_N, spring_N_per_m, coords, rest, h_s)
-    return solve_convex(residual, v_guess, (params), tol=tol_N, max_iter=max_iter)
+    return solve_convex(
+        residual, v_guess, params, tol=tol_N, max_iter=max_iter, jacobian=residual_jacobian
+    )
 
 
 class FrictionContacts(eqx.Module):

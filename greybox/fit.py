@@ -553,8 +553,7 @@ def parameter_estimates(
         if verdict == "not identifiable" or not np.isfinite(sd_raw[k]):
             se, ci = float("nan"), (float("nan"), float("nan"))
         else:
-            deriv = float(jax.grad(lambda r, p=p: p.to_value(r))(raw[k]))
-            se = abs(deriv) * sd_raw[k]
+            se = abs(p.value_derivative(raw[k])) * sd_raw[k]
             lo, hi = (float(p.to_value(raw[k] + s * Z95 * sd_raw[k])) for s in (-1, 1))
             ci = (min(lo, hi), max(lo, hi))
         prior = (p.prior_median, p.prior_log_sd) if p.has_prior else None

@@ -101,6 +101,16 @@ class FreeParameter:
             return self.lower + jnp.exp(raw)
         return self.scale * raw
 
+    def value_derivative(self, raw) -> float:
+        """d(value)/d(raw) at `raw` (closed form; used for standard errors and priors)."""
+        raw = float(raw)
+        if self.transform == "logit":
+            sig = 1.0 / (1.0 + np.exp(-raw))
+            return (self.upper - self.lower) * sig * (1.0 - sig)
+        if self.transform == "log":
+            return float(np.exp(raw))
+        return self.scale
+
     def raw_label(self) -> str:
         inner = self.path if self.lower in (None, 0, 0.0) else f"{self.path} - {self.lower:g}"
         return {

@@ -124,16 +124,20 @@ class Schedule:
 
 
 def _bucket(n: int) -> int:
-    """Round a length up to a power of two (>= 16) so similar data share one compilation."""
-    return max(16, 1 << (max(int(n), 1) - 1).bit_length())
+    """Round a length up so similar data share one compilation: to a power of two up to 256,
+    then to a multiple of 256 (padding costs scan steps, so large records are padded less)."""
+    n = max(int(n), 1)
+    if n <= 256:
+        return max(16, 1 << (n - 1).bit_length())
+    return -(-n // 256) * 256
 
 
 def pad_schedules(schedules: Sequence[Schedule]) -> dict:
     """Stack schedules of different lengths into equal-shape arrays for `jax.vmap`.
 
-    Lengths are rounded up to powers of two, so runs of similar size reuse one compiled
-    function. Padding is inert: ZOH intervals of length 0 (identity step), evaluation instants
-    repeated at the end, breakpoints and jump times pushed past the end of the record.
+    Lengths are rounded up (`_bucket`), so runs of similar size reuse one compiled function.
+    Padding is inert: ZOH intervals of length 0 (identity step), evaluation instants repeated
+    at the end, breakpoints and jump times pushed past the end of the record.
     """
     n_frames = _bucket(max(s.t_s.size for s in schedules))
     n_int = _bucket(max(s.dt.size for s in schedules))

@@ -170,8 +170,15 @@ def test_parameter_draws_reproduce_the_reported_uncertainty(thesis_fit):
     from greybox.prediction import propagate
 
     _, result = thesis_fit
-    taus = propagate(lambda m: m.thermal.tau_s, result.model, result.free, result.raw,
-                     result.covariance_raw, 4000, seed=3)
+    taus = propagate(
+        lambda m: m.thermal.tau_s,
+        result.model,
+        result.free,
+        result.raw,
+        result.covariance_raw,
+        4000,
+        seed=3,
+    )
     est = result.estimate("thermal.tau_s")
     assert np.mean(taus) == pytest.approx(est.value, abs=0.1 * est.se)
     assert np.std(taus) == pytest.approx(est.se, rel=0.1)

@@ -206,3 +206,24 @@ def propagate(fn, model, free, raw, covariance_raw, n: int, *, seed: int = 0) ->
     draws = jnp.asarray(raw_draws(raw, covariance_raw, free, n, seed=seed))
     base = as_arrays(model)
     return np.asarray(jax.jit(jax.vmap(lambda r: fn(with_shared(base, free, r))))(draws))
+
+
+def delta_method(fn, model, free, raw, covariance_raw) -> tuple[np.ndarray, np.ndarray]:
+    """(value, covariance) of `fn(model)` to first order in a fit's shared raw parameters.
+
+    `fn(model) -> array` must be differentiable in the parameters (no argmax, bisection or
+    thresholds: use `propagate` for those). Its Jacobian J with respect to the shared raw
+    coordinates gives cov = J C J^T. Raises ValueError if C is not finite for them.
+    """
+    n_shared = sum(not p.per_experiment for p in free)
+    cov = np.asarray(covariance_raw, dtype=float)[:n_shared, :n_shared]
+    if not np.all(np.isfinite(cov)):
+        raise ValueError(
+            "covariance_raw: not finite for the shared parameters (a parameter is "
+            "not identifiable); the delta method needs a finite covariance"
+        )
+    base = as_arrays(model)
+    of_raw = jax.jit(lambda r: jnp.atleast_1d(fn(with_shared(base, free, r))))
+    r0 = jnp.asarray(raw, dtype=float)[:n_shared]
+    jac = np.asarray(jax.jacfwd(of_raw)(r0)).reshape(-1, n_shared)
+    return np.asarray(of_raw(r0)), jac @ cov @ jac.T

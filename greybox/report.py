@@ -23,12 +23,30 @@ VERDICT_MEANING = {
 }
 
 
+_PREFIXES = ((1e-3, "k"), (1.0, ""), (1e3, "m"), (1e6, "u"), (1e9, "n"), (1e12, "p"))
+
+
 def display_unit(unit: str, value: float | None = None) -> tuple[float, str]:
     """(factor, readable unit) for an SI unit: m -> um, W -> mW, s -> ms (when `value` is
-    under 1 s or not given); others unchanged."""
+    under 1 s or not given); other units get an SI prefix when `value` is tiny or huge."""
     if unit == "s" and value is not None and np.isfinite(value) and abs(value) >= 1.0:
         return 1.0, "s"
-    return _DISPLAY.get(unit, (1.0, unit))
+    if unit in _DISPLAY:
+        return _DISPLAY[unit]
+    # Other units get an SI prefix when the number would otherwise be unreadable
+    # (2.4e-7 J/K -> 240 nJ/K); not on units led by K (kK/W would mislead) or dimensionless ones.
+    if (
+        value is not None
+        and np.isfinite(value)
+        and value != 0
+        and unit
+        and unit[0] not in "K%1-"
+        and not 1e-2 <= abs(value) < 1e4
+    ):
+        for factor, prefix in _PREFIXES:
+            if abs(value) * factor >= 1.0 or factor == _PREFIXES[-1][0]:
+                return factor, prefix + unit
+    return 1.0, unit
 
 
 def fmt(x, digits: int = 4) -> str:

@@ -388,20 +388,16 @@ def play_width_estimate(result) -> tuple[float, float]:
 
     Delta method on the fit's raw covariance: W is what pose data identify even when the
     friction capacities and the stiffness are each prior-dominated."""
-    shared = [p for p in result.free if not p.per_experiment]
-    raw_shared = jnp.asarray(result.raw[: len(shared)])
+    from greybox.prediction import delta_method
 
-    def width(raw):
-        m = set_values(
-            result.model,
-            [p.path for p in shared],
-            [p.to_value(raw[k]) for k, p in enumerate(shared)],
-        )
-        return m.locomotion.play_width_m()
-
-    grad = np.asarray(jax.grad(width)(raw_shared))
-    cov = np.asarray(result.covariance_raw)[: len(shared), : len(shared)]
-    return float(width(raw_shared)), float(np.sqrt(grad @ cov @ grad))
+    value, cov = delta_method(
+        lambda m: m.locomotion.play_width_m(),
+        result.model,
+        result.free,
+        result.raw,
+        result.covariance_raw,
+    )
+    return float(value[0]), float(np.sqrt(cov[0, 0]))
 
 
 __all__ = [

@@ -54,8 +54,7 @@ from greybox import gait  # noqa: E402
 from greybox.fit import fit, validate  # noqa: E402
 from greybox.io.experiment_files import load_experiment_set  # noqa: E402
 from greybox.parameters import set_values  # noqa: E402
-from greybox.prediction import propagate, with_shared  # noqa: E402
-from greybox.simulate import as_arrays  # noqa: E402
+from greybox.prediction import delta_method, propagate  # noqa: E402
 from models import microrobot  # noqa: E402
 
 T_START = time.perf_counter()
@@ -312,21 +311,12 @@ for line in result.identifiability.summary():
 # region.
 
 # %%
-n_shared = sum(not p.per_experiment for p in result.free)
-raw_hat = jnp.asarray(result.raw[:n_shared])
-cov = np.asarray(result.covariance_raw)[:n_shared, :n_shared]
-
-
-def delta_method(fn, model):
-    """(value, covariance) of fn(model) to first order in the fit's shared raw parameters."""
-    base = as_arrays(model)
-    of_raw = jax.jit(lambda r: fn(with_shared(base, result.free, r)))
-    jac = np.asarray(jax.jacfwd(of_raw)(raw_hat))
-    return np.asarray(of_raw(raw_hat)), jac @ cov @ jac.T
-
-
 gain_and_width, v = delta_method(
-    lambda m: jnp.stack([m.absorptance_left, m.locomotion.play_width_m()]), result.model
+    lambda m: jnp.stack([m.absorptance_left, m.locomotion.play_width_m()]),
+    result.model,
+    result.free,
+    result.raw,
+    result.covariance_raw,
 )
 miss = gain_and_width - np.array(
     [truth["parameters"]["absorptance_left"]["value"], truth["play_width_m"]["value"]]
@@ -394,7 +384,7 @@ def speeds(m):
     return gait.speed_vs_period(m, jnp.asarray(periods), DUTY, POWER_W)["speed_m_per_s"]
 
 
-fitted_curve, v = delta_method(speeds, fitted_robot)
+fitted_curve, v = delta_method(speeds, fitted_robot, result.free, result.raw, result.covariance_raw)
 sd_curve = np.sqrt(np.clip(np.diag(v), 0.0, None))
 true_curve = np.asarray(jax.jit(speeds)(true_robot))
 drawn = propagate(

@@ -205,3 +205,15 @@ def test_rest_level_and_uniform_grid_for_blackbox_models():
     np.testing.assert_allclose(np.interp([0.1, 0.35], grid, data.y[:, 0]), [0.15, 0.95], atol=1e-9)
     with pytest.raises(ValueError, match="rest level"):
         bb.uniform_from_experiment(Experiment("late", t[5:], y[5:], w), 0.05)
+
+
+def test_delta_method_matches_reported_standard_error(thesis_fit):
+    from greybox.prediction import delta_method
+
+    _, result = thesis_fit
+    est = result.estimate("thermal.tau_s")
+    value, cov = delta_method(
+        lambda m: m.thermal.tau_s, result.model, result.free, result.raw, result.covariance_raw
+    )
+    assert value[0] == pytest.approx(est.value, rel=1e-12)
+    assert np.sqrt(cov[0, 0]) == pytest.approx(est.se, rel=1e-9)

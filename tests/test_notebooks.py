@@ -1,8 +1,9 @@
 """Every notebook executes headless, and committed outputs are never stale.
 
 Notebooks are jupytext percent scripts (`notebooks/*.py`): reviewable diffs, no outputs in
-the source. Executing them through nbclient (a real kernel, Agg backend) is what a user
-running them top to bottom does. Under CI=true the notebooks shrink their problem sizes.
+the source. Executing them through nbclient (a real kernel with the inline backend, which
+is headless) is what a user running them top to bottom does. Under CI=true the notebooks
+shrink their problem sizes.
 """
 
 import sys

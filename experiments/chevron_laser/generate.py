@@ -25,6 +25,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
+from greybox.io.experiment_writer import pulse_train_description, run_csv, run_table  # noqa: E402
 from greybox.parameters import get_value, set_values  # noqa: E402
 from greybox.synthetic import CameraDefects, record  # noqa: E402
 from greybox.waveforms import PulseTrain  # noqa: E402
@@ -55,26 +56,10 @@ LOGGED_RUN = "v2_12mW_500ms"  # also logs laser_mW (checked against its descript
 
 
 def _pulse(power_mW: float, period_ms: float) -> dict:
-    return {
-        "type": "pulse_train",
-        "power_mW": power_mW,
-        "period_ms": period_ms,
-        "duty": 0.5,
-        "n_pulses": int(round(PULSE_SPAN_S * 1e3 / period_ms)),
-        "delay_ms": DELAY_MS,
-        "tail_ms": TAIL_MS,
-    }
-
-
-def _inline(desc: dict) -> str:
-    items = []
-    for k, v in desc.items():
-        items.append(f'{k} = "{v}"' if isinstance(v, str) else f"{k} = {v:g}")
-    return "{ " + ", ".join(items) + " }"
-
-
-def _fmt(v: float, digits: int) -> str:
-    return "nan" if not np.isfinite(v) else f"{v:.{digits}f}"
+    n_pulses = int(round(PULSE_SPAN_S * 1e3 / period_ms))
+    return pulse_train_description(
+        power_mW, period_ms, n_pulses=n_pulses, delay_ms=DELAY_MS, tail_ms=TAIL_MS
+    )
 
 
 def main(argv=None) -> None:
@@ -116,16 +101,10 @@ def main(argv=None) -> None:
         y_px = exp.y[:, 0] / m_per_px
         logged = name == LOGGED_RUN
         laser_mW = np.asarray(wave(exp.t_s)) * 1e3
-        lines = ["t_s,y_px" + (",laser_mW" if logged else "")]
-        for k in range(exp.n_frames):
-            row = f"{exp.t_s[k]:.6f},{_fmt(y_px[k], 4)}"
-            lines.append(row + (f",{laser_mW[k]:g}" if logged else ""))
-        (out / f"{name}.csv").write_text("\n".join(lines) + "\n")
+        columns = {"y_px": (y_px, 4), **({"laser_mW": (laser_mW, None)} if logged else {})}
+        (out / f"{name}.csv").write_text(run_csv(exp.t_s, columns))
         n_frames[name] = exp.n_frames
-        run_toml.append(
-            f'[[runs]]\nname = "{name}"\nfile = "{name}.csv"\nrole = "{role}"\n'
-            f"waveform = {_inline(desc)}\n"
-        )
+        run_toml.append(run_table(name, role, desc))
 
     n_est = sum(n_frames[r[0]] for r in ESTIMATION)
     n_val = sum(n_frames[r[0]] for r in VALIDATION)

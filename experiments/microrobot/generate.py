@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import numpy as np  # noqa: E402
 
+from greybox.io.experiment_writer import pulse_train_description, run_csv, run_table  # noqa: E402
 from greybox.parameters import get_value, set_values  # noqa: E402
 from greybox.synthetic import CameraDefects, record  # noqa: E402
 from greybox.waveforms import PulseTrain  # noqa: E402
@@ -65,26 +66,10 @@ COLUMNS = ("f1_x_px", "f1_y_px", "f2_x_px", "f2_y_px")
 
 
 def _pulse(power_mW: float, period_ms: float) -> dict:
-    return {
-        "type": "pulse_train",
-        "power_mW": power_mW,
-        "period_ms": period_ms,
-        "duty": 0.5,
-        "n_pulses": int(round(PULSE_SPAN_S * 1e3 / period_ms)),
-        "delay_ms": DELAY_MS,
-        "tail_ms": TAIL_MS,
-    }
-
-
-def _inline(desc: dict) -> str:
-    items = []
-    for k, v in desc.items():
-        items.append(f'{k} = "{v}"' if isinstance(v, str) else f"{k} = {v:g}")
-    return "{ " + ", ".join(items) + " }"
-
-
-def _fmt(v: float) -> str:
-    return "nan" if not np.isfinite(v) else f"{v:.4f}"
+    n_pulses = int(round(PULSE_SPAN_S * 1e3 / period_ms))
+    return pulse_train_description(
+        power_mW, period_ms, n_pulses=n_pulses, delay_ms=DELAY_MS, tail_ms=TAIL_MS
+    )
 
 
 def main(argv=None) -> None:
@@ -136,16 +121,10 @@ def main(argv=None) -> None:
         )
         motion_um[name] = float(np.hypot(*(clean[-1, :2] - clean[0, :2])) * 1e6)
         y_px = exp.y / m_per_px
-        lines = ["t_s," + ",".join(COLUMNS)]
-        for k in range(exp.n_frames):
-            lines.append(f"{exp.t_s[k]:.6f}," + ",".join(_fmt(v) for v in y_px[k]))
-        (out / f"{name}.csv").write_text("\n".join(lines) + "\n")
+        columns = {c: (y_px[:, j], 4) for j, c in enumerate(COLUMNS)}
+        (out / f"{name}.csv").write_text(run_csv(exp.t_s, columns))
         n_frames[name] = exp.n_frames
-        run_toml.append(
-            f'[[runs]]\nname = "{name}"\nfile = "{name}.csv"\nrole = "{role}"\n'
-            f"waveform = {_inline(desc)}\n"
-            f'settings = {{ "spot.x_m" = {spot_x * 1e-6:g}, "spot.y_m" = {spot_y * 1e-6:g} }}\n'
-        )
+        run_toml.append(run_table(name, role, desc, settings))
 
     n_est = sum(n_frames[r[0]] for r in ESTIMATION)
     n_val = sum(n_frames[r[0]] for r in VALIDATION)

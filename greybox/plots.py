@@ -24,17 +24,21 @@ def _figure(width: float, height: float):
 
 
 def _steps(wave, t0: float, t1: float):
-    """(t, level) arrays that draw a piecewise-constant waveform over [t0, t1] with `step`."""
+    """(t, levels (n, channels)) that draw a piecewise-constant waveform over [t0, t1]."""
     times = np.asarray(wave.times_s, dtype=float)
-    levels = np.asarray(wave.values, dtype=float).reshape(times.size, -1)[:, 0]
+    levels = np.asarray(wave.values, dtype=float).reshape(times.size, -1)
     t = np.concatenate([[min(t0, times[0])], times, [max(t1, wave.end_s)]])
-    v = np.concatenate([[0.0], levels, [levels[-1]]])
+    v = np.concatenate([np.zeros((1, levels.shape[1])), levels, levels[-1:]])
     return t, v
 
 
 def _rest_reference(model_y: np.ndarray) -> float:
     finite = model_y[np.isfinite(model_y)]
     return float(finite[0]) if finite.size else 0.0
+
+
+def _columns(a, n: int) -> np.ndarray:
+    return np.asarray(a, dtype=float).reshape(n, -1)
 
 
 def run_figure(
@@ -46,46 +50,64 @@ def run_figure(
     y,
     y_model,
     inputs,
-    sigma: float,
+    sigma,
     fit_percent: float,
-    output_label: tuple = ("shuttle displacement", "m"),
-    input_label: tuple = ("laser power", "W"),
+    outputs: tuple = (("shuttle displacement", "m"),),
+    input_labels: tuple = (("laser power", "W"),),
 ) -> None:
-    """Measured vs model for one run, with the input waveform in a panel beneath.
+    """Measured vs model for one run, one panel per output, the input waveform(s) beneath.
 
-    `y`, `y_model`: camera readings (N,) in SI; displayed relative to the model's reading at
-    the first frame (the rest position, which absorbs the camera offset). Frames further
-    than the outlier threshold from the model are marked.
+    `y`, `y_model`: readings (N,) or (N, n_y) in SI; `sigma`: noise per output (SI);
+    `outputs`, `input_labels`: (label, SI unit) per output / input channel. Outputs are shown
+    relative to the model's reading at the first frame (the rest position, which absorbs the
+    camera offset); frames further than the outlier threshold from the model are marked.
     """
-    fy, uy = display_unit(output_label[1])
-    fu, uu = display_unit(input_label[1])
-    t = np.asarray(t_s)
-    ref = _rest_reference(np.asarray(y_model))
-    meas = (np.asarray(y) - ref) * fy
-    model = (np.asarray(y_model) - ref) * fy
-    outlier = np.abs(np.asarray(y) - np.asarray(y_model)) > OUTLIER_SIGMAS * sigma
-    fig = _figure(9.0, 5.2)
-    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[3, 1])
-    top.plot(t, meas, ".", ms=3.5, color="0.35", label="measured (camera)")
-    top.plot(
-        t, model, "-", lw=1.3, color="C0", label="model (free-run simulation, at the frame times)"
-    )
-    if outlier.any():
+    t = np.asarray(t_s, dtype=float)
+    y, y_model = _columns(y, t.size), _columns(y_model, t.size)
+    n_y = y.shape[1]
+    sig = np.broadcast_to(np.asarray(sigma, dtype=float), (n_y,))
+    fig = _figure(9.0, 2.2 + 3.0 * n_y)
+    axes = fig.subplots(n_y + 1, 1, sharex=True, height_ratios=[3] * n_y + [1])
+    for j, top in enumerate(axes[:-1]):
+        label, unit = outputs[j]
+        fy, uy = display_unit(unit)
+        ref = _rest_reference(y_model[:, j])
+        meas = (y[:, j] - ref) * fy
+        model = (y_model[:, j] - ref) * fy
+        outlier = np.abs(y[:, j] - y_model[:, j]) > OUTLIER_SIGMAS * sig[j]
+        top.plot(t, meas, ".", ms=3.5, color="0.35", label="measured")
         top.plot(
-            t[outlier],
-            meas[outlier],
-            "x",
-            ms=6,
-            color="C3",
-            label=f"outliers (> {OUTLIER_SIGMAS:g} sigma)",
+            t,
+            model,
+            "-",
+            lw=1.3,
+            color="C0",
+            label="model (free-run simulation, at the frame times)",
         )
-    top.set_ylabel(f"{output_label[0]} [{uy}]\n(relative to rest)")
-    top.set_title(f"{name} ({role}): simulation fit {fit_percent:.1f} %")
-    top.legend(loc="upper right", fontsize=8)
-    top.grid(alpha=0.3)
+        if outlier.any():
+            top.plot(
+                t[outlier],
+                meas[outlier],
+                "x",
+                ms=6,
+                color="C3",
+                label=f"outliers (> {OUTLIER_SIGMAS:g} sigma)",
+            )
+        top.set_ylabel(f"{label} [{uy}]\n(relative to rest)")
+        top.legend(loc="upper right", fontsize=8)
+        top.grid(alpha=0.3)
+    axes[0].set_title(f"{name} ({role}): simulation fit {fit_percent:.1f} %")
+    bottom = axes[-1]
     tt, vv = _steps(inputs, float(t.min()), float(t.max()))
-    bottom.step(tt, vv * fu, where="post", color="C1", lw=1.0)
-    bottom.set_ylabel(f"{input_label[0]}\n[{uu}]")
+    for k in range(vv.shape[1]):
+        label, unit = input_labels[min(k, len(input_labels) - 1)]
+        fu, uu = display_unit(unit)
+        bottom.step(
+            tt, vv[:, k] * fu, where="post", color=f"C{k + 1}", lw=1.0, label=f"{label} [{uu}]"
+        )
+    bottom.set_ylabel("input" if vv.shape[1] > 1 else f"{input_labels[0][0]}\n[{uu}]")
+    if vv.shape[1] > 1:
+        bottom.legend(loc="upper right", fontsize=7)
     bottom.set_xlabel("time [s]")
     bottom.grid(alpha=0.3)
     bottom.set_xlim(float(t.min()), float(t.max()))
@@ -93,13 +115,13 @@ def run_figure(
 
 
 def residuals_figure(
-    path, runs, *, sigma: float, output_label: tuple = ("shuttle displacement", "m")
+    path, runs, *, sigma: float, output: tuple = ("shuttle displacement", "m")
 ) -> None:
-    """Residuals (measured - model) per run, with +-sigma and the outlier threshold.
+    """Residuals (measured - model) of one output per run, with +-sigma and the outlier threshold.
 
-    `runs`: sequence of (name, role, t_s, y, y_model) in SI.
+    `runs`: sequence of (name, role, t_s, y, y_model) in SI (one output column each).
     """
-    fy, uy = display_unit(output_label[1])
+    fy, uy = display_unit(output[1])
     n = len(runs)
     cols = 3 if n > 4 else max(n, 1)
     rows = int(np.ceil(n / cols))
@@ -124,7 +146,7 @@ def residuals_figure(
     for ax in axes[::cols]:
         ax.set_ylabel(f"residual [{uy}]", fontsize=8)
     fig.suptitle(
-        f"Residuals, measured - model (dotted: +-sigma = {s:.3g} {uy}; dashed: "
+        f"{output[0]}: residuals, measured - model (dotted: +-sigma = {s:.3g} {uy}; dashed: "
         f"outlier threshold {OUTLIER_SIGMAS:g} sigma; clipped at 8 sigma)",
         fontsize=9,
     )
@@ -192,7 +214,7 @@ def band_figure(
     top.legend(loc="upper right", fontsize=8)
     top.grid(alpha=0.3)
     tt, vv = _steps(inputs, float(t.min()), float(t.max()))
-    bottom.step(tt, vv * fu, where="post", color="C1", lw=1.0)
+    bottom.step(tt, vv[:, 0] * fu, where="post", color="C1", lw=1.0)
     bottom.set_ylabel(f"{input_label[0]}\n[{uu}]")
     bottom.set_xlabel("time [s]")
     bottom.set_xlim(float(t.min()), float(t.max()))

@@ -108,23 +108,25 @@ def _run_rows(result, validation, runs) -> list[str]:
     sigma = float(np.asarray(result.sigma).reshape(-1)[0])
     rows = [
         "| run | role | input waveform | frames (valid) | outliers flagged | "
-        "fit % (simulation) | noise ceiling % |",
-        "|---|---|---|---|---|---|---|",
+        "fit % (simulation, all valid frames) | fit % without flagged frames | "
+        "noise ceiling % |",
+        "|---|---|---|---|---|---|---|---|",
     ]
 
-    def add(exps, fits, outliers, role):
-        for e in exps:
+    def add(res, role):
+        for e in res.experiments:
             r = info.get(e.name)
             valid = int(e.mask.all(axis=1).sum())
             rows.append(
                 f"| {e.name} | {role} | {r.waveform if r else '-'} | {e.n_frames} "
-                f"({valid}) | {outliers[e.name]} | {fmt(fits[e.name], 3)} | "
+                f"({valid}) | {res.n_outliers[e.name]} | {fmt(res.fit_percent[e.name], 3)} | "
+                f"{fmt(res.fit_percent_robust[e.name], 3)} | "
                 f"{fmt(noise_ceiling(e.y[:, 0], sigma), 3)} |"
             )
 
-    add(result.experiments, result.fit_percent, result.n_outliers, "estimation")
+    add(result, "estimation")
     if validation is not None:
-        add(validation.experiments, validation.fit_percent, validation.n_outliers, "validation")
+        add(validation, "validation")
     return rows
 
 
@@ -294,8 +296,10 @@ def fit_report(
         f"{sigma_u}**, estimated from the residuals (robust median-absolute-deviation scale), "
         "then the fit was repeated at that scale.",
         f"- Outliers flagged: **{n_out}** frames further than {OUTLIER_SIGMAS:g} sigma from the "
-        f"model (estimation runs); the {result.loss} loss limits their pull and fit % "
-        "leaves them out.",
+        f"model (estimation runs); the {result.loss} loss limits their pull. The headline "
+        "fit % counts every valid frame; the column beside it leaves the flagged frames out. "
+        "On a validation run, many flagged frames mean the model drifts from the data, not "
+        "that the camera failed.",
         f"- Frames: {n_frames} in estimation runs, {result.n_data} valid readings fitted; "
         f"{result.n_params} fitted values.",
         f"- Convergence: **{'converged' if result.converged else 'NOT CONVERGED'}**"

@@ -137,7 +137,8 @@ def test_fit_quality_is_at_the_noise_level(params, truth):
 def test_report_states_what_the_numbers_are(result):
     text = (result / "report.md").read_text()
     assert "free-run simulation" in text and "not one-step" in text
-    assert "fit % (simulation)" in text
+    assert "fit % (simulation, all valid frames)" in text
+    assert "fit % without flagged frames" in text
     assert "estimated from the residuals" in text
     assert "Outliers flagged" in text and "converged" in text
     assert "every fitted parameter is identifiable" in text

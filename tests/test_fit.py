@@ -45,7 +45,12 @@ def test_identifiable_parameters_recovered_within_3_se(thesis_fit):
     # the corrupted burst is flagged, not fitted; noise estimate close to the 0.05 um truth
     assert result.n_outliers["run4"] >= 5
     assert result.sigma[0] == pytest.approx(0.05e-6, rel=0.15)
-    assert min(result.fit_percent.values()) > 50
+    assert min(result.fit_percent_robust.values()) > 50
+    # fit % counts every valid frame: the corrupted burst costs run 4 real fit %, which the
+    # robust figure (flagged frames left out) recovers
+    assert result.fit_percent["run4"] < result.fit_percent_robust["run4"] - 10
+    others = [k for k in result.fit_percent if k != "run4"]
+    assert all(result.fit_percent[k] == result.fit_percent_robust[k] for k in others)
 
 
 def test_validation_runs_are_scored_in_simulation(truth, thesis_fit):

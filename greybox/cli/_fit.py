@@ -154,11 +154,9 @@ def write_figures(folder: Path, fs, result, validation) -> list[str]:
     """Per-run fit figures, residuals and correlation under `folder`/figures; relative paths."""
     from greybox import plots
 
-    out_ch, in_ch = fs.device.OUTPUTS[0], fs.device.INPUTS[0]
-    output = (out_ch.description or out_ch.name, out_ch.si_unit)
-    inp = (in_ch.description or in_ch.name, in_ch.si_unit)
+    outputs = tuple((c.description or c.name, c.si_unit) for c in fs.device.OUTPUTS)
+    inputs = tuple((c.description or c.name, c.si_unit) for c in fs.device.INPUTS)
     (folder / "figures").mkdir()
-    sigma = float(result.sigma[0])
     runs = [
         (e, "estimation", result.predict(i), result.fit_percent[e.name])
         for i, e in enumerate(result.experiments)
@@ -167,7 +165,7 @@ def write_figures(folder: Path, fs, result, validation) -> list[str]:
         runs += [
             (e, "validation", z, validation.fit_percent[e.name])
             for e, z in zip(validation.experiments, validation.predictions)
-        ]
+        ]  # figure titles: fit % on every valid frame (the headline number)
     names = []
     for e, role, z, pct in runs:
         name = f"figures/fit_{e.name}.png"
@@ -176,25 +174,33 @@ def write_figures(folder: Path, fs, result, validation) -> list[str]:
             name=e.name,
             role=role,
             t_s=e.t_s,
-            y=e.y[:, 0],
-            y_model=z[:, 0],
+            y=e.y,
+            y_model=z,
             inputs=e.inputs,
-            sigma=sigma,
+            sigma=result.sigma,
             fit_percent=pct,
-            output_label=output,
-            input_label=inp,
+            outputs=outputs,
+            input_labels=inputs,
         )
         names.append(name)
-    plots.residuals_figure(
-        folder / "figures/residuals.png",
-        [(e.name, role, e.t_s, e.y[:, 0], z[:, 0]) for e, role, z, _ in runs],
-        sigma=sigma,
-        output_label=output,
-    )
+    # one residuals figure per output channel (units and noise differ between channels)
+    for j, (channel, out) in enumerate(zip(fs.device.OUTPUTS, outputs)):
+        name = (
+            "figures/residuals.png"
+            if len(outputs) == 1
+            else f"figures/residuals_{channel.name}.png"
+        )
+        plots.residuals_figure(
+            folder / name,
+            [(e.name, role, e.t_s, e.y[:, j], z[:, j]) for e, role, z, _ in runs],
+            sigma=float(result.sigma[j]),
+            output=out,
+        )
+        names.append(name)
     plots.correlation_figure(
         folder / "figures/correlation.png", [p.name for p in result.parameters], result.correlation
     )
-    return names + ["figures/residuals.png", "figures/correlation.png"]
+    return names + ["figures/correlation.png"]
 
 
 def parameter_lines(result) -> list[str]:
@@ -218,15 +224,18 @@ def fit_lines(outcome: FitOutcome) -> list[str]:
 
     r, v = outcome.result, outcome.validation
     f, unit = display_unit(outcome.fitset.device.OUTPUTS[0].si_unit)
-    lines = [
-        "simulation fit % (estimation): "
-        + ", ".join(f"{k} {fmt(x, 3)}" for k, x in r.fit_percent.items())
-    ]
+
+    def scores(res) -> str:
+        out = []
+        for k, x in res.fit_percent.items():
+            n = res.n_outliers[k]
+            extra = f" ({fmt(res.fit_percent_robust[k], 3)} without {n} flagged)" if n else ""
+            out.append(f"{k} {fmt(x, 3)}{extra}")
+        return ", ".join(out)
+
+    lines = ["simulation fit % (estimation): " + scores(r)]
     if v is not None:
-        lines.append(
-            "simulation fit % (validation): "
-            + ", ".join(f"{k} {fmt(x, 3)}" for k, x in v.fit_percent.items())
-        )
+        lines.append("simulation fit % (validation): " + scores(v))
     lines.append(
         f"noise sigma {', '.join(fmt(float(s) * f, 3) for s in r.sigma)} {unit} "
         "(estimated), "

@@ -17,7 +17,8 @@ Schema (``"schema": "greybox.params/1"``):
   block per estimation run), from which `greybox.prediction` rebuilds a band;
   ``null_directions_raw``: directions of ``raw`` that nothing determined (usually none).
 - ``sigma``: noise scale per output [SI] and whether it was estimated.
-- ``fit_percent``: ``{"horizon": "simulation", "estimation": {run: %}, "validation":
+- ``fit_percent`` (every valid frame) and ``fit_percent_robust`` (flagged outliers left
+  out): ``{"horizon": "simulation", "estimation": {run: %}, "validation":
   {run: %}}``; ``runs``: frames, valid frames, outliers flagged per run.
 - ``convergence``: converged, message, steps, cost, loss, multi-start costs.
 - ``identifiability``: singular values, condition number, weak directions, summary lines.
@@ -119,9 +120,20 @@ def params_document(fitset, result, validation=None) -> dict:
         },
         "fit_percent": {
             "horizon": "simulation",
+            "frames": "all valid frames",
             "estimation": {k: _num(v) for k, v in result.fit_percent.items()},
             "validation": (
                 {k: _num(v) for k, v in validation.fit_percent.items()}
+                if validation is not None
+                else {}
+            ),
+        },
+        "fit_percent_robust": {
+            "horizon": "simulation",
+            "frames": "valid frames not flagged as outliers",
+            "estimation": {k: _num(v) for k, v in result.fit_percent_robust.items()},
+            "validation": (
+                {k: _num(v) for k, v in validation.fit_percent_robust.items()}
                 if validation is not None
                 else {}
             ),

@@ -6,7 +6,8 @@ H1, H2, T1, T2 in s, %, %, degC) and writes, next to this file, `two_heaters/` a
 T2_C; values unchanged, only renamed) and `experiment.toml` (known initial temperatures =
 first measurement, in K).
 
-Run: .venv/bin/python experiments/tclab/convert.py /work/shared/data/tclab_park2020_cace
+Run: .venv/bin/python experiments/tclab/convert.py SOURCE
+where SOURCE is the unpacked `CACE_2020_source` folder (see PROVENANCE.md for where it is from).
 """
 
 import sys
@@ -67,4 +68,6 @@ def main(source: Path) -> None:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1] if len(sys.argv) > 1 else "/work/shared/data/tclab_park2020_cace"))
+    if len(sys.argv) != 2:
+        sys.exit("usage: convert.py SOURCE  (the unpacked CACE_2020_source folder; see PROVENANCE.md)")
+    main(Path(sys.argv[1]))

@@ -69,5 +69,5 @@ def main(source: Path) -> None:
 
 if __name__ == "__main__":
     if len(sys.argv) != 2:
-        sys.exit("usage: convert.py SOURCE  (the unpacked CACE_2020_source folder; see PROVENANCE.md)")
+        sys.exit("usage: convert.py SOURCE  (the unpacked CACE_2020_source folder, PROVENANCE.md)")
     main(Path(sys.argv[1]))

@@ -50,6 +50,17 @@ def _nums(a):
     return [_num(v) if np.ndim(v) == 0 else _nums(v) for v in np.asarray(a, dtype=float)]
 
 
+def _fit_scores(field: str, frames: str, result, validation) -> dict:
+    """One simulation fit % table of params.json: {run: %} per role for `field`."""
+    val = getattr(validation, field) if validation is not None else {}
+    return {
+        "horizon": "simulation",
+        "frames": frames,
+        "estimation": {k: _num(v) for k, v in getattr(result, field).items()},
+        "validation": {k: _num(v) for k, v in val.items()},
+    }
+
+
 def params_document(fitset, result, validation=None) -> dict:
     """The `params.json` content (a plain dict) for a fit of `fitset` (an `ExperimentSet`)."""
     import greybox
@@ -118,26 +129,10 @@ def params_document(fitset, result, validation=None) -> dict:
             "estimated": True,
             "how": "robust (MAD) scale of the residuals",
         },
-        "fit_percent": {
-            "horizon": "simulation",
-            "frames": "all valid frames",
-            "estimation": {k: _num(v) for k, v in result.fit_percent.items()},
-            "validation": (
-                {k: _num(v) for k, v in validation.fit_percent.items()}
-                if validation is not None
-                else {}
-            ),
-        },
-        "fit_percent_robust": {
-            "horizon": "simulation",
-            "frames": "valid frames not flagged as outliers",
-            "estimation": {k: _num(v) for k, v in result.fit_percent_robust.items()},
-            "validation": (
-                {k: _num(v) for k, v in validation.fit_percent_robust.items()}
-                if validation is not None
-                else {}
-            ),
-        },
+        "fit_percent": _fit_scores("fit_percent", "all valid frames", result, validation),
+        "fit_percent_robust": _fit_scores(
+            "fit_percent_robust", "valid frames not flagged as outliers", result, validation
+        ),
         "runs": runs,
         "n_data": int(result.n_data),
         "convergence": {

@@ -25,10 +25,11 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
+from greybox.channels import LASER_POWER  # noqa: E402
+from greybox.io.experiment_files import waveform_from_description  # noqa: E402
 from greybox.io.experiment_writer import pulse_train_description, run_csv, run_table  # noqa: E402
 from greybox.parameters import get_value, set_values  # noqa: E402
 from greybox.synthetic import CameraDefects, record  # noqa: E402
-from greybox.waveforms import PulseTrain  # noqa: E402
 from models import chevron_laser  # noqa: E402
 
 SEED = 20120815
@@ -76,14 +77,7 @@ def main(argv=None) -> None:
     offsets_px, n_frames, run_toml = {}, {}, []
     for name, power, period, role in runs:
         desc = _pulse(power, period)
-        wave = PulseTrain(
-            power * 1e-3,
-            period * 1e-3,
-            desc["duty"],
-            desc["n_pulses"],
-            delay_s=DELAY_MS * 1e-3,
-            tail_s=TAIL_MS * 1e-3,
-        )
+        wave = waveform_from_description(desc, LASER_POWER, lambda msg, *_: ValueError(msg))[0]
         rest_px = round(REST_PX + rng.uniform(-REST_SPREAD_PX, REST_SPREAD_PX), 2)
         offsets_px[name] = rest_px
         run_model = set_values(truth_model, ["camera.offset_m"], [rest_px * m_per_px])

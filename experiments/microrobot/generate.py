@@ -28,10 +28,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import numpy as np  # noqa: E402
 
+from greybox.channels import LASER_POWER  # noqa: E402
+from greybox.io.experiment_files import waveform_from_description  # noqa: E402
 from greybox.io.experiment_writer import pulse_train_description, run_csv, run_table  # noqa: E402
 from greybox.parameters import get_value, set_values  # noqa: E402
 from greybox.synthetic import CameraDefects, record  # noqa: E402
-from greybox.waveforms import PulseTrain  # noqa: E402
 from models import microrobot  # noqa: E402
 
 SEED = 20240611
@@ -92,14 +93,7 @@ def main(argv=None) -> None:
     offsets_um, n_frames, motion_um, run_toml = {}, {}, {}, []
     for name, power, period, spot_x, spot_y, role in runs:
         desc = _pulse(power, period)
-        wave = PulseTrain(
-            power * 1e-3,
-            period * 1e-3,
-            desc["duty"],
-            desc["n_pulses"],
-            delay_s=DELAY_MS * 1e-3,
-            tail_s=TAIL_MS * 1e-3,
-        )
+        wave = waveform_from_description(desc, LASER_POWER, lambda msg, *_: ValueError(msg))[0]
         offset = np.round(rng.uniform(-START_SPREAD_UM, START_SPREAD_UM, 2), 3)
         offsets_um[name] = offset.tolist()
         settings = {"spot.x_m": spot_x * 1e-6, "spot.y_m": spot_y * 1e-6}

@@ -18,17 +18,24 @@ import os
 import time
 
 import jax
+import greybox
 
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 from scipy import integrate, optimize  # noqa: E402
 
-from greybox.fit import fit  # noqa: E402
-from greybox.parameters import set_values  # noqa: E402
-from greybox.synthetic import CameraDefects, record  # noqa: E402
-from greybox.waveforms import PulseTrain  # noqa: E402
-from models.chevron_laser import default_free_parameters, default_model  # noqa: E402
+from greybox._fit import fit  # noqa: E402
+from greybox._parameters import set_values  # noqa: E402
+from greybox._synthetic import CameraDefects, record  # noqa: E402
+from greybox._waveforms import PulseTrain  # noqa: E402
+CHEVRON = greybox.get_device("chevron_laser")
+default_model = CHEVRON.model
+
+
+def default_free_parameters():
+    return list(CHEVRON.free_parameters())
+
 
 RUNS = ((5, 0.2), (10, 0.4), (10, 0.6), (15, 0.8), (20, 1.0), (30, 0.5))
 TRUE = {"absorptance": 0.62, "thermal.tau_s": 0.045}

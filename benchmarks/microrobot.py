@@ -14,12 +14,13 @@ import sys
 import time
 
 import jax
+import greybox
 
 jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from greybox import gait  # noqa: E402
-from models import microrobot as mr  # noqa: E402
+mr = greybox.device_module("microrobot")  # noqa: E402
 
 CYCLES, STEPS_PER_CYCLE, PERIOD_S, POWER_W = 1000, 16, 0.016, 0.02
 
@@ -40,8 +41,8 @@ def timed(model) -> tuple[float, float, float]:
 
 def main() -> None:
     load_before = os.getloadavg()[0]
-    play_s, play_cpu, play_x = timed(mr.default_model(substeps=1))
-    det_s, det_cpu, det_x = timed(mr.default_model(substeps=1, contacts="friction"))
+    play_s, play_cpu, play_x = timed(mr.SPEC.model(substeps=1))
+    det_s, det_cpu, det_x = timed(mr.SPEC.model(substeps=1, contacts="friction"))
     load = max(load_before, os.getloadavg()[0])
     print(
         f"{CYCLES} cycles x {STEPS_PER_CYCLE} steps, period {PERIOD_S * 1e3:.0f} ms; "

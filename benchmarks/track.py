@@ -39,9 +39,9 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from greybox.cli import main as cli_main  # noqa: E402
-from greybox.io.video import iter_frames, probe, write_video  # noqa: E402
-from greybox.render import render_shuttle  # noqa: E402
-from greybox.tracking import (  # noqa: E402
+from greybox.io._video import iter_frames, probe, write_video  # noqa: E402
+from greybox._render import render_shuttle  # noqa: E402
+from greybox._tracking import (  # noqa: E402
     FeatureTracker,
     Roi,
     measure_sequence,

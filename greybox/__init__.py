@@ -1,30 +1,71 @@
-"""greybox: grey-box identification of laser-actuated thermal MEMS from camera data.
+"""greybox: grey-box identification of physical device models from measured data.
 
 The core is pure (no file I/O, printing, plotting or global JAX configuration). Enable
 float64 in your program before fitting: ``jax.config.update("jax_enable_x64", True)``.
+
+Everything public is importable from here (and from `greybox.blocks`, `greybox.blackbox`,
+`greybox.io`, `greybox.video`); modules whose names start with ``_`` are private.
 """
 
 import importlib.metadata
 
-from greybox.data import Experiment as Experiment
-from greybox.device import AbstractDevice as AbstractDevice
-from greybox.fit import FitResult as FitResult
-from greybox.fit import ParameterEstimate as ParameterEstimate
-from greybox.fit import ValidationResult as ValidationResult
-from greybox.fit import fit as fit
-from greybox.fit import validate as validate
-from greybox.freeparams import FreeParameter as FreeParameter
-from greybox.identifiability import IdentifiabilityReport as IdentifiabilityReport
-from greybox.metrics import fit_percent as fit_percent
-from greybox.metrics import rmse as rmse
-from greybox.metrics import sae as sae
-from greybox.parameters import ParameterInfo as ParameterInfo
-from greybox.simulate import simulate as simulate
-from greybox.waveforms import PiecewiseConstant as PiecewiseConstant
-from greybox.waveforms import PulseTrain as PulseTrain
-from greybox.waveforms import concatenate as concatenate
-from greybox.waveforms import from_samples as from_samples
-from greybox.waveforms import multilevel_prbs as multilevel_prbs
-from greybox.waveforms import stack_channels as stack_channels
+from greybox._channels import DISPLACEMENT as DISPLACEMENT
+from greybox._channels import LASER_POWER as LASER_POWER
+from greybox._channels import Channel as Channel
+from greybox._data import Experiment as Experiment
+from greybox._device import AbstractDevice as AbstractDevice
+from greybox._device import AbstractLinearDevice as AbstractLinearDevice
+from greybox._device import AbstractODEDevice as AbstractODEDevice
+from greybox._device import AbstractStateAffineDevice as AbstractStateAffineDevice
+from greybox._device import AbstractSteppedDevice as AbstractSteppedDevice
+from greybox._device import default_method as default_method
+from greybox._device import with_camera as with_camera
+from greybox._errors import InputError as InputError
+from greybox._fit import FitResult as FitResult
+from greybox._fit import ParameterEstimate as ParameterEstimate
+from greybox._fit import ValidationResult as ValidationResult
+from greybox._fit import fit as fit
+from greybox._fit import validate as validate
+from greybox._freeparams import FreeParameter as FreeParameter
+from greybox._identifiability import IdentifiabilityReport as IdentifiabilityReport
+from greybox._metrics import fit_percent as fit_percent
+from greybox._metrics import mae as mae
+from greybox._metrics import r_squared as r_squared
+from greybox._metrics import rmse as rmse
+from greybox._metrics import sae as sae
+from greybox._parameters import ParameterInfo as ParameterInfo
+from greybox._parameters import check_scalar_path as check_scalar_path
+from greybox._parameters import get_value as get_value
+from greybox._parameters import set_values as set_values
+from greybox._parameters import with_overrides as with_overrides
+from greybox._periodic import response_function as response_function
+from greybox._periodic import response_surface as response_surface
+from greybox._periodic import square_wave_cycle as square_wave_cycle
+from greybox._periodic import square_wave_response as square_wave_response
+from greybox._periodic import steady_state as steady_state
+from greybox._prediction import Band as Band
+from greybox._prediction import delta_method as delta_method
+from greybox._prediction import prediction_band as prediction_band
+from greybox._prediction import propagate as propagate
+from greybox._prediction import raw_draws as raw_draws
+from greybox._prediction import with_shared as with_shared
+from greybox._registry import available as available_devices  # noqa: F401
+from greybox._registry import device_module as device_module
+from greybox._registry import get_device as get_device
+from greybox._simulate import as_arrays as as_arrays
+from greybox._simulate import simulate as simulate
+from greybox._spec import DeviceSpec as DeviceSpec
+from greybox._spec import DeviceSpecError as DeviceSpecError
+from greybox._spec import Option as Option
+from greybox._synthetic import CameraDefects as CameraDefects
+from greybox._synthetic import record as record
+from greybox._table_fit import TableFitResult as TableFitResult
+from greybox._table_fit import fit_table as fit_table
+from greybox._waveforms import PiecewiseConstant as PiecewiseConstant
+from greybox._waveforms import PulseTrain as PulseTrain
+from greybox._waveforms import concatenate as concatenate
+from greybox._waveforms import from_samples as from_samples
+from greybox._waveforms import multilevel_prbs as multilevel_prbs
+from greybox._waveforms import stack_channels as stack_channels
 
 __version__ = importlib.metadata.version("greybox")

@@ -12,17 +12,17 @@ import abc
 import equinox as eqx
 import jax.numpy as jnp
 
-from greybox.blocks.mechanics import (
+from greybox.blocks import (
     ChevronExact,
     ChevronLinear,
     QuasiStaticShuttle,
     ThermalElongation,
 )
-from greybox.blocks.thermal import AbstractThermal
-from greybox.device import AbstractDevice
+from greybox import AbstractODEDevice
+from greybox.blocks import AbstractThermal
 
 
-class AbstractThermalChevron(AbstractDevice):
+class AbstractThermalChevron(AbstractODEDevice):
     """One input (laser power [W], voltage [V], ...) heating a chevron; output: shuttle [m].
 
     Subclasses also define `initial_rise_K` (start temperature rise of every node [K]) and the

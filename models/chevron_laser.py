@@ -17,19 +17,29 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from greybox.blocks.camera import Camera
-from greybox.blocks.mechanics import (
+from greybox import (
+    DISPLACEMENT,
+    LASER_POWER,
+    AbstractLinearDevice,
+    DeviceSpec,
+    FreeParameter,
+    Option,
+    ParameterInfo,
+)
+from greybox.blocks import (
+    AbstractThermal,
+    Camera,
     ChevronExact,
     ChevronLinear,
+    FirstOrderThermal,
+    GaussianSpot,
     QuasiStaticShuttle,
+    RectangularFrame,
     ThermalElongation,
 )
-from greybox.blocks.spot import GaussianSpot, RectangularFrame
-from greybox.blocks.thermal import AbstractThermal, FirstOrderThermal
-from greybox.channels import DISPLACEMENT, LASER_POWER
-from greybox.freeparams import FreeParameter
-from greybox.parameters import ParameterInfo, with_overrides
-from models._thermal_chevron import AbstractThermalChevron
+
+from ._common import rest_level_offsets
+from ._thermal_chevron import AbstractThermalChevron
 
 NAME = "chevron_laser"
 INPUTS = (LASER_POWER,)
@@ -54,7 +64,7 @@ NOMINAL_TAU_S = 0.040
 NOMINAL_RESISTANCE_K_PER_W = NOMINAL_TAU_S / _nominal_heat_capacity()
 
 
-class LaserChevron(AbstractThermalChevron):
+class LaserChevron(AbstractThermalChevron, AbstractLinearDevice):
     """A chevron actuator heated by a laser spot on its pad; output = shuttle displacement [m]."""
 
     spot: GaussianSpot
@@ -68,9 +78,8 @@ class LaserChevron(AbstractThermalChevron):
     initial_rise_K: float = 0.0
     heated_node: int = eqx.field(static=True, default=0)
 
-    @property
-    def is_linear(self) -> bool:
-        return self.thermal.is_linear
+    def vector_field(self, t, x, u):
+        return AbstractLinearDevice.vector_field(self, t, x, u)
 
     def absorbed_fraction(self):
         """Absorbed watts per watt of laser at the sample: A F."""
@@ -93,11 +102,9 @@ class LaserChevron(AbstractThermalChevron):
         return jax.grad(self.stroke)(0.0) * theta_per_w
 
 
-def default_model(
-    *, exact: bool = True, exposure_s: float = 0.010, m_per_px: float = 0.645e-6, **overrides
-) -> LaserChevron:
-    """The thesis chevron at nominal values; keyword `overrides` replace dotted-path fields
-    given with '__' (e.g. ``thermal__tau_s=0.05``)."""
+def build(*, kinematics: str = "exact") -> LaserChevron:
+    """The thesis chevron at nominal values (`kinematics`: "exact" or "linear"), filmed at
+    0.645 um per pixel with a 10 ms exposure (an experiment's [camera] table replaces both)."""
     angle = np.deg2rad(2.0)
     model = LaserChevron(
         spot=GaussianSpot(waist_m=150e-6),
@@ -110,12 +117,12 @@ def default_model(
             cte_per_K=CTE_SI_PER_K, length_m=BEAM_LENGTH_M, beam_fraction=0.5
         ),
         kinematics=ChevronExact(length_m=BEAM_LENGTH_M, angle_rad=angle)
-        if exact
+        if kinematics == "exact"
         else ChevronLinear(angle),
         shuttle=QuasiStaticShuttle(stiffness_N_per_m=241.5),
-        camera=Camera(m_per_px=m_per_px, exposure_s=exposure_s),
+        camera=Camera(m_per_px=0.645e-6, exposure_s=0.010),
     )
-    return with_overrides(model, overrides)
+    return model
 
 
 PARAMETERS = (
@@ -185,7 +192,7 @@ PARAMETERS = (
 )
 
 
-def default_free_parameters() -> list[FreeParameter]:
+def default_free_parameters(**_options) -> list[FreeParameter]:
     """The standard fit: tau and the gain carrier (absorptance) shared, one offset per run.
 
     Absorptance carries the static gain K ∝ A F R kappa alpha L / sin(a) while the other
@@ -196,3 +203,23 @@ def default_free_parameters() -> list[FreeParameter]:
         FreeParameter("thermal.tau_s", unit="s", lower=1e-4, upper=2.0),
         FreeParameter("camera.offset_m", unit="m", per_experiment=True, scale=1e-6),
     ]
+
+
+SPEC = DeviceSpec(
+    name="chevron_laser",
+    inputs=INPUTS,
+    outputs=OUTPUTS,
+    build=build,
+    parameters=PARAMETERS,
+    default_free=default_free_parameters,
+    options=(
+        Option(
+            "kinematics",
+            "exact",
+            "chevron kinematics: exact rigid-link geometry or its small-stroke linearisation",
+            choices=("exact", "linear"),
+        ),
+    ),
+    start_values=rest_level_offsets("camera.offset_m"),
+    description=__doc__.split("\n\n")[0],
+)

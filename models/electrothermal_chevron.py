@@ -32,21 +32,31 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from greybox.blocks.camera import Camera
-from greybox.blocks.joule import JouleHeating
-from greybox.blocks.mechanics import (
+from greybox import (
+    DISPLACEMENT,
+    AbstractStateAffineDevice,
+    Channel,
+    DeviceSpec,
+    FreeParameter,
+    Option,
+    ParameterInfo,
+)
+from greybox.blocks import (
+    AbstractThermal,
+    Camera,
     ChevronExact,
     ChevronLinear,
+    FirstOrderThermal,
+    JouleHeating,
     QuasiStaticShuttle,
     ThermalElongation,
     chevron_blocked_force_N,
     chevron_stiffness_N_per_m,
 )
-from greybox.blocks.thermal import AbstractThermal, FirstOrderThermal
-from greybox.channels import DISPLACEMENT, Channel
-from greybox.freeparams import FreeParameter
-from greybox.parameters import ParameterInfo, with_overrides
-from models._thermal_chevron import AbstractThermalChevron
+
+from . import _surface as surface  # noqa: F401  (polynomial response surfaces of ch. 5)
+from ._force_sensor import ForceSensor, RepeatAverage, average_repeats  # noqa: F401
+from ._thermal_chevron import AbstractThermalChevron
 
 NAME = "electrothermal_chevron"
 VOLTAGE = Channel("V", "V", {"V": (1.0, 0.0), "mV": (1e-3, 0.0)}, "voltage across the chevron")
@@ -66,12 +76,12 @@ NOMINAL_R0_OHM = 2000.0
 NOMINAL_TCR_PER_K = 1e-3
 
 
-class ElectrothermalChevron(AbstractThermalChevron):
+class ElectrothermalChevron(AbstractThermalChevron, AbstractStateAffineDevice):
     """A Joule-heated chevron; input = voltage [V], output = shuttle displacement [m].
 
-    Never `is_linear` in the `simulate` sense (the input enters as V^2); when the TCR is 0 and the
+    Not linear in the `simulate` sense (the input enters as V^2); when the TCR is 0 and the
     thermal block is linear, `state_affine_form()` gives dx/dt = A x + B g(u) with g(V) = V^2/R0,
-    which `greybox.periodic` uses for the closed-form periodic steady state.
+    which the periodic steady state uses in closed form.
     """
 
     joule: JouleHeating
@@ -87,25 +97,17 @@ class ElectrothermalChevron(AbstractThermalChevron):
     n_pairs: int = eqx.field(static=True, default=1)
     heated_node: int = eqx.field(static=True, default=0)
 
-    @property
-    def is_linear(self) -> bool:
-        return False  # the heat input is V^2 / R: nonlinear in the input even at tcr = 0
-
-    @property
     def is_state_affine(self) -> bool:
         """True when dx/dt = A x + B g(u) (constant resistance, linear thermal block)."""
-        return self.thermal.is_linear and self.joule.is_state_independent
+        return bool(self.thermal.is_linear and self.joule.is_state_independent)
+
+    def vector_field(self, t, x, u):
+        return AbstractThermalChevron.vector_field(self, t, x, u)
 
     def heat_W(self, u, x):
         """Heat input (thermal.n_inputs,) [W] for input `u` (1,) [V] and state `x`."""
         q = self.joule.power_W(jnp.reshape(u, (-1,))[0], x[self.heated_node])
         return jnp.broadcast_to(q, (self.thermal.n_inputs,))
-
-    def linear_dynamics(self):
-        raise ValueError(
-            "method: the electro-thermal chevron is nonlinear in its input (V^2); "
-            "use method='adaptive' (greybox.periodic has the closed-form cycle)"
-        )
 
     def state_affine_form(self):
         """(A, B, g) with dx/dt = A x + B g(u); only when `is_state_affine` (tcr = 0)."""
@@ -119,7 +121,7 @@ class ElectrothermalChevron(AbstractThermalChevron):
     def dc_rise_K(self, voltage_V):
         """Steady heated-node rise [K] under a constant voltage (closed form, one-node model)."""
         if not isinstance(self.thermal, FirstOrderThermal):
-            from greybox.periodic import steady_state
+            from greybox import steady_state
 
             return steady_state(self, jnp.reshape(voltage_V, (1,)))[self.heated_node]
         return self.joule.steady_rise_K(voltage_V, self.thermal.resistance_K_per_W)
@@ -162,9 +164,8 @@ class ElectrothermalChevron(AbstractThermalChevron):
         )
 
 
-def default_model(*, exact: bool = True, **overrides) -> ElectrothermalChevron:
-    """The nominal electro-thermal chevron; `overrides` use '__' for dots
-    (e.g. ``joule__tcr_per_K=0.0``)."""
+def build(*, kinematics: str = "exact") -> ElectrothermalChevron:
+    """The nominal electro-thermal chevron (`kinematics`: "exact" or "linear")."""
     stiffness = float(
         chevron_stiffness_N_per_m(
             YOUNGS_SI_PA, BEAM_WIDTH_M, BEAM_THICKNESS_M, BEAM_LENGTH_M, ANGLE_RAD
@@ -178,11 +179,13 @@ def default_model(*, exact: bool = True, **overrides) -> ElectrothermalChevron:
         elongation=ThermalElongation(
             cte_per_K=CTE_SI_PER_K, length_m=BEAM_LENGTH_M, beam_fraction=1.0
         ),
-        kinematics=ChevronExact(BEAM_LENGTH_M, ANGLE_RAD) if exact else ChevronLinear(ANGLE_RAD),
+        kinematics=ChevronExact(BEAM_LENGTH_M, ANGLE_RAD)
+        if kinematics == "exact"
+        else ChevronLinear(ANGLE_RAD),
         shuttle=QuasiStaticShuttle(stiffness_N_per_m=stiffness),
         camera=Camera(m_per_px=1e-6, exposure_s=0.0),
     )
-    return with_overrides(model, overrides)
+    return model
 
 
 PARAMETERS = (
@@ -238,7 +241,7 @@ PARAMETERS = (
 )
 
 
-def default_free_parameters() -> list[FreeParameter]:
+def default_free_parameters(**_options) -> list[FreeParameter]:
     """The amplitude-frequency table fit: tau, R_th and the TCR (R0 measured, geometry known)."""
     return [
         FreeParameter("thermal.tau_s", unit="s", lower=1e-4, upper=1.0),
@@ -263,3 +266,22 @@ def force_free_parameters() -> list[FreeParameter]:
         FreeParameter("thermal.resistance_K_per_W", unit="K/W", lower=1.0, upper=1e4),
         FreeParameter("joule.tcr_per_K", unit="1/K", scale=1e-3),
     ]
+
+
+SPEC = DeviceSpec(
+    name="electrothermal_chevron",
+    inputs=INPUTS,
+    outputs=OUTPUTS,
+    build=build,
+    parameters=PARAMETERS,
+    default_free=default_free_parameters,
+    options=(
+        Option(
+            "kinematics",
+            "exact",
+            "chevron kinematics: exact rigid-link geometry or its small-stroke linearisation",
+            choices=("exact", "linear"),
+        ),
+    ),
+    description=__doc__.split("\n\n")[0],
+)

@@ -31,23 +31,43 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from greybox.blocks.camera import Camera
-from greybox.blocks.mechanics import ChevronExact, ThermalElongation
-from greybox.blocks.optics import material_absorptance
-from greybox.blocks.robot import BodyGeometry, Locomotion, TwoSidedThermal, absorbed_fractions
-from greybox.blocks.spot import GaussianSpot, RectangularFrame
-from greybox.channels import LASER_POWER, PIXELS, Channel
-from greybox.device import AbstractSteppedDevice
-from greybox.freeparams import FreeParameter
-from greybox.parameters import ParameterInfo, set_values
-from greybox.simulate import METHODS
+from greybox import (
+    LASER_POWER,
+    AbstractSteppedDevice,
+    Channel,
+    DeviceSpec,
+    FreeParameter,
+    Option,
+    ParameterInfo,
+)
+from greybox.blocks import (
+    BodyGeometry,
+    Camera,
+    ChevronExact,
+    GaussianSpot,
+    Locomotion,
+    RectangularFrame,
+    ThermalElongation,
+    TwoSidedThermal,
+    absorbed_fractions,
+    material_absorptance,
+)
+
+from ._gait import (  # noqa: F401  (the robot's gait analyses, used through this module)
+    cycle_summary,
+    pose_history,
+    pulse_schedule,
+    speed_vs_duty,
+    speed_vs_period,
+    turning_vs_power_ratio,
+)
 
 NAME = "microrobot"
 INPUTS = (LASER_POWER,)
 
 
 def _feature_channel(name: str, what: str) -> Channel:
-    return Channel(name, "m", {"um": (1e-6, 0.0), "nm": (1e-9, 0.0), PIXELS: None}, what)
+    return Channel(name, "m", {"um": (1e-6, 0.0), "nm": (1e-9, 0.0), "px": None}, what)
 
 
 OUTPUTS = (
@@ -112,21 +132,8 @@ class MicroRobot(AbstractSteppedDevice):
     def n_outputs(self) -> int:
         return 4
 
-    @property
-    def is_linear(self) -> bool:
-        return False
-
     def initial_state(self):
         return jnp.zeros(N_STATES)
-
-    def vector_field(self, t, x, u):
-        raise ValueError(
-            "microrobot: a stepped device (quasi-static contacts); it has no ODE "
-            "vector field, simulate it with greybox.simulate.simulate"
-        )
-
-    def linear_dynamics(self):
-        raise ValueError("microrobot: not a linear device")
 
     def absorbed_fractions(self, pose):
         """Absorbed W per W of laser (left, right) at body pose (X, Y, psi)."""
@@ -177,8 +184,6 @@ class MicroRobot(AbstractSteppedDevice):
         return self.geometry.features_m(x[4:7]) + offset
 
     def observe_schedule(self, sched, method):
-        if method not in METHODS:
-            raise ValueError(f"method: {method!r} is unknown; use one of {METHODS}")
         grid = self.grid_states(self.initial_state(), sched["dt"], sched["u_grid"][:, 0])
         outputs = jax.vmap(self.output)(grid[sched["eval_index"]])
         n_frames = sched["t_s"].shape[0]
@@ -186,18 +191,17 @@ class MicroRobot(AbstractSteppedDevice):
         return z, jnp.all(jnp.isfinite(z))
 
 
-def default_model(
+def build(
     *,
     contacts: str = "play",
-    wavelength_m: float = 800e-9,
+    wavelength_nm: float = 800.0,
     substeps: int = 4,
     substep_growth: float = 2.0,
-    exposure_s: float = 0.010,
-    m_per_px: float = 0.645e-6,
-    **overrides,
 ) -> MicroRobot:
     """The robot at nominal values (PHYSICS.md §14); `contacts` = "play" or "friction";
-    keyword `overrides` replace dotted-path fields given with '__' (``spot__y_m=60e-6``)."""
+    filmed at 0.645 um per pixel with a 10 ms exposure (an experiment's [camera] replaces
+    both)."""
+    wavelength_m = wavelength_nm * 1e-9
     model = MicroRobot(
         spot=GaussianSpot(waist_m=150e-6, x_m=0.0, y_m=60e-6),
         frame_left=RectangularFrame.square(0.0, FRAME_LATERAL_M, FRAME_OUTER_M, FRAME_HOLE_M),
@@ -211,14 +215,10 @@ def default_model(
         kinematics=ChevronExact(length_m=BEAM_LENGTH_M, angle_rad=BEAM_ANGLE_RAD),
         locomotion=Locomotion(model=contacts),
         geometry=BodyGeometry(),
-        camera=Camera(m_per_px=m_per_px, exposure_s=exposure_s),
+        camera=Camera(m_per_px=0.645e-6, exposure_s=0.010),
         substeps=substeps,
         substep_growth=substep_growth,
     )
-    if overrides:
-        model = set_values(
-            model, [k.replace("__", ".") for k in overrides], list(overrides.values())
-        )
     return model
 
 
@@ -349,7 +349,7 @@ PARAMETERS = (
 )
 
 
-def default_free_parameters() -> list[FreeParameter]:
+def default_free_parameters(**_options) -> list[FreeParameter]:
     """Thermal gain and time constant, friction via foot capacity and stiffness with log-normal
     priors (the data fix only their ratio W), turning gain, and per-run image offsets.
 
@@ -388,7 +388,7 @@ def play_width_estimate(result) -> tuple[float, float]:
 
     Delta method on the fit's raw covariance: W is what pose data identify even when the
     friction capacities and the stiffness are each prior-dominated."""
-    from greybox.prediction import delta_method
+    from greybox import delta_method
 
     value, cov = delta_method(
         lambda m: m.locomotion.play_width_m(),
@@ -400,13 +400,32 @@ def play_width_estimate(result) -> tuple[float, float]:
     return float(value[0]), float(np.sqrt(cov[0, 0]))
 
 
-__all__ = [
-    "MicroRobot",
-    "default_model",
-    "default_free_parameters",
-    "play_width_estimate",
-    "PARAMETERS",
-    "NAME",
-    "INPUTS",
-    "OUTPUTS",
-]
+SPEC = DeviceSpec(
+    name="microrobot",
+    inputs=INPUTS,
+    outputs=OUTPUTS,
+    build=build,
+    parameters=PARAMETERS,
+    default_free=default_free_parameters,
+    options=(
+        Option(
+            "contacts",
+            "play",
+            "foot contacts: smooth play operator or directional Coulomb friction (Newton solve)",
+            choices=("play", "friction"),
+        ),
+        Option(
+            "wavelength_nm",
+            800.0,
+            "laser wavelength (sets nominal absorptances)",
+            minimum=200.0,
+            maximum=20000.0,
+            unit="nm",
+        ),
+        Option("substeps", 4, "sub-steps per input interval", minimum=1, maximum=64),
+        Option(
+            "substep_growth", 2.0, "ratio of successive sub-step lengths", minimum=1.0, maximum=10.0
+        ),
+    ),
+    description=__doc__.split("\n\n")[0],
+)

@@ -28,12 +28,16 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from greybox.blocks.camera import Camera
-from greybox.blocks.thermal import STEFAN_BOLTZMANN, ThermalNetwork
-from greybox.channels import Channel
-from greybox.device import AbstractDevice
-from greybox.freeparams import FreeParameter
-from greybox.parameters import ParameterInfo, with_overrides
+from greybox import (
+    AbstractLinearDevice,
+    AbstractODEDevice,
+    Channel,
+    DeviceSpec,
+    FreeParameter,
+    Option,
+    ParameterInfo,
+)
+from greybox.blocks import STEFAN_BOLTZMANN, Camera, ThermalNetwork
 
 NAME = "tclab"
 _PCT = {"pct": (1.0, 0.0)}
@@ -68,7 +72,7 @@ PUBLISHED = {
 }
 
 
-class TCLab(AbstractDevice):
+class AbstractTCLab(AbstractODEDevice):
     """Two heaters, two lagged sensors; input u = (Q1, Q2) [%], output (TC1, TC2) [K].
 
     - `U_W_per_m2K`: convection coefficient to ambient; `Us_W_per_m2K`: heater-to-heater
@@ -79,7 +83,8 @@ class TCLab(AbstractDevice):
       `tau1_s` and `tau2_s` is ignored; False (default) = one lag per sensor.
     - `initial_T1_K`, `initial_T2_K`: heater and sensor temperatures at t_start [K].
     - fixed: `ambient_K`, `mass_kg`, `cp_J_per_kgK`, `area_m2`, `area_between_m2`, `emissivity`.
-    - `radiation`: include the T^4 terms (static; False gives a linear network, ZOH-able).
+    - `radiation`: include the T^4 terms (static); `TCLab` has them, `LinearTCLab` (a linear
+      network, simulated exactly by ZOH) does not.
     """
 
     U_W_per_m2K: float
@@ -137,10 +142,6 @@ class TCLab(AbstractDevice):
     def n_outputs(self) -> int:
         return 2
 
-    @property
-    def is_linear(self) -> bool:
-        return not self.radiation
-
     def initial_state(self):
         rise = jnp.stack(
             [
@@ -157,25 +158,40 @@ class TCLab(AbstractDevice):
     def vector_field(self, t, x, u):
         return self.network().derivative(x, self.heat_W(u))
 
-    def linear_dynamics(self):
-        a, b = self.network().linear_matrices()
-        return a, b * jnp.stack([self.alpha1_W_per_pct, self.alpha2_W_per_pct])[None, :]
-
     def output(self, x):
         return self.ambient_K + x[2:]
 
 
-def default_model(*, radiation: bool = True, shared_sensor_lag: bool = False, **overrides) -> TCLab:
+class TCLab(AbstractTCLab):
+    """The paper's board with radiation (nonlinear: simulated by the adaptive path)."""
+
+
+class LinearTCLab(AbstractTCLab, AbstractLinearDevice):
+    """The board without radiation terms: a linear network, simulated exactly by ZOH."""
+
+    def __check_init__(self):
+        if self.radiation:
+            raise ValueError("LinearTCLab: radiation must be False (use TCLab with radiation)")
+
+    def linear_dynamics(self):
+        a, b = self.network().linear_matrices()
+        return a, b * jnp.stack([self.alpha1_W_per_pct, self.alpha2_W_per_pct])[None, :]
+
+    def vector_field(self, t, x, u):
+        return AbstractLinearDevice.vector_field(self, t, x, u)
+
+
+def build(*, radiation: bool = True, shared_sensor_lag: bool = False) -> AbstractTCLab:
     """TCLab at the paper's published estimates (both sensor lags at the paper's 20.68 s);
-    `shared_sensor_lag=True` is the paper's one-lag structure; `overrides` replace fields
-    (``tau1_s=15.0``)."""
-    model = TCLab(
+    `shared_sensor_lag=True` is the paper's one-lag structure; without `radiation` the board
+    is linear."""
+    cls = TCLab if radiation else LinearTCLab
+    return cls(
         **PUBLISHED,
         camera=Camera(m_per_px=1.0, exposure_s=0.0),
         radiation=radiation,
         shared_sensor_lag=shared_sensor_lag,
     )
-    return with_overrides(model, overrides)
 
 
 PARAMETERS = (
@@ -255,10 +271,29 @@ PARAMETERS = (
 )
 
 
-def default_free_parameters(shared_sensor_lag: bool = False) -> list[FreeParameter]:
+def default_free_parameters(shared_sensor_lag: bool = False, **_options) -> list[FreeParameter]:
     """U, Us, alpha1, alpha2, tau1 and (unless `shared_sensor_lag`, the paper's five) tau2,
     each bounded to a physically plausible range. Use with a model of the same structure."""
     n = 5 if shared_sensor_lag else 6
     return [
         FreeParameter(p.path, unit=p.unit, lower=p.lower, upper=p.upper) for p in PARAMETERS[:n]
     ]
+
+
+SPEC = DeviceSpec(
+    name="tclab",
+    inputs=INPUTS,
+    outputs=OUTPUTS,
+    build=build,
+    parameters=PARAMETERS,
+    default_free=default_free_parameters,
+    options=(
+        Option(
+            "shared_sensor_lag",
+            False,
+            "one lag shared by both sensors (the paper's 5-parameter structure) instead of one each",
+        ),
+        Option("radiation", True, "include radiation (T^4) to ambient and between heaters"),
+    ),
+    description=__doc__.split("\n\n")[0],
+)

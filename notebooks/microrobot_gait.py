@@ -21,7 +21,7 @@
 # net step per cycle is about max(0, swing - W) for play width W). Where the spot sits
 # relative to the two frames sets the left/right heating ratio, and so the turning.
 #
-# This notebook uses the pure gait functions of `greybox.gait` (one `jax.vmap` and one
+# This notebook uses the pure gait functions of `greybox._gait` (one `jax.vmap` and one
 # compilation per sweep):
 #
 # 1. one gait: pose and foot strokes under a pulse train;
@@ -38,6 +38,7 @@ import time
 from pathlib import Path
 
 import jax
+import greybox
 
 jax.config.update("jax_enable_x64", True)
 
@@ -51,17 +52,17 @@ ROOT = next(p for p in (Path.cwd(), *Path.cwd().parents) if (p / "experiments").
 DATA = ROOT / "experiments" / "microrobot"
 
 from greybox import gait  # noqa: E402
-from greybox.fit import fit, validate  # noqa: E402
-from greybox.io.experiment_files import load_experiment_set  # noqa: E402
-from greybox.parameters import set_values  # noqa: E402
-from greybox.prediction import delta_method, propagate  # noqa: E402
-from models import microrobot  # noqa: E402
+from greybox._fit import fit, validate  # noqa: E402
+from greybox.io import load_experiment_set  # noqa: E402
+from greybox._parameters import set_values  # noqa: E402
+from greybox._prediction import delta_method, propagate  # noqa: E402
+microrobot = greybox.device_module("microrobot")  # noqa: E402
 
 T_START = time.perf_counter()
 N_SWEEP = 16 if CI else 40
 N_DRAWS = 8 if CI else 40
 POWER_W = 0.020
-model = microrobot.default_model(substeps=4)  # play contacts
+model = microrobot.SPEC.model(substeps=4)  # play contacts
 tau_s = float(model.thermal.frame_time_constant_s())
 width_m = float(model.locomotion.play_width_m())
 print(
@@ -330,7 +331,7 @@ print(
 # %% [markdown]
 # Measured and simulated image positions of the front feature, relative to where the model
 # starts, for the run with the largest motion and for the validation run (physics fixed,
-# only its image offsets re-fitted by `greybox.fit.validate`). The simulation fit % is close
+# only its image offsets re-fitted by `greybox._fit.validate`). The simulation fit % is close
 # to 100 % for every run only because the features sit +-200 um from the image origin; the
 # residual sigma against the 65 nm tracking noise is the meaningful measure.
 
@@ -369,7 +370,7 @@ plt.show()
 # - **delta method** (first order in the raw parameters): along the undetermined friction
 #   direction W does not change to first order, so only the identified quantities (gain,
 #   heat capacity, W) widen the band;
-# - **sampling** (`greybox.prediction.propagate`: Gaussian draws of the raw shared
+# - **sampling** (`greybox._prediction.propagate`: Gaussian draws of the raw shared
 #   parameters, each pushed through the gait), the usual tool for an optimum or a threshold.
 
 # %%

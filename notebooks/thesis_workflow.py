@@ -52,11 +52,11 @@ ROOT = next(p for p in (Path.cwd(), *Path.cwd().parents) if (p / "experiments").
 DATA = ROOT / "experiments" / "chevron_laser"
 
 from greybox import blackbox as bb  # noqa: E402
-from greybox.fit import fit, validate  # noqa: E402
-from greybox.io.experiment_files import load_experiment_set  # noqa: E402
-from greybox.metrics import fit_percent, rmse  # noqa: E402
-from greybox.parameters import set_values  # noqa: E402
-from greybox.simulate import simulate  # noqa: E402
+from greybox._fit import fit, validate  # noqa: E402
+from greybox.io import load_experiment_set  # noqa: E402
+from greybox._metrics import fit_percent, rmse  # noqa: E402
+from greybox._parameters import set_values  # noqa: E402
+from greybox._simulate import simulate  # noqa: E402
 
 T_START = time.perf_counter()
 fitset = load_experiment_set(DATA)
@@ -100,7 +100,7 @@ print(
 )
 
 # %% [markdown]
-# **What the grey-box does instead.** Nothing is stitched. `greybox.fit` takes the six runs
+# **What the grey-box does instead.** Nothing is stitched. `greybox._fit` takes the six runs
 # as six `Experiment`s, each on its own time axis, simulates them all (vmapped) and fits the
 # shared physics (absorptance, thermal time constant) and one camera offset per run, with
 # intervals. A pseudo-random record is not needed either: what identifies tau and the gain
@@ -493,7 +493,7 @@ print(
 #
 # **What the grey-box does instead.** The physics does not change between runs, so the
 # parameters are fitted once, on all estimation runs together, with a covariance; on the
-# validation runs `greybox.fit.validate` holds them fixed and re-fits only each run's camera
+# validation runs `greybox._fit.validate` holds them fixed and re-fits only each run's camera
 # offset (what genuinely changes from run to run), then simulates. If a parameter were
 # suspected to drift, the grey-box answer is to free it per run (`per_experiment=True`) and
 # compare the per-run intervals: a drift then has a physical name and a size, instead of

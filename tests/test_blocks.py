@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from greybox.blocks.mechanics import (
+from greybox.blocks._mechanics import (
     ChevronExact,
     ChevronLinear,
     ThermalElongation,
@@ -14,9 +14,9 @@ from greybox.blocks.mechanics import (
     chevron_stiffness_N_per_m,
     okada_tokumaru_cte,
 )
-from greybox.blocks.optics import material_absorptance
-from greybox.blocks.spot import GaussianSpot, Rectangle, RectangularFrame
-from greybox.blocks.thermal import FirstOrderThermal, ThermalNetwork
+from greybox.blocks._optics import material_absorptance
+from greybox.blocks._spot import GaussianSpot, Rectangle, RectangularFrame
+from greybox.blocks._thermal import FirstOrderThermal, ThermalNetwork
 
 UM = 1e-6
 

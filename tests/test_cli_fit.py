@@ -62,8 +62,10 @@ def truth():
 
 
 def test_params_json_schema(params):
-    assert params["schema"] == "greybox.params/1"
-    assert params["device"] == "chevron_laser"
+    assert params["schema"] == "greybox.params/2"
+    assert params["device"]["name"] == "chevron_laser"
+    assert params["device"]["options"] == {"kinematics": "exact"}
+    assert params["greybox_version"]
     assert params["model"]["camera"] == {"m_per_px": 0.645e-6, "exposure_s": 0.01, "fps": 30.0}
     assert set(params["model"]["fitted"]) == {"absorptance", "thermal.tau_s"}
     entries = params["parameters"]
@@ -159,7 +161,7 @@ def test_figures_are_png(result):
 
 def test_interrupted_fit_leaves_the_previous_result(result, tmp_path, monkeypatch, capsys):
     """Ctrl-C while the figures are written: exit 130, the earlier result stays whole."""
-    import greybox.plots
+    import greybox._plots
 
     out = tmp_path / "result"
     shutil.copytree(result, out)
@@ -168,7 +170,7 @@ def test_interrupted_fit_leaves_the_previous_result(result, tmp_path, monkeypatc
     def interrupt(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(greybox.plots, "correlation_figure", interrupt)
+    monkeypatch.setattr(greybox._plots, "correlation_figure", interrupt)
     assert main(["fit", str(EMBEDDED), "--out", str(out)]) == 130
     err = capsys.readouterr().err
     assert "[" in err and "fitting" in err  # progress lines were shown
@@ -184,7 +186,7 @@ def test_failed_fit_leaves_no_result(tmp_path, monkeypatch):
         raise RuntimeError("solver exploded")
 
     # the module, not the function that greybox/__init__ re-exports under the same name
-    monkeypatch.setattr(importlib.import_module("greybox.fit"), "fit", broken)
+    monkeypatch.setattr(importlib.import_module("greybox._fit"), "fit", broken)
     out = tmp_path / "result"
     with pytest.raises(RuntimeError, match="solver exploded"):
         main(["fit", str(EMBEDDED), "--out", str(out), "--quiet"])
@@ -198,8 +200,8 @@ def test_prior_dominated_parameter_is_reported(tmp_path):
 
     jax.config.update("jax_enable_x64", True)
     from greybox.cli._fit import render_report
-    from greybox.fit import fit
-    from greybox.io.experiment_files import load_experiment_set
+    from greybox._fit import fit
+    from greybox.io import load_experiment_set
 
     folder = tmp_path / "prior"
     shutil.copytree(EMBEDDED, folder, ignore=shutil.ignore_patterns("*.py", "v*.csv"))

@@ -5,17 +5,18 @@ parameter combinations the data do not determine."""
 import json
 
 import jax
+import greybox
 import numpy as np
 import pytest
 from test_cli_fit import EMBEDDED, fitted_dir
 
 from greybox.cli import main
-from greybox.io.params_file import load_params
-from greybox.parameters import get_value, set_values
-from greybox.prediction import prediction_band
-from greybox.simulate import simulate
-from greybox.waveforms import PulseTrain
-from models import chevron_laser
+from greybox.io._params_file import load_params
+from greybox._parameters import get_value, set_values
+from greybox._prediction import prediction_band
+from greybox._simulate import simulate
+from greybox._waveforms import PulseTrain
+chevron_laser = greybox.device_module("chevron_laser")
 
 NEW_WAVE = "pulse:power_mW=25,period_ms=300,duty=0.5,n=10,delay_ms=100,tail_ms=400"
 
@@ -30,8 +31,10 @@ def _read(path):
 def _true_model():
     truth = json.loads((EMBEDDED / "truth.json").read_text())
     cam = truth["camera"]
-    model = chevron_laser.default_model(
-        exposure_s=cam["exposure_ms"] * 1e-3, m_per_px=cam["um_per_px"] * 1e-6
+    model = greybox.with_camera(
+        chevron_laser.SPEC.model(),
+        exposure_s=cam["exposure_ms"] * 1e-3,
+        m_per_px=cam["um_per_px"] * 1e-6,
     )
     paths = list(truth["parameters"])
     return set_values(model, paths, [truth["parameters"][p]["value"] for p in paths])
@@ -155,10 +158,10 @@ def test_band_ignores_only_combinations_the_output_does_not_depend_on():
     """Absorptance and thermal resistance enter only as a product: a covariance that leaves
     their ratio undetermined gives a finite band; leaving one of them alone undetermined
     gives an infinite one (never a falsely narrow band)."""
-    from greybox.freeparams import FreeParameter
+    from greybox._freeparams import FreeParameter
 
     jax.config.update("jax_enable_x64", True)
-    model = chevron_laser.default_model(exact=False)  # linear kinematics: y exactly ~ A R
+    model = chevron_laser.SPEC.model(kinematics="linear")  # linear kinematics: y exactly ~ A R
     free = (
         FreeParameter("absorptance", unit="1", lower=0.05, upper=1.0),
         FreeParameter("thermal.resistance_K_per_W", unit="K/W", lower=0.0),

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from greybox.blocks.contacts import (
+from greybox.blocks._contacts import (
     FrictionContacts,
     FrictionLaw,
     PlayContacts,

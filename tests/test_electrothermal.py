@@ -1,25 +1,27 @@
 """Joule block, electro-thermal chevron, periodic steady state and the grey-box table fit."""
 
 import numpy as np
+
+import greybox
 import pytest
 
 from greybox import periodic
-from greybox.blocks.joule import JouleHeating
-from greybox.simulate import simulate
-from greybox.surface import fit_polynomial
-from greybox.table_fit import fit_table
-from greybox.waveforms import PulseTrain
-from models import electrothermal_chevron as ec
+from greybox.blocks._joule import JouleHeating
+from greybox._simulate import simulate
+from greybox._surface import fit_polynomial
+from greybox._table_fit import fit_table
+from greybox._waveforms import PulseTrain
+ec = greybox.device_module("electrothermal_chevron")
 
 
 @pytest.fixture(scope="module")
 def linear_model():
-    return ec.default_model(joule__tcr_per_K=0.0)
+    return ec.SPEC.model(joule__tcr_per_K=0.0)
 
 
 @pytest.fixture(scope="module")
 def tcr_model():
-    return ec.default_model()
+    return ec.SPEC.model()
 
 
 def test_joule_steady_rise_solves_the_balance():
@@ -105,7 +107,7 @@ def synthetic_table(tcr_model):
 def test_greybox_table_fit_recovers_parameters(tcr_model, synthetic_table):
     a, f, y, noise = synthetic_table
     respond = periodic.response_function(tcr_model, n_steps=16)
-    start = ec.default_model(
+    start = ec.SPEC.model(
         thermal__tau_s=0.015, thermal__resistance_K_per_W=150.0, joule__tcr_per_K=0.0
     )
     result = fit_table(

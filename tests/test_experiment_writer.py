@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from greybox.io.experiment_files import load_experiment_set
-from greybox.io.experiment_writer import (
+from greybox.io import load_experiment_set
+from greybox.io._experiment_writer import (
     inline_table,
     pulse_train_description,
     run_csv,

@@ -1,14 +1,22 @@
 """Fitting: recovery, calibrated standard errors, identifiability verdicts, failure modes."""
 
 import numpy as np
+
+import greybox
 import pytest
 
-from greybox.data import Experiment
-from greybox.fit import fit, validate
-from greybox.freeparams import FreeParameter
-from greybox.parameters import set_values
-from greybox.waveforms import PiecewiseConstant, PulseTrain
-from models.chevron_laser import default_free_parameters, default_model
+from greybox._data import Experiment
+from greybox._fit import fit, validate
+from greybox._freeparams import FreeParameter
+from greybox._parameters import set_values
+from greybox._waveforms import PiecewiseConstant, PulseTrain
+CHEVRON = greybox.get_device("chevron_laser")
+default_model = CHEVRON.model
+
+
+def default_free_parameters():
+    return list(CHEVRON.free_parameters())
+
 from tests.helpers import chevron_runs
 
 TRUE = {"absorptance": 0.62, "thermal.tau_s": 0.045}
@@ -172,7 +180,7 @@ def test_bad_inputs_raise_clear_errors(truth):
 
 
 def test_parameter_draws_reproduce_the_reported_uncertainty(thesis_fit):
-    from greybox.prediction import propagate
+    from greybox._prediction import propagate
 
     _, result = thesis_fit
     taus = propagate(
@@ -213,7 +221,7 @@ def test_rest_level_and_uniform_grid_for_blackbox_models():
 
 
 def test_delta_method_matches_reported_standard_error(thesis_fit):
-    from greybox.prediction import delta_method
+    from greybox._prediction import delta_method
 
     _, result = thesis_fit
     est = result.estimate("thermal.tau_s")

@@ -1,12 +1,14 @@
 """Force-sensor conversion (thesis eqs. 5.2-5.3), repeat averaging, and force-model selection."""
 
 import numpy as np
+
+import greybox
 import pytest
 
 from greybox import surface
-from greybox.force_sensor import ForceSensor, average_repeats
-from greybox.table_fit import fit_table
-from models import electrothermal_chevron as ec
+from greybox._force_sensor import ForceSensor, average_repeats
+from greybox._table_fit import fit_table
+ec = greybox.device_module("electrothermal_chevron")
 
 SENSOR = ForceSensor(
     length_m=1e-3, thickness_m=50e-6, gauge_factor=100.0, bridge_V=5.0, stiffness_N_per_m=1000.0
@@ -43,7 +45,7 @@ def test_average_repeats_and_bad_input():
 @pytest.fixture(scope="module")
 def force_data():
     """Five repeats at 0, 2, ..., 20 V with 'wide deviations' (thesis §5.4), from the device."""
-    truth = ec.default_model()
+    truth = ec.SPEC.model()
     volts = np.repeat(np.arange(0.0, 21.0, 2.0), 5)
     force = np.asarray(ec.force_predictor(SENSOR.stiffness_N_per_m)(truth, volts))
     readings = SENSOR.sensor_V(force) + np.random.default_rng(3).normal(0.0, 2e-3, volts.size)
@@ -60,7 +62,7 @@ def test_eighth_order_overfits_held_out_voltages(force_data):
     assert cv8.rmse > 3 * cv2.rmse  # ... far worse on held-out voltages
     assert fit2.criteria["aicc"] < fit8.criteria["aicc"]
 
-    start = ec.default_model(thermal__resistance_K_per_W=150.0, joule__tcr_per_K=0.0)
+    start = ec.SPEC.model(thermal__resistance_K_per_W=150.0, joule__tcr_per_K=0.0)
     predict = ec.force_predictor(SENSOR.stiffness_N_per_m)
     free = ec.force_free_parameters()
 

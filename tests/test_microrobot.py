@@ -9,18 +9,19 @@ import dataclasses
 import functools
 
 import jax
+import greybox
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.linalg
 
 from greybox import gait
-from greybox.blocks.robot import TwoSidedThermal
-from greybox.fit import fit
-from greybox.parameters import set_values
-from greybox.synthetic import CameraDefects, record
-from greybox.waveforms import PulseTrain
-from models import microrobot as mr
+from greybox.blocks._robot import TwoSidedThermal
+from greybox._fit import fit
+from greybox._parameters import set_values
+from greybox._synthetic import CameraDefects, record
+from greybox._waveforms import PulseTrain
+mr = greybox.device_module("microrobot")
 
 POWER_W = 0.02
 
@@ -36,7 +37,7 @@ def symmetric(model):
 
 
 def test_spot_capture_matches_physics_anchor():
-    m = mr.default_model()
+    m = mr.SPEC.model()
     f = m.absorbed_fractions(jnp.zeros(3)) / jnp.array([m.absorptance_left, m.absorptance_right])
     np.testing.assert_allclose(f, [0.2304, 0.0491], atol=2e-4)  # PHYSICS.md §14
 
@@ -64,9 +65,9 @@ ANCHOR = (0.5, 0.5, POWER_W, 6, 250)
 
 
 def test_detailed_reduces_to_play_under_symmetric_heating():
-    play = symmetric(mr.default_model(substeps=1))
+    play = symmetric(mr.SPEC.model(substeps=1))
     detailed = set_values(
-        symmetric(mr.default_model(substeps=1, contacts="friction")),
+        symmetric(mr.SPEC.model(substeps=1, contacts="friction")),
         ["locomotion.law.v_eps_m_per_s"],
         [1e-10],
     )
@@ -89,7 +90,7 @@ def test_detailed_reduces_to_play_under_symmetric_heating():
 
 def test_one_sided_heating_detailed_matches_reference_and_turns_to_cool_side():
     # PHYSICS.md §14: 3-DOF, one-sided heating, 3 s: X = 0.68 um, Y ~ 0, psi = -0.001 deg
-    m = mr.default_model(substeps=1, contacts="friction")
+    m = mr.SPEC.model(substeps=1, contacts="friction")
     x, y, psi = (float(v) for v in history(m, *ANCHOR)[-1, 4:7])
     assert x == pytest.approx(0.68e-6, rel=0.05)
     assert abs(y) < 0.01e-6
@@ -97,7 +98,7 @@ def test_one_sided_heating_detailed_matches_reference_and_turns_to_cool_side():
 
 
 def test_turning_sign_and_symmetry_play():
-    m = mr.default_model(substeps=1)
+    m = mr.SPEC.model(substeps=1)
     r = jax.jit(
         lambda m: gait.turning_vs_power_ratio(m, jnp.array([60e-6, 30e-6]), 0.016, 0.5, POWER_W)
     )(m)
@@ -111,7 +112,7 @@ def test_turning_sign_and_symmetry_play():
 
 
 def test_speed_has_an_optimum_period_of_a_few_time_constants():
-    m = mr.default_model(substeps=1)
+    m = mr.SPEC.model(substeps=1)
     periods = jnp.array([3e-3, 6e-3, 10e-3, 16e-3, 24e-3, 48e-3, 96e-3])
     r = jax.jit(lambda m: gait.speed_vs_period(m, periods, 0.5, POWER_W))(m)
     speed = np.asarray(r["speed_m_per_s"])
@@ -136,7 +137,7 @@ def test_gradients_forward_equal_reverse_play_model():
         return gait.pose_history(mm, 0.016, 0.5, POWER_W, 2, 16)[-1, 4]
 
     # (the detailed solver's implicit-function derivative: tests/test_contacts.py)
-    m = mr.default_model(substeps=1)
+    m = mr.SPEC.model(substeps=1)
     rev, fwd = jax.jit(lambda v, m: (jax.grad(final)(v, m), jax.jacfwd(final)(v, m)))(x0, m)
     assert np.all(np.isfinite(rev)) and np.all(rev[:1] > 0)
     np.testing.assert_allclose(rev, fwd, rtol=1e-7, atol=0)
@@ -147,7 +148,7 @@ def test_gradients_forward_equal_reverse_play_model():
 
 
 def test_ten_thousand_cycles_without_nan():
-    m = mr.default_model(substeps=1)
+    m = mr.SPEC.model(substeps=1)
     states = history(m, 0.016, 0.5, POWER_W, 10_000, 10)
     assert bool(jnp.all(jnp.isfinite(states)))
     # it walks (and turns) out of the world-fixed spot, then stops: tens of um, not mm
@@ -172,7 +173,7 @@ FIT_SUBSTEPS, TRUTH_SUBSTEPS = 4, 16  # the data come from a finer-stepped refer
 
 @pytest.fixture(scope="module")
 def recovery_data():
-    truth = set_values(mr.default_model(substeps=TRUTH_SUBSTEPS), list(TRUTH), list(TRUTH.values()))
+    truth = set_values(mr.SPEC.model(substeps=TRUTH_SUBSTEPS), list(TRUTH), list(TRUTH.values()))
     rng = np.random.default_rng(7)
     defects = CameraDefects(
         fps=30,
@@ -198,7 +199,7 @@ def recovery_data():
 def recovery(recovery_data):
     truth, experiments = recovery_data
     return truth, fit(
-        mr.default_model(substeps=FIT_SUBSTEPS), experiments, mr.default_free_parameters()
+        mr.SPEC.model(substeps=FIT_SUBSTEPS), experiments, mr.default_free_parameters()
     )
 
 

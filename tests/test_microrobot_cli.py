@@ -45,8 +45,8 @@ def test_fit_started_above_the_walk_lands_in_the_dead_zone_and_says_so():
     # dead zone (S_pp < W, every motion gradient zero). That must not read as a success.
     import dataclasses
 
-    from greybox.fit import fit
-    from greybox.io.experiment_files import load_experiment_set
+    from greybox._fit import fit
+    from greybox.io import load_experiment_set
 
     fs = load_experiment_set(FOLDER)
     nominal = {"absorptance_left": 0.448, "locomotion.turn_gain": 1.0}

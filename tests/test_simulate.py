@@ -2,22 +2,23 @@
 
 import equinox as eqx
 import jax
+import greybox
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from greybox.blocks.mechanics import ChevronLinear
-from greybox.parameters import set_values
-from greybox.simulate import as_arrays, observe_schedule, pad_schedules, schedule_for, simulate
-from greybox.waveforms import PiecewiseConstant, PulseTrain
-from models.chevron_laser import default_model
+from greybox.blocks._mechanics import ChevronLinear
+from greybox._parameters import set_values
+from greybox._simulate import as_arrays, observe_schedule, pad_schedules, schedule_for, simulate
+from greybox._waveforms import PiecewiseConstant, PulseTrain
+default_model = greybox.get_device("chevron_laser").model
 
 P_W = 0.02
 
 
 def linear_model(exposure_s=0.0):
     """Chevron with linearised kinematics: y = K_mech * theta, so y is a scaled RC response."""
-    m = default_model(exposure_s=exposure_s)
+    m = greybox.with_camera(default_model(), exposure_s=exposure_s)
     return eqx.tree_at(lambda m: m.kinematics, m, ChevronLinear(m.kinematics.angle_rad))
 
 

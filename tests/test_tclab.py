@@ -9,6 +9,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
+import greybox
 import pytest
 
 HERE = Path(__file__).resolve().parents[1] / "experiments" / "tclab"
@@ -17,7 +19,7 @@ sys.path.insert(0, str(HERE))
 import study  # noqa: E402
 from tclab_data import load_folder  # noqa: E402
 
-from models import tclab  # noqa: E402
+tclab = greybox.device_module("tclab")  # noqa: E402
 
 PAPER_EST_SAE, PAPER_VAL_SAE = study.PAPER["two_heaters"]["physics-based energy balance"]
 
@@ -41,7 +43,7 @@ def fits(runs):
 
 def test_published_parameters_match_independent_simulation(runs):
     # ThermalNetwork + radiation + shared sensor lag vs a scipy solve_ivp of the paper's equations
-    model = tclab.default_model(shared_sensor_lag=True)
+    model = tclab.SPEC.model(shared_sensor_lag=True)
     sae_est = study.scores(runs["estimation"].y, study.simulate_run(model, runs["estimation"]))
     sae_val = study.scores(runs["validation"].y, study.simulate_run(model, runs["validation"]))
     assert sae_est == pytest.approx(296.4, rel=0.01)
@@ -49,8 +51,8 @@ def test_published_parameters_match_independent_simulation(runs):
 
 
 def test_shared_lag_flag_ties_tau2_to_tau1():
-    shared = tclab.default_model(shared_sensor_lag=True, tau1_s=12.0, tau2_s=50.0)
-    own = tclab.default_model(tau1_s=12.0, tau2_s=50.0)
+    shared = tclab.SPEC.model(shared_sensor_lag=True, tau1_s=12.0, tau2_s=50.0)
+    own = tclab.SPEC.model(tau1_s=12.0, tau2_s=50.0)
     np.testing.assert_allclose(shared.sensor_tau_s(), [12.0, 12.0])
     np.testing.assert_allclose(own.sensor_tau_s(), [12.0, 50.0])
     assert [p.path for p in tclab.default_free_parameters(True)][-1] == "tau1_s"

@@ -2,8 +2,8 @@
 `greybox fit` -> the identifiable parameters come back within 3 standard errors.
 
 The video is rendered from the model itself: the shuttle displacement is simulated at
-sub-exposure instants (`greybox.render.exposure_times`, frame stamped at the END of its
-exposure, as `greybox.blocks.camera.Camera` averages over [t - T_e, t]) with an
+sub-exposure instants (`greybox._render.exposure_times`, frame stamped at the END of its
+exposure, as `greybox.blocks._camera.Camera` averages over [t - T_e, t]) with an
 instantaneous camera, converted to px and drawn by `render_shuttle` (exact sub-pixel
 translation, motion blur, shot/read noise, lamp drift, one glare frame). Everything after
 that is the user's path: a lossless video file, the CLI tracker, an experiment folder, the
@@ -13,14 +13,16 @@ CLI fitter, params.json.
 import json
 
 import numpy as np
+
+import greybox
 import pytest
 
 from greybox.cli import main
-from greybox.io.video import write_video
-from greybox.render import exposure_times, render_shuttle
-from greybox.simulate import simulate
-from greybox.waveforms import PulseTrain
-from models import chevron_laser
+from greybox.io._video import write_video
+from greybox._render import exposure_times, render_shuttle
+from greybox._simulate import simulate
+from greybox._waveforms import PulseTrain
+chevron_laser = greybox.device_module("chevron_laser")
 
 TRUE_TAU_S = 0.050
 TRUE_ABSORPTANCE = 0.55
@@ -49,11 +51,10 @@ def tracked_run(tmp_path_factory):
     )
     t = np.arange(n) / FPS
     # Instantaneous camera (exposure 0, offset 0): the true position at each instant.
-    truth_model = chevron_laser.default_model(
+    truth_model = greybox.with_camera(
+        chevron_laser.SPEC.model(absorptance=TRUE_ABSORPTANCE, thermal__tau_s=TRUE_TAU_S),
         exposure_s=0.0,
         m_per_px=UM_PER_PX * 1e-6,
-        absorptance=TRUE_ABSORPTANCE,
-        thermal__tau_s=TRUE_TAU_S,
     )
     t_sub = exposure_times(t, EXPOSURE_S, n_sub=8)
     y_m = np.asarray(simulate(truth_model, wave, t_sub.ravel())).reshape(t_sub.shape)

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from greybox.cli import main
-from greybox.io.video import probe, read_frames, write_image_stack, write_video
-from greybox.render import render_markers, render_shuttle
+from greybox.io._video import probe, read_frames, write_image_stack, write_video
+from greybox._render import render_markers, render_shuttle
 
 REST = 8
 
@@ -175,7 +175,7 @@ def test_video_io_round_trip_is_lossless(tmp_path):
 def test_decoder_crop_is_exact_for_every_codec(tmp_path):
     """ffmpeg's crop (odd offsets included, chroma-subsampled H.264 included) returns
     exactly the pixels of the whole decoded frames."""
-    from greybox.io.video import iter_frames
+    from greybox.io._video import iter_frames
 
     rng = np.random.default_rng(1)
     frames16 = rng.integers(0, 65535, (7, 30, 44)).astype(np.uint16)
@@ -196,8 +196,8 @@ def test_decoder_crop_is_exact_for_every_codec(tmp_path):
 def test_prefetch_keeps_order_reraises_and_stops_early():
     import threading
 
-    from greybox.errors import InputError
-    from greybox.io.video import prefetch
+    from greybox._errors import InputError
+    from greybox.io._video import prefetch
 
     assert list(prefetch(iter(range(50)), depth=3)) == list(range(50))
 

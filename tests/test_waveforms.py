@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from greybox.waveforms import (
+from greybox._waveforms import (
     PiecewiseConstant,
     PulseTrain,
     concatenate,

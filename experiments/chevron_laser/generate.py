@@ -20,17 +20,18 @@ import json
 from pathlib import Path
 
 import jax
+import greybox
 
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from greybox.channels import LASER_POWER  # noqa: E402
-from greybox.io.experiment_files import waveform_from_description  # noqa: E402
-from greybox.io.experiment_writer import pulse_train_description, run_csv, run_table  # noqa: E402
-from greybox.parameters import get_value, set_values  # noqa: E402
-from greybox.synthetic import CameraDefects, record  # noqa: E402
-from models import chevron_laser  # noqa: E402
+from greybox._channels import LASER_POWER  # noqa: E402
+from greybox.io import waveform_from_description  # noqa: E402
+from greybox.io._experiment_writer import pulse_train_description, run_csv, run_table  # noqa: E402
+from greybox._parameters import get_value, set_values  # noqa: E402
+from greybox._synthetic import CameraDefects, record  # noqa: E402
+chevron_laser = greybox.device_module("chevron_laser")  # noqa: E402
 
 SEED = 20120815
 TRUE = {"absorptance": 0.62, "thermal.tau_s": 0.045}  # nominal: 0.67 and 0.040 s
@@ -70,7 +71,9 @@ def main(argv=None) -> None:
     out.mkdir(parents=True, exist_ok=True)
 
     m_per_px = CAMERA["um_per_px"] * 1e-6
-    model = chevron_laser.default_model(exposure_s=CAMERA["exposure_ms"] * 1e-3, m_per_px=m_per_px)
+    model = greybox.with_camera(
+        chevron_laser.SPEC.model(), exposure_s=CAMERA["exposure_ms"] * 1e-3, m_per_px=m_per_px
+    )
     truth_model = set_values(model, list(TRUE), list(TRUE.values()))
     rng = np.random.default_rng(SEED)
     runs = [(*r, "estimation") for r in ESTIMATION] + [(*r, "validation") for r in VALIDATION]

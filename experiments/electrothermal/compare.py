@@ -14,6 +14,7 @@ import pathlib
 import sys
 
 import jax
+import greybox
 
 jax.config.update("jax_enable_x64", True)
 
@@ -23,11 +24,11 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from greybox import periodic, surface  # noqa: E402
-from greybox.force_sensor import ForceSensor, average_repeats  # noqa: E402
-from greybox.io.atomic import atomic_output_file  # noqa: E402
-from greybox.metrics import rmse  # noqa: E402
-from greybox.table_fit import fit_table  # noqa: E402
-from models import electrothermal_chevron as ec  # noqa: E402
+from greybox._force_sensor import ForceSensor, average_repeats  # noqa: E402
+from greybox.io._atomic import atomic_output_file  # noqa: E402
+from greybox._metrics import rmse  # noqa: E402
+from greybox._table_fit import fit_table  # noqa: E402
+ec = greybox.device_module("electrothermal_chevron")  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 N_STEPS = 16  # samples per half-cycle in the fit (2e-6 relative accuracy against a long simulation)
@@ -59,7 +60,7 @@ def surface_study(truth_info, lines, figures):
     poly33 = surface.fit_polynomial(x, y_um, (3, 3))
     xs, ys, fine = surface.grid(poly32, (0.0, amps[-1]), (0.0, freqs[-1]), dx=0.1, dy=1.0)
 
-    start = ec.default_model(
+    start = ec.SPEC.model(
         thermal__tau_s=0.015, thermal__resistance_K_per_W=150.0, joule__tcr_per_K=0.0
     )
     respond = periodic.response_function(start, n_steps=N_STEPS)
@@ -187,7 +188,7 @@ def force_study(truth_info, lines, figures):
             f"| poly order {order} | {p.n_params} | {p.rmse:.4f} | {c.rmse:.4f} | "
             f"{c.rmse_interior:.4f} | {p.criteria['aicc']:.1f} | {p.criteria['bic']:.1f} |"
         )
-    start = ec.default_model(thermal__resistance_K_per_W=150.0, joule__tcr_per_K=0.0)
+    start = ec.SPEC.model(thermal__resistance_K_per_W=150.0, joule__tcr_per_K=0.0)
     predict = ec.force_predictor(sensor.stiffness_N_per_m)
     free = ec.force_free_parameters()
     pred_mN = lambda m, x: predict(m, x) * 1e3  # noqa: E731

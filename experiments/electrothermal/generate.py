@@ -18,6 +18,7 @@ import pathlib
 import sys
 
 import jax
+import greybox
 
 jax.config.update("jax_enable_x64", True)
 
@@ -27,9 +28,9 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 
 from greybox import periodic  # noqa: E402
-from greybox.force_sensor import ForceSensor  # noqa: E402
-from greybox.io.atomic import atomic_output_file  # noqa: E402
-from models import electrothermal_chevron as ec  # noqa: E402
+from greybox._force_sensor import ForceSensor  # noqa: E402
+from greybox.io._atomic import atomic_output_file  # noqa: E402
+ec = greybox.device_module("electrothermal_chevron")  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 SEED = 2012
@@ -47,7 +48,7 @@ N_STEPS = 64
 
 def main() -> None:
     rng = np.random.default_rng(SEED)
-    truth = ec.default_model()
+    truth = ec.SPEC.model()
     a, f = (g.ravel() for g in np.meshgrid(AMPLITUDES_V, FREQUENCIES_HZ, indexing="ij"))
     _, pp = periodic.square_wave_response(truth, a, f, n_steps=N_STEPS)
     y_um = pp * 1e6 + rng.normal(0.0, NOISE_UM, pp.shape)

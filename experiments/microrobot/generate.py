@@ -22,18 +22,19 @@ import sys
 from pathlib import Path
 
 import jax
+import greybox
 
 jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import numpy as np  # noqa: E402
 
-from greybox.channels import LASER_POWER  # noqa: E402
-from greybox.io.experiment_files import waveform_from_description  # noqa: E402
-from greybox.io.experiment_writer import pulse_train_description, run_csv, run_table  # noqa: E402
-from greybox.parameters import get_value, set_values  # noqa: E402
-from greybox.synthetic import CameraDefects, record  # noqa: E402
-from models import microrobot  # noqa: E402
+from greybox._channels import LASER_POWER  # noqa: E402
+from greybox.io import waveform_from_description  # noqa: E402
+from greybox.io._experiment_writer import pulse_train_description, run_csv, run_table  # noqa: E402
+from greybox._parameters import get_value, set_values  # noqa: E402
+from greybox._synthetic import CameraDefects, record  # noqa: E402
+microrobot = greybox.device_module("microrobot")  # noqa: E402
 
 SEED = 20240611
 # true values (nominal: 0.448, 1.9e-7 J/K, 0.3 uN, 5 N/m, 1.0)
@@ -80,11 +81,10 @@ def main(argv=None) -> None:
     out.mkdir(parents=True, exist_ok=True)
 
     m_per_px = CAMERA["um_per_px"] * 1e-6
-    nominal = microrobot.default_model(exposure_s=CAMERA["exposure_ms"] * 1e-3, m_per_px=m_per_px)
+    camera = dict(exposure_s=CAMERA["exposure_ms"] * 1e-3, m_per_px=m_per_px)
+    nominal = greybox.with_camera(microrobot.SPEC.model(), **camera)
     truth_model = set_values(
-        microrobot.default_model(
-            exposure_s=CAMERA["exposure_ms"] * 1e-3, m_per_px=m_per_px, substeps=TRUTH_SUBSTEPS
-        ),
+        greybox.with_camera(microrobot.SPEC.model(substeps=TRUTH_SUBSTEPS), **camera),
         list(TRUE),
         list(TRUE.values()),
     )

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import jax
+import greybox
 
 jax.config.update("jax_enable_x64", True)
 
@@ -22,7 +23,7 @@ import study  # noqa: E402
 from tclab_data import load_folder, uniform  # noqa: E402
 
 from greybox import blackbox as bb  # noqa: E402
-from greybox.io.atomic import atomic_output_file  # noqa: E402
+from greybox.io._atomic import atomic_output_file  # noqa: E402
 
 
 def analyse(folder: str, say=print) -> dict:
@@ -105,9 +106,9 @@ def analyse(folder: str, say=print) -> dict:
         (f"**{r[0]} (AIC-selected)**", *r[1:]) if out["selected"] in r[0] else r
         for r in out["rows"]
     ]
-    from models import tclab
+    tclab = greybox.device_module("tclab")
 
-    z_pub = [study.simulate_run(tclab.default_model(shared_sensor_lag=True), e) for e in (est, val)]
+    z_pub = [study.simulate_run(tclab.SPEC.model(shared_sensor_lag=True), e) for e in (est, val)]
     row("energy balance, paper's published parameters", *z_pub, "not fitted here")
 
     u_est, u_val = uniform(est), uniform(val)
@@ -302,7 +303,7 @@ def notes(two: dict, one: dict) -> str:
     # largest pole modulus of any F in the OE [2 2 1] models, per sensor
     oe2_poles = [max(max(abs(np.roots(f))) for f in m.f[0]) for m in two["miso"]["oe22"]]
     return f"""## Notes
-- Model: `models/tclab.py` (`TCLab`), a 2-node `greybox.blocks.thermal.ThermalNetwork`
+- Model: `models/tclab.py` (`TCLab`), a 2-node `greybox.blocks._thermal.ThermalNetwork`
   (convection + radiation to ambient, conduction + radiation between heaters, a first-order lag
   per sensor), the paper's fixed constants (Ta = 23 C, m = 4 g, cp = 500 J/(kg K), A = 10 cm^2,
   As = 2 cm^2, eps = 0.9). Heater inputs are held from each logged sample to the next (the

@@ -11,13 +11,15 @@ import dataclasses
 
 import numpy as np
 
+import greybox
+
 from greybox import blackbox as bb
-from greybox.data import Experiment
-from greybox.fit import FitResult, fit
-from greybox.freeparams import FreeParameter
-from greybox.metrics import sae
-from greybox.simulate import simulate
-from models import tclab
+from greybox._data import Experiment
+from greybox._fit import FitResult, fit
+from greybox._freeparams import FreeParameter
+from greybox._metrics import sae
+from greybox._simulate import simulate
+tclab = greybox.device_module("tclab")
 
 # Park et al. (2020), sae_summary.xlsx: SAE [degC] (estimation, validation)
 PAPER = {
@@ -71,7 +73,7 @@ def fit_greybox(
     (adaptive solver, simulation error on both sensors); `shared_sensor_lag=True` is the
     paper's structure."""
     return fit(
-        tclab.default_model(shared_sensor_lag=shared_sensor_lag),
+        tclab.SPEC.model(shared_sensor_lag=shared_sensor_lag),
         [estimation],
         free_parameters(one_heater, shared_sensor_lag) + list(extra_free),
         method="adaptive",

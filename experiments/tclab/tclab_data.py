@@ -11,10 +11,12 @@ from pathlib import Path
 
 import numpy as np
 
+import greybox
+
 from greybox.blackbox import UniformData
-from greybox.data import Experiment
-from greybox.waveforms import from_samples
-from models import tclab
+from greybox._data import Experiment
+from greybox._waveforms import from_samples
+tclab = greybox.device_module("tclab")
 
 HERE = Path(__file__).resolve().parent
 

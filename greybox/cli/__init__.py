@@ -2,7 +2,7 @@
 
 Each subcommand lives in its own module `greybox.cli._<name>` exposing
 ``add_parser(subparsers)`` (which sets ``func`` on its parser). Bad input raises
-`greybox.errors.InputError` (or `ValueError`); `main` turns it into one line on stderr and
+`greybox._errors.InputError` (or `ValueError`); `main` turns it into one line on stderr and
 exit status 2, so no subcommand prints tracebacks at users.
 """
 
@@ -48,7 +48,7 @@ def main(argv=None) -> int:
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 2
-    from greybox.errors import InputError
+    from greybox._errors import InputError
 
     try:
         return int(args.func(args) or 0)

@@ -47,7 +47,7 @@ def embedded_dir() -> Path:
 def truth_rows(outcome, truth: dict) -> tuple[list[str], bool]:
     """Recovered-vs-true lines, and whether every identifiable physical parameter's true
     value lies inside its reported 95 % interval."""
-    from greybox.report import display_unit, estimate_texts, fmt
+    from greybox._report import display_unit, estimate_texts, fmt
 
     lines = [
         f"{'parameter':<20} {'true':>9} {'recovered':>10}  {'95 % interval':<20} "
@@ -90,7 +90,7 @@ def run(args) -> int:
     import jax
 
     from greybox.cli._fit import Progress, fit_experiment_dir, fit_lines
-    from greybox.errors import InputError
+    from greybox._errors import InputError
 
     jax.config.update("jax_enable_x64", True)
     say = Progress(args.quiet)

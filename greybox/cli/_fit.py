@@ -90,10 +90,10 @@ def default_out(experiment_dir) -> Path:
 
 def fit_experiment_dir(experiment_dir, out, say) -> FitOutcome:
     """Load, fit, validate and write the result folder atomically (the work of `greybox fit`)."""
-    from greybox.fit import fit, validate
-    from greybox.io.atomic import atomic_output_dir
-    from greybox.io.experiment_files import load_experiment_set
-    from greybox.io.params_file import params_document, write_params
+    from greybox._fit import fit, validate
+    from greybox.io._atomic import atomic_output_dir
+    from greybox.io._experiment_set import load_experiment_set
+    from greybox.io._params_file import params_document, write_params
 
     say(f"loading {experiment_dir}")
     fs = load_experiment_set(experiment_dir)
@@ -133,9 +133,9 @@ def usual_permissions(folder: Path) -> None:
 
 
 def render_report(fs, result, validation, figures) -> str:
-    from greybox.report import fit_report
+    from greybox._report import fit_report
 
-    notes = {p.path: p.identifiability for p in getattr(fs.device, "PARAMETERS", ())}
+    notes = {p.path: p.identifiability for p in fs.spec.parameter_table(fs.options)}
     source = " ".join(filter(None, [fs.description, f"Data: `{fs.directory}`."]))
     return fit_report(
         result,
@@ -146,16 +146,16 @@ def render_report(fs, result, validation, figures) -> str:
         parameter_notes=notes,
         figures=figures,
         source=source,
-        output_unit=fs.device.OUTPUTS[0].si_unit,
+        output_unit=fs.spec.outputs[0].si_unit,
     )
 
 
 def write_figures(folder: Path, fs, result, validation) -> list[str]:
     """Per-run fit figures, residuals and correlation under `folder`/figures; relative paths."""
-    from greybox import plots
+    from greybox import _plots as plots
 
-    outputs = tuple((c.description or c.name, c.si_unit) for c in fs.device.OUTPUTS)
-    inputs = tuple((c.description or c.name, c.si_unit) for c in fs.device.INPUTS)
+    outputs = tuple((c.description or c.name, c.si_unit) for c in fs.spec.outputs)
+    inputs = tuple((c.description or c.name, c.si_unit) for c in fs.spec.inputs)
     (folder / "figures").mkdir()
     runs = [
         (e, "estimation", result.predict(i), result.fit_percent[e.name])
@@ -184,7 +184,7 @@ def write_figures(folder: Path, fs, result, validation) -> list[str]:
         )
         names.append(name)
     # one residuals figure per output channel (units and noise differ between channels)
-    for j, (channel, out) in enumerate(zip(fs.device.OUTPUTS, outputs)):
+    for j, (channel, out) in enumerate(zip(fs.spec.outputs, outputs)):
         name = (
             "figures/residuals.png"
             if len(outputs) == 1
@@ -205,7 +205,7 @@ def write_figures(folder: Path, fs, result, validation) -> list[str]:
 
 def parameter_lines(result) -> list[str]:
     """Terminal table of the shared parameters: value, 95 % interval, verdict."""
-    from greybox.report import estimate_texts
+    from greybox._report import estimate_texts
 
     lines = ["parameter                  value        95 % interval               verdict"]
     for p in result.parameters:
@@ -220,10 +220,10 @@ def parameter_lines(result) -> list[str]:
 
 def fit_lines(outcome: FitOutcome) -> list[str]:
     """Terminal lines: simulation fit % per run, sigma, outliers, convergence."""
-    from greybox.report import display_unit, fmt
+    from greybox._report import display_unit, fmt
 
     r, v = outcome.result, outcome.validation
-    f, unit = display_unit(outcome.fitset.device.OUTPUTS[0].si_unit)
+    f, unit = display_unit(outcome.fitset.spec.outputs[0].si_unit)
 
     def scores(res) -> str:
         out = []

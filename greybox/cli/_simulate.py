@@ -80,18 +80,18 @@ def run(args) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from greybox import plots
-    from greybox.errors import InputError
-    from greybox.io.atomic import atomic_output_dir
-    from greybox.io.experiment_files import parse_waveform_spec, waveform_from_csv
-    from greybox.io.params_file import load_params
-    from greybox.prediction import prediction_band
-    from greybox.report import display_unit
+    from greybox import _plots as plots
+    from greybox._errors import InputError
+    from greybox.io._atomic import atomic_output_dir
+    from greybox.io._waveform_spec import parse_waveform_spec, waveform_from_csv
+    from greybox.io._params_file import load_params
+    from greybox._prediction import prediction_band
+    from greybox._report import display_unit
 
     if not (math.isfinite(args.dt_ms) and args.dt_ms > 0):
         raise InputError(f"must be a positive number of ms, got {args.dt_ms}", field="--dt-ms")
     fitted = load_params(args.params)
-    in_ch, out_ch = fitted.device.INPUTS[0], fitted.device.OUTPUTS[0]
+    in_ch, out_ch = fitted.spec.inputs[0], fitted.spec.outputs[0]
     spec = args.waveform
     if spec.startswith("pulse:") or not spec.lower().endswith(".csv"):
         wave, text = parse_waveform_spec(spec, in_ch)

@@ -90,8 +90,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def _parse_roi(text: str, field: str):
-    from greybox.errors import InputError
-    from greybox.tracking import Roi
+    from greybox._errors import InputError
+    from greybox._tracking import Roi
 
     try:
         x, y, w, h = (int(v) for v in text.split(","))
@@ -105,14 +105,14 @@ def _parse_roi(text: str, field: str):
 
 
 def _positive(value, field: str):
-    from greybox.errors import InputError
+    from greybox._errors import InputError
 
     if value is not None and not (math.isfinite(value) and value > 0):
         raise InputError(f"must be a positive number, got {value}", field=field)
 
 
 def _times(info, n: int, fps: float | None, video: str) -> np.ndarray:
-    from greybox.errors import InputError
+    from greybox._errors import InputError
 
     if fps is not None:
         return np.arange(n) / fps
@@ -131,10 +131,10 @@ def _fmt(v: float, digits: int) -> str:
 
 
 def run(args) -> int:
-    from greybox.errors import InputError
-    from greybox.io.atomic import atomic_output_file
-    from greybox.io.video import iter_frames, prefetch, probe
-    from greybox.tracking import (
+    from greybox._errors import InputError
+    from greybox.io._atomic import atomic_output_file
+    from greybox.io._video import iter_frames, prefetch, probe
+    from greybox._tracking import (
         FeatureTracker,
         measure_sequence,
         pose_track,

@@ -1,1 +1,26 @@
-"""File-facing edge of greybox: loaders, writers, video readers. The core never imports this."""
+"""File formats at the library's edge: experiment folders, params.json, result folders, video.
+
+`load_experiment_set` reads an experiment folder (``experiment.toml`` + run CSVs, format in
+``experiments/README.md``); `params_document`/`write_params`/`load_params` write and read
+``params.json``; `experiment_writer` helpers write the inverse of the loader. Video I/O
+(`probe`, `iter_frames`, `write_video`) needs the ``video`` extra.
+"""
+
+from greybox.io._atomic import atomic_output_dir as atomic_output_dir
+from greybox.io._atomic import atomic_output_file as atomic_output_file
+from greybox.io._experiment_set import ExperimentSet as ExperimentSet
+from greybox.io._experiment_set import RunInfo as RunInfo
+from greybox.io._experiment_set import configure_model as configure_model
+from greybox.io._experiment_set import load_experiment_set as load_experiment_set
+from greybox.io._waveform_spec import parse_waveform_spec as parse_waveform_spec
+from greybox.io._waveform_spec import waveform_from_csv as waveform_from_csv
+from greybox.io._waveform_spec import waveform_from_description as waveform_from_description
+from greybox.io._experiment_writer import format_number as format_number
+from greybox.io._experiment_writer import inline_table as inline_table
+from greybox.io._experiment_writer import pulse_train_description as pulse_train_description
+from greybox.io._experiment_writer import run_csv as run_csv
+from greybox.io._experiment_writer import run_table as run_table
+from greybox.io._params_file import FittedModel as FittedModel
+from greybox.io._params_file import load_params as load_params
+from greybox.io._params_file import params_document as params_document
+from greybox.io._params_file import write_params as write_params

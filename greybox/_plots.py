@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from greybox.fit import OUTLIER_SIGMAS
-from greybox.report import display_unit
+from greybox._fit import OUTLIER_SIGMAS
+from greybox._report import display_unit
 
 DPI = 110
 

@@ -1,4 +1,4 @@
-"""Writing experiment folders: the inverse of `greybox.io.experiment_files`.
+"""Writing experiment folders: the inverse of `greybox.io._experiment_set`.
 
 Small pieces a script needs to export runs in greybox's format (experiments/README.md):
 run CSV text with units in the headers, and the `[[runs]]` TOML tables with their waveform

@@ -6,7 +6,7 @@ each period T = 1 / f, starting at a rising edge. Two paths give the cycle that 
 - "analytic": for dynamics affine in the state, dx/dt = A x + B g(u) (a linear device, or a
   device with `state_affine_form()` such as the Joule-heated chevron at zero TCR), the one-cycle
   fixed point is closed form, x_start = (I - Phi_off Phi_on)^-1 (Phi_off Gamma_on q_on +
-  Gamma_off q_off), with exact ZOH matrices (`greybox.simulate.zoh_matrices`); states inside the
+  Gamma_off q_off), with exact ZOH matrices (`greybox._simulate.zoh_matrices`); states inside the
   cycle follow by exact ZOH steps.
 - "numerical": otherwise (Joule heating with R(T), radiation) the one-cycle map is integrated
   with `n_steps` exponential Rosenbrock-Euler steps per phase, x+ = x + h phi1(h J) f(x) (exact
@@ -25,7 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from greybox.simulate import as_arrays, require_x64, zoh_matrices
+from greybox._device import AbstractStateAffineDevice
+from greybox._simulate import as_arrays, require_x64, zoh_matrices
 
 METHODS = ("auto", "analytic", "numerical")
 NEWTON_ITERATIONS = 8  # the one-cycle map is a contraction close to affine: 3-4 suffice
@@ -33,16 +34,11 @@ NEWTON_ITERATIONS = 8  # the one-cycle map is a contraction close to affine: 3-4
 
 def is_state_affine(model) -> bool:
     """Whether the closed-form path applies (decide outside jit, on a concrete model)."""
-    if hasattr(model, "is_state_affine"):
-        return bool(model.is_state_affine)
-    return bool(model.is_linear)
+    return isinstance(model, AbstractStateAffineDevice) and model.is_state_affine()
 
 
 def _affine_form(model):
-    if hasattr(model, "state_affine_form"):
-        return model.state_affine_form()
-    a, b = model.linear_dynamics()
-    return a, b, lambda u: u
+    return model.state_affine_form()
 
 
 def _u(model, level):

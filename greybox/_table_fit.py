@@ -2,12 +2,12 @@
 
 For data such as an amplitude-frequency-displacement table (periodic steady states) or forces
 against DC voltage, the prediction is a pure function `predict(model, x) -> (N,)` [SI] instead
-of a simulated trajectory. The fit reuses the core pieces of `greybox.fit`:
+of a simulated trajectory. The fit reuses the core pieces of `greybox._fit`:
 
 - `FreeParameter` transforms (log/logit/linear) and log-normal priors (extra residuals);
 - optimistix Levenberg-Marquardt on the raw (transformed) vector;
-- the Gauss-Newton covariance and identifiability verdicts of `greybox.identifiability.analyse`
-  from the weighted Jacobian, reported as `greybox.fit.ParameterEstimate` rows.
+- the Gauss-Newton covariance and identifiability verdicts of `greybox._identifiability.analyse`
+  from the weighted Jacobian, reported as `greybox._fit.ParameterEstimate` rows.
 
 Noise: `sigma` known (scalar or per row, e.g. standard errors of averaged repeats), or estimated
 as sqrt(RSS / (n - p)) (the unbiased Gaussian estimate) and the covariance scaled by it.
@@ -26,12 +26,12 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from greybox.fit import ParameterEstimate, correlation, parameter_estimates
-from greybox.freeparams import FreeParameter
-from greybox.identifiability import IdentifiabilityReport, analyse
-from greybox.metrics import r_squared, rmse
-from greybox.parameters import get_value, set_values
-from greybox.simulate import as_arrays, require_x64
+from greybox._fit import ParameterEstimate, correlation, parameter_estimates
+from greybox._freeparams import FreeParameter
+from greybox._identifiability import IdentifiabilityReport, analyse
+from greybox._metrics import r_squared, rmse
+from greybox._parameters import get_value, set_values
+from greybox._simulate import as_arrays, require_x64
 
 
 class _TableProblem(eqx.Module):
@@ -127,7 +127,7 @@ def fit_table(
 
     **Arguments:**
     - `predict`: pure JAX function (model, x) -> (N,) [SI]; keep the same function object across
-      calls to reuse the compiled solver (e.g. `greybox.periodic.response_function`).
+      calls to reuse the compiled solver (e.g. `greybox._periodic.response_function`).
     - `x`: the table's inputs (any PyTree of arrays, e.g. (amplitude_V, frequency_Hz)).
     - `y`: measured values (N,) [SI], finite.
     - `free`: shared `FreeParameter`s (per-experiment parameters have no meaning here).

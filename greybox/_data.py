@@ -6,8 +6,8 @@ import dataclasses
 
 import numpy as np
 
-from greybox.simulate import check_times
-from greybox.waveforms import PiecewiseConstant
+from greybox._simulate import check_times
+from greybox._waveforms import PiecewiseConstant
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,7 +86,7 @@ class Experiment:
 
     def apply_settings(self, model):
         """`model` with this run's known settings applied."""
-        from greybox.parameters import set_values
+        from greybox._parameters import set_values
 
         return set_values(model, list(self.settings), list(self.settings.values()))
 

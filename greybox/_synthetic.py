@@ -11,8 +11,8 @@ import dataclasses
 
 import numpy as np
 
-from greybox.data import Experiment
-from greybox.simulate import simulate
+from greybox._data import Experiment
+from greybox._simulate import simulate
 
 
 @dataclasses.dataclass(frozen=True)

@@ -38,6 +38,12 @@ def rmse(y, y_hat) -> float:
     return float(np.sqrt(np.mean((y - y_hat) ** 2)))
 
 
+def mae(y, y_hat) -> float:
+    """Mean absolute error, in the units of y."""
+    y, y_hat = _valid(y, y_hat)
+    return float(np.mean(np.abs(y - y_hat)))
+
+
 def sae(y, y_hat) -> float:
     """Sum of absolute errors, in the units of y (the TCLab benchmark's metric)."""
     y, y_hat = _valid(y, y_hat)

@@ -26,10 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from greybox.device import AbstractDevice, AbstractSteppedDevice
-from greybox.waveforms import PiecewiseConstant
-
-METHODS = ("zoh", "adaptive")
+from greybox._device import METHODS, AbstractDevice, AbstractSteppedDevice, check_method
+from greybox._waveforms import PiecewiseConstant
 
 
 def require_x64(where: str) -> None:
@@ -339,7 +337,7 @@ def simulate(
     inputs,
     t_s,
     *,
-    method: str = "zoh",
+    method: str | None = None,
     t_start_s: float = 0.0,
     rtol: float = 1e-8,
     atol: float = 1e-10,
@@ -349,11 +347,12 @@ def simulate(
     """Simulate what the camera sees for a given input waveform.
 
     **Arguments:**
-    - `model`: a device (e.g. `models.chevron_laser.default_model()`).
+    - `model`: a device (e.g. `greybox.get_device("chevron_laser").model()`).
     - `inputs`: a waveform (`PulseTrain`, `PiecewiseConstant`, ...) in the device's input units
       (laser power in W), one channel per device input.
     - `t_s`: frame timestamps [s], shape (N,), strictly increasing, any spacing.
-    - `method`: "zoh" (exact, linear devices) or "adaptive" (diffrax Tsit5 with jump times).
+    - `method`: "zoh" (exact, linear devices) or "adaptive" (diffrax Tsit5 with jump times);
+      None picks the device's default (`greybox._device.default_method`).
     - `t_start_s`: time [s] at which the device is in `model.initial_state()` (default 0).
     - `rtol`, `atol`, `max_steps`: adaptive solver settings (state units: K).
     - `throw`: raise if the adaptive solve fails; with False the result is NaN instead.
@@ -361,10 +360,7 @@ def simulate(
     **Returns:** observations in SI (m for displacement), shape (N,) for one output, else (N, n_y).
     """
     require_x64("simulate")
-    if method not in METHODS:
-        raise ValueError(f"method: {method!r} is unknown; use one of {METHODS}")
-    if method == "zoh" and not model.is_linear and not isinstance(model, AbstractSteppedDevice):
-        raise ValueError("method: the ZOH path needs a linear device; use method='adaptive'")
+    method = check_method(model, method)
     sched = pad_schedules([schedule_for(model, inputs, t_s, t_start_s=t_start_s)])
     row = {k: v[0] for k, v in sched.items()}
     z, ok = _observe_jit(as_arrays(model), row, method, rtol, atol, max_steps)

@@ -24,7 +24,7 @@ Algorithm (per feature, against a reference frame; the feature is a user ROI):
    batched FFT. Its small matrix products run on one BLAS thread (`_one_blas_thread`):
    multithreaded OpenBLAS on 150 x 64 matrices spends its time synchronising (measured
    1.4-2 ms -> 10-25 ms per frame on the shared 2-core machine), and the other core is
-   decoding video (`greybox.io.video.prefetch`). Its error metric gives ``rho``.
+   decoding video (`greybox.io._video.prefetch`). Its error metric gives ``rho``.
    In short: scikit-image does the sub-pixel registration; `scipy.fft` the batched
    whole-pixel search and patch spectra; numpy the parabola and phase ramp of step 2
    (a coarse starting point, not the estimate); threadpoolctl the BLAS thread limit.
@@ -171,7 +171,7 @@ def search_crop(
     Returns ``(crop, roi_in_crop)``: ``crop = (x, y, w, h)`` px, the search window at the
     reference position, and the ROI in the cropped frames' coordinates. A tracker built
     on cropped frames (reference included) gives the same displacements as on full ones,
-    so a decoder can crop before the frames reach Python (`greybox.io.video.iter_frames`).
+    so a decoder can crop before the frames reach Python (`greybox.io._video.iter_frames`).
     """
     y0, y1, x0, x1 = _search_window(roi, int(search_px), shape)
     return (x0, y0, x1 - x0, y1 - y0), Roi(roi.x - x0, roi.y - y0, roi.w, roi.h)

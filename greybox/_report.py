@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from greybox.fit import OUTLIER_SIGMAS
+from greybox._fit import OUTLIER_SIGMAS
 
 _DISPLAY = {"m": (1e6, "um"), "s": (1e3, "ms"), "m/s": (1e6, "um/s"), "W": (1e3, "mW")}
 

@@ -1,7 +1,7 @@
 """Synthetic microscope image sequences with known sub-pixel motion (for tests and demos).
 
 Pure numpy, deterministic for a given ``seed`` (one `numpy.random.Generator`), no file I/O
-(`greybox.io.video` writes the frames to a video container or an image stack).
+(`greybox.io._video` writes the frames to a video container or an image stack).
 
 Model (PHYSICS.md §10): the scene is a sum of Gaussian blobs, convolved analytically with
 a Gaussian PSF and the pixel box (variance 1/12 px²), so a frame at displacement ``d`` is

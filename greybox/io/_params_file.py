@@ -5,16 +5,20 @@ by each entry. Non-finite numbers (a "not identifiable" parameter's interval) ar
 
 Schema (``"schema": "greybox.params/1"``):
 
-- ``device``: device module name; ``model``: what rebuilds the fitted model:
-  ``camera`` (m_per_px, exposure_s), ``fixed`` ({path: SI value} from [device.settings]),
-  ``fitted`` ({path: SI value} for every shared free parameter), ``method``.
+- ``greybox_version``: the version that wrote it.
+- ``device``: ``name`` (the spec's name), ``ref`` (the reference as written in
+  experiment.toml), ``source`` ("builtin", "file", "module", "entry point"), ``location``
+  (absolute path of a device file, else the module or name), ``options`` (every structural
+  option, defaults filled in). ``model``: what rebuilds the fitted model: ``camera``
+  (m_per_px, exposure_s), ``fixed`` ({path: SI value} from [experiment] settings), ``fitted``
+  ({path: SI value} for every shared free parameter), ``method``.
 - ``parameters``: one entry per fitted value: name, path, unit, value, se, ci95 [lo, hi],
   verdict ("identifiable" | "prior-dominated" | "not identifiable"), experiment (the run
   that owns a per-run value, else null), prior ({median, log_sd} or null).
 - ``free``: the free-parameter specs (path, unit, bounds, per_experiment, prior, initial,
   scale) in the order of ``raw``; ``raw`` and ``covariance_raw``: the optimiser's
   transformed coordinates and their posterior covariance (shared parameters first, then one
-  block per estimation run), from which `greybox.prediction` rebuilds a band;
+  block per estimation run), from which `greybox._prediction` rebuilds a band;
   ``null_directions_raw``: directions of ``raw`` that nothing determined (usually none).
 - ``sigma``: noise scale per output [SI] and whether it was estimated.
 - ``fit_percent`` (every valid frame) and ``fit_percent_robust`` (flagged outliers left
@@ -33,10 +37,10 @@ from pathlib import Path
 
 import numpy as np
 
-from greybox.errors import InputError
-from greybox.freeparams import FreeParameter
+from greybox._errors import InputError
+from greybox._freeparams import FreeParameter
 
-SCHEMA = "greybox.params/1"
+SCHEMA = "greybox.params/2"
 _FREE_FIELDS = [f.name for f in dataclasses.fields(FreeParameter)]
 
 
@@ -88,7 +92,13 @@ def params_document(fitset, result, validation=None) -> dict:
         "schema": SCHEMA,
         "greybox_version": greybox.__version__,
         "experiment": {"name": fitset.name, "description": fitset.description},
-        "device": fitset.device_name,
+        "device": {
+            "name": fitset.spec.name,
+            "ref": fitset.device.ref,
+            "source": fitset.device.source,
+            "location": fitset.device.location,
+            "options": dict(fitset.options),
+        },
         "model": {
             "camera": {
                 "m_per_px": fitset.camera["m_per_px"],
@@ -125,7 +135,7 @@ def params_document(fitset, result, validation=None) -> dict:
         ),
         "sigma": {
             "value": _nums(result.sigma),
-            "unit": [c.si_unit for c in fitset.device.OUTPUTS],
+            "unit": [c.si_unit for c in fitset.spec.outputs],
             "estimated": True,
             "how": "robust (MAD) scale of the residuals",
         },
@@ -169,12 +179,12 @@ class FittedModel:
     - `model`: the device model with the fitted shared values, the fixed settings and the
       camera; per-run nuisance values (camera offset, drift) stay at the device default (0).
     - `free`: the free-parameter specs; `raw`, `covariance_raw`, `null_directions`: as
-      fitted (all parameters; see `greybox.prediction.prediction_band`).
+      fitted (all parameters; see `greybox._prediction.prediction_band`).
     - `sigma`: noise scale per output [SI]; `method`: simulation path used by the fit.
     """
 
-    device_name: str
-    device: object
+    device: object  # greybox._registry.ResolvedDevice
+    options: dict
     model: object
     free: tuple
     raw: np.ndarray
@@ -184,12 +194,21 @@ class FittedModel:
     method: str
     document: dict
 
+    @property
+    def spec(self):
+        return self.device.spec
+
+    @property
+    def device_name(self) -> str:
+        return self.device.spec.name
+
 
 def load_params(path) -> FittedModel:
     """Read `params.json` and rebuild the fitted model. Raises `InputError` naming the field."""
-    import models
-    from greybox.io.experiment_files import configure_model
-    from greybox.parameters import set_values
+    from greybox._parameters import set_values
+    from greybox._registry import DeviceNotFound, resolve
+    from greybox._spec import DeviceSpecError
+    from greybox.io._experiment_set import configure_model
 
     path = Path(path)
     file = str(path)
@@ -222,11 +241,44 @@ def load_params(path) -> FittedModel:
     schema = need(doc, "schema", str, "")
     if schema != SCHEMA:
         raise InputError(f"{schema!r}: this greybox reads {SCHEMA}", file=file, field="schema")
-    device_name = need(doc, "device", str, "")
+    dev = need(doc, "device", dict, "")
+    ref = need(dev, "ref", str, "device.")
+    location = need(dev, "location", str, "device.")
+    source = need(dev, "source", str, "device.")
+    given_options = need(dev, "options", dict, "device.")
+    # a device file is found where it was fitted, else beside params.json (a moved result)
+    candidates = [location] if source == "file" else [ref]
+    if source == "file":
+        candidates.append(str(path.parent / Path(location).name))
+    device, last_err = None, None
+    for candidate in candidates:
+        try:
+            device = resolve(
+                candidate if source != "file" else f"{candidate}:{ref.partition(':')[2] or 'SPEC'}"
+            )
+            break
+        except (DeviceNotFound, DeviceSpecError) as err:
+            last_err = err
+    if device is None:
+        raise InputError(
+            f"the device that was fitted cannot be loaded ({last_err}); params.json needs the "
+            f"same device ({ref!r}): restore the file or install the package",
+            file=file,
+            field="device",
+        )
+    if device.spec.name != dev.get("name"):
+        raise InputError(
+            f"{ref!r} now defines device {device.spec.name!r}, but this file was fitted with "
+            f"{dev.get('name')!r}; use the device file it was fitted with",
+            file=file,
+            field="device.name",
+        )
     try:
-        device = models.load(device_name)
+        options = device.spec.resolve_options(given_options)
     except ValueError as err:
-        raise InputError(str(err).split(": ", 1)[-1], file=file, field="device") from None
+        raise InputError(
+            f"{err}; the device's options changed since the fit", file=file, field="device.options"
+        ) from None
     spec = need(doc, "model", dict, "")
     camera = need(spec, "camera", dict, "model.")
     fixed = need(spec, "fixed", dict, "model.")
@@ -240,7 +292,7 @@ def load_params(path) -> FittedModel:
         free = tuple(FreeParameter(**{k: f[k] for k in _FREE_FIELDS if k in f}) for f in free_docs)
         cov = np.array([[np.nan if v is None else v for v in row] for row in cov_list], dtype=float)
         nulls = np.array(doc.get("null_directions_raw") or [], dtype=float).reshape(-1, raw.size)
-        model = configure_model(device, camera, fixed)
+        model = configure_model(device.spec, options, camera, fixed)
         model = set_values(model, list(fitted), [float(v) for v in fitted.values()])
     except (TypeError, ValueError, KeyError) as err:
         raise InputError(
@@ -254,4 +306,4 @@ def load_params(path) -> FittedModel:
             file=file,
             field="covariance_raw",
         )
-    return FittedModel(device_name, device, model, free, raw, cov, nulls, sigma, method, doc)
+    return FittedModel(device, options, model, free, raw, cov, nulls, sigma, method, doc)

@@ -2,7 +2,7 @@
 
 `fit(model, experiments, free)` minimises the simulation error (free-run, never one-step
 prediction) of every experiment at once with optimistix Levenberg-Marquardt over transformed
-parameters (see `greybox.freeparams`), with:
+parameters (see `greybox._freeparams`), with:
 
 - shared and per-experiment parameters, NaN frames masked out;
 - a robust loss (Huber or Student-t) so corrupted frames do not drag the fit;
@@ -14,7 +14,7 @@ parameters (see `greybox.freeparams`), with:
   trust region rejects that step instead of crashing the program.
 
 The result carries the Gauss-Newton covariance, 95 % intervals, correlations, the
-identifiability analysis (`greybox.identifiability`) and the simulation fit % per experiment.
+identifiability analysis (`greybox._identifiability`) and the simulation fit % per experiment.
 """
 
 from __future__ import annotations
@@ -28,14 +28,13 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from greybox.data import Experiment
-from greybox.device import AbstractSteppedDevice
-from greybox.freeparams import FreeParameter
-from greybox.identifiability import IdentifiabilityReport, analyse
-from greybox.metrics import fit_percent
-from greybox.parameters import get_value, set_values
-from greybox.simulate import (
-    METHODS,
+from greybox._data import Experiment
+from greybox._device import check_method
+from greybox._freeparams import FreeParameter
+from greybox._identifiability import IdentifiabilityReport, analyse
+from greybox._metrics import fit_percent
+from greybox._parameters import get_value, set_values
+from greybox._simulate import (
     as_arrays,
     observe_schedule,
     pad_schedules,
@@ -119,7 +118,7 @@ class FitResult:
 
     def predict(self, experiment_index: int, method: str | None = None) -> np.ndarray:
         """Free-run simulation of experiment `experiment_index` with its fitted parameters (SI)."""
-        from greybox.simulate import simulate
+        from greybox._simulate import simulate
 
         exp = self.experiments[experiment_index]
         z = simulate(
@@ -336,7 +335,7 @@ def fit(
     experiments: Sequence[Experiment],
     free: Sequence[FreeParameter],
     *,
-    method: str = "zoh",
+    method: str | None = None,
     loss: str = "huber",
     huber_c: float = 1.5,
     student_nu: float = 4.0,
@@ -359,7 +358,8 @@ def fit(
     - `free`: `FreeParameter`s (shared or per-experiment, bounds, priors).
 
     **Other arguments:**
-    - `method`: "zoh" (exact, linear devices) or "adaptive" (diffrax with jump times).
+    - `method`: "zoh" (exact, linear devices) or "adaptive" (diffrax with jump times); None
+      = the device's default (ZOH where it is linear).
     - `loss`: "huber" (default; threshold `huber_c` sigmas), "student_t" (`student_nu` dof) or "l2".
     - `sigma`: measurement noise [SI] per output; None estimates it robustly from residuals.
     - `n_starts`, `seed`: multi-start count (>= 1) and its random seed.
@@ -378,12 +378,9 @@ def fit(
         raise ValueError("experiments: zero runs in the estimation set; give at least one")
     if not free:
         raise ValueError("free: no free parameters; list at least one FreeParameter")
-    if method not in METHODS:
-        raise ValueError(f"method: {method!r} is unknown; use one of {METHODS}")
     if loss not in LOSSES:
         raise ValueError(f"loss: {loss!r} is unknown; use one of {LOSSES}")
-    if method == "zoh" and not model.is_linear and not isinstance(model, AbstractSteppedDevice):
-        raise ValueError("method: the ZOH path needs a linear device; use method='adaptive'")
+    method = check_method(model, method)
     paths = [p.path for p in free]
     if len(set(paths)) != len(paths):
         raise ValueError(f"free: a parameter is listed twice ({paths})")
@@ -603,7 +600,7 @@ def validate(
     if not per_exp:
         preds, fits, robust, outl = [], {}, {}, {}
         for e in experiments:
-            from greybox.simulate import simulate
+            from greybox._simulate import simulate
 
             z = np.asarray(
                 simulate(

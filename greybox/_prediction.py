@@ -1,9 +1,9 @@
 """Uncertainty bands for simulating a new input waveform with fitted parameters (pure).
 
 Delta method: with raw (transformed) shared parameters r and their posterior covariance C
-(from `greybox.fit`), the simulated camera reading y(t) = f(r) has variance
+(from `greybox._fit`), the simulated camera reading y(t) = f(r) has variance
 J C J^T, J = dy/dr computed by forward-mode autodiff through the same simulation code
-`greybox.simulate` uses. Per-run nuisance parameters (camera offset, drift) belong to the
+`greybox._simulate` uses. Per-run nuisance parameters (camera offset, drift) belong to the
 recorded runs, not to a new waveform: they are left out of J and C, and the model keeps its
 own values for them (0 for the device defaults), so the output is the displacement from rest.
 
@@ -28,9 +28,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from greybox.parameters import set_values
-from greybox.simulate import (
-    METHODS,
+from greybox._device import check_method
+from greybox._parameters import set_values
+from greybox._simulate import (
     as_arrays,
     observe_schedule,
     pad_schedules,
@@ -83,7 +83,7 @@ def prediction_band(
     sigma=None,
     null_directions=None,
     level: float = 0.95,
-    method: str = "zoh",
+    method: str | None = None,
     t_start_s: float = 0.0,
 ) -> Band:
     """Simulate `inputs` at times `t_s` with a pointwise band from the parameter covariance.
@@ -96,15 +96,14 @@ def prediction_band(
     - `inputs`: waveform in SI (W for laser power); `t_s`: output times [s], increasing.
     - `sigma`: measurement noise per output [SI]; given, the band is a prediction interval.
     - `null_directions`: (k, n_raw) directions nothing determined (see
-      `greybox.identifiability`), if the covariance leaves them out.
+      `greybox._identifiability`), if the covariance leaves them out.
     - `level`: coverage of the pointwise band (default 0.95).
 
     **Returns:** a `Band`. **Raises:** `ValueError` for non-finite fitted values (a fit that
     diverged) or a failed simulation.
     """
     require_x64("prediction_band")
-    if method not in METHODS:
-        raise ValueError(f"method: {method!r} is unknown; use one of {METHODS}")
+    method = check_method(model, method)
     if not 0 < level < 1:
         raise ValueError(f"level: {level} must be in (0, 1)")
     shared = tuple(p for p in free if not p.per_experiment)

@@ -18,6 +18,7 @@ import os
 import time
 
 import jax
+
 import greybox
 
 jax.config.update("jax_enable_x64", True)
@@ -25,10 +26,14 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 from scipy import integrate, optimize  # noqa: E402
 
-from greybox._fit import fit  # noqa: E402
-from greybox._parameters import set_values  # noqa: E402
-from greybox._synthetic import CameraDefects, record  # noqa: E402
-from greybox._waveforms import PulseTrain  # noqa: E402
+from greybox import (  # noqa: E402
+    CameraDefects,
+    PulseTrain,  # noqa: E402
+    fit,  # noqa: E402
+    record,
+    set_values,  # noqa: E402
+)
+
 CHEVRON = greybox.get_device("chevron_laser")
 default_model = CHEVRON.model
 

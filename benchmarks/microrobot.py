@@ -14,12 +14,12 @@ import sys
 import time
 
 import jax
+
 import greybox
 
 jax.config.update("jax_enable_x64", True)
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from greybox import gait  # noqa: E402
 mr = greybox.device_module("microrobot")  # noqa: E402
 
 CYCLES, STEPS_PER_CYCLE, PERIOD_S, POWER_W = 1000, 16, 0.016, 0.02
@@ -27,7 +27,7 @@ CYCLES, STEPS_PER_CYCLE, PERIOD_S, POWER_W = 1000, 16, 0.016, 0.02
 
 def timed(model) -> tuple[float, float, float]:
     """(best wall time [s], its process CPU time [s], final X [m])."""
-    run = jax.jit(lambda m: gait.pose_history(m, PERIOD_S, 0.5, POWER_W, CYCLES, STEPS_PER_CYCLE))
+    run = jax.jit(lambda m: mr.pose_history(m, PERIOD_S, 0.5, POWER_W, CYCLES, STEPS_PER_CYCLE))
     states = run(model).block_until_ready()  # compile
     best, cpu = float("inf"), float("inf")
     for _ in range(5):

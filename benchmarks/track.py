@@ -39,15 +39,17 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from greybox.cli import main as cli_main  # noqa: E402
-from greybox.io._video import iter_frames, probe, write_video  # noqa: E402
-from greybox._render import render_shuttle  # noqa: E402
-from greybox._tracking import (  # noqa: E402
+from greybox.video import (  # noqa: E402  # noqa: E402
     FeatureTracker,
     Roi,
+    iter_frames,
     measure_sequence,
+    probe,
     reference_frame,
+    render_shuttle,  # noqa: E402
     saturation_level_for,
     shuttle_track,
+    write_video,
 )
 
 ROI = Roi(288, 208, 64, 64)

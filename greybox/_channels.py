@@ -19,12 +19,28 @@ class Channel:
     - `units`: {file unit: (scale, offset)} with si = scale * value + offset; include
       ``"px": None`` for camera positions converted with um-per-pixel.
     - `description`: what the signal is, for help texts and reports.
+    - `minimum`, `maximum`: physical range of the signal in SI (e.g. 0 for a laser power,
+      0-100 for a heater level in %); files with values outside it are refused.
     """
 
     name: str
     si_unit: str
     units: dict
     description: str = ""
+    minimum: float | None = None
+    maximum: float | None = None
+
+    def check_range(self, values_si) -> str | None:
+        """None if every finite value lies in the channel's range, else what is wrong."""
+        import numpy as np
+
+        v = np.asarray(values_si, dtype=float)
+        v = v[np.isfinite(v)]
+        if self.minimum is not None and v.size and v.min() < self.minimum:
+            return f"{v.min():g} {self.si_unit} is below {self.minimum:g} {self.si_unit}"
+        if self.maximum is not None and v.size and v.max() > self.maximum:
+            return f"{v.max():g} {self.si_unit} is above {self.maximum:g} {self.si_unit}"
+        return None
 
     def column_names(self) -> list[str]:
         return [f"{self.name}_{u}" for u in self.units]
@@ -53,7 +69,7 @@ class Channel:
 
 
 LASER_POWER = Channel(
-    "laser", "W", {"mW": (1e-3, 0.0), "W": (1.0, 0.0)}, "laser power at the sample"
+    "laser", "W", {"mW": (1e-3, 0.0), "W": (1.0, 0.0)}, "laser power at the sample", minimum=0.0
 )
 DISPLACEMENT = Channel(
     "y",

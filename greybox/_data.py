@@ -23,6 +23,9 @@ class Experiment:
     - `role`: "estimation" or "validation".
     - `settings`: known per-run model values {dotted path: SI value} applied on top of the
       model for this run only (e.g. an initial temperature, a spot position); never fitted.
+    - `sigma`: known measurement noise sd per frame in the units of `y` (SI), shape (N,) (one
+      level for every output) or (N, n_y); None when unknown. `fit` then weights each
+      reading by it, does not re-estimate the noise, and tests the fit against it.
     """
 
     name: str
@@ -32,6 +35,7 @@ class Experiment:
     t_start_s: float = 0.0
     role: str = "estimation"
     settings: dict = dataclasses.field(default_factory=dict)
+    sigma: np.ndarray | None = None
 
     def __post_init__(self):
         t = check_times(self.t_s, name=f"{self.name}: t_s")
@@ -51,13 +55,31 @@ class Experiment:
             raise ValueError(
                 f"{self.name}: role {self.role!r} must be 'estimation' or 'validation'"
             )
-        if np.any(np.asarray(self.inputs.values) < 0):
-            raise ValueError(f"{self.name}: inputs contain negative power; laser power is >= 0")
+        if not np.all(np.isfinite(np.asarray(self.inputs.values))):
+            raise ValueError(f"{self.name}: inputs contain NaN or infinite levels")
         for path, value in self.settings.items():
             if not np.all(np.isfinite(np.asarray(value, dtype=float))):
                 raise ValueError(f"{self.name}: setting {path} = {value!r} is not a finite number")
         object.__setattr__(self, "t_s", t)
         object.__setattr__(self, "y", y)
+        if self.sigma is not None:
+            sigma = np.asarray(self.sigma, dtype=float)
+            if sigma.ndim == 1:
+                sigma = sigma[:, None]
+            if sigma.ndim != 2 or sigma.shape[0] != t.size or sigma.shape[1] not in (1, y.shape[1]):
+                raise ValueError(
+                    f"{self.name}: sigma has shape {np.shape(self.sigma)}; give one noise sd per "
+                    f"frame, shape ({t.size},) or ({t.size}, {y.shape[1]})"
+                )
+            sigma = np.broadcast_to(sigma, y.shape).copy()
+            bad = finite & ~(np.isfinite(sigma) & (sigma > 0))
+            if bad.any():
+                frame = int(np.argwhere(bad)[0, 0])
+                raise ValueError(
+                    f"{self.name}: sigma must be finite and > 0 at every valid frame "
+                    f"(frame {frame} has {sigma[bad][0]!r}); NaN is allowed only where y is NaN"
+                )
+            object.__setattr__(self, "sigma", sigma)
 
     def input_onset_s(self) -> float:
         """Time [s] at which the input first leaves zero (inf if it never does)."""

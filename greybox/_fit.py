@@ -8,13 +8,20 @@ parameters (see `greybox._freeparams`), with:
 - a robust loss (Huber or Student-t) so corrupted frames do not drag the fit;
 - optional log-normal priors, appended as extra residuals (a MAP estimate);
 - noise scale sigma re-estimated robustly from the residuals (MAD), then the fit is repeated
-  at that sigma so that loss thresholds and priors are weighted correctly;
-- multi-start from perturbed initial values, keeping the best and reporting the others;
+  at that sigma so that loss thresholds and priors are weighted correctly; or a known noise
+  level (`Experiment.sigma` per frame, or `sigma=`), which weights the readings, is never
+  re-estimated, and is tested against the residuals (chi-square goodness of fit);
+- multi-start from perturbed initial values (on by default when more than two shared
+  parameters are free), keeping the best and saying when the starting values led elsewhere;
 - an inner solve that never aborts: a failed ODE solve yields a large penalty residual, so the
   trust region rejects that step instead of crashing the program.
 
-The result carries the Gauss-Newton covariance, 95 % intervals, correlations, the
-identifiability analysis (`greybox._identifiability`) and the simulation fit % per experiment.
+The result carries a `status` ("converged", "local optimum", "at bound", "not converged",
+"diverged") and `valid` (the estimate is an interior optimum the optimiser reached); the
+Gauss-Newton covariance and, beside it, the Newey-West (HAC) sandwich covariance, which is
+the headline when the residuals are not white (`se_method`); 95 % intervals, correlations,
+the identifiability analysis (`greybox._identifiability`); per run and per output the
+simulation fit %, its noise ceiling and the residual analysis (`greybox._residuals`).
 """
 
 from __future__ import annotations
@@ -26,14 +33,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from greybox._data import Experiment
 from greybox._device import check_method
-from greybox._freeparams import FreeParameter
+from greybox._freeparams import FreeParameter, apply_raw, levenberg_marquardt
 from greybox._identifiability import IdentifiabilityReport, analyse
-from greybox._metrics import fit_percent
+from greybox._metrics import fit_percent_per_output, noise_ceiling
 from greybox._parameters import get_value, set_values
+from greybox._posterior import Posterior
+from greybox._residuals import GoodnessOfFit, ResidualAnalysis, goodness_of_fit, hac_meat
+from greybox._residuals import analyse as analyse_residuals
 from greybox._simulate import (
     as_arrays,
     observe_schedule,
@@ -45,6 +54,10 @@ from greybox._simulate import (
 LOSSES = ("l2", "huber", "student_t")
 FAILED_SOLVE_RESIDUAL = 1e3  # per residual, in units of sigma: far worse than any real misfit
 OUTLIER_SIGMAS = 5.0  # frames further than this from the fit are reported as outliers
+AUTO_STARTS = 4  # multi-start count when n_starts=None and more than two shared parameters
+SAME_COST = 1e-5  # relative cost difference within which two starts reached the same optimum
+STATUSES = ("converged", "local optimum", "at bound", "not converged", "diverged")
+VALID_STATUSES = ("converged", "local optimum")
 
 
 def _robust(r, loss: str, c: float, nu: float):
@@ -64,8 +77,13 @@ def _robust(r, loss: str, c: float, nu: float):
 class ParameterEstimate:
     """One fitted value in SI with its standard error and 95 % interval.
 
-    `verdict` is "identifiable", "prior-dominated" or "not identifiable"; for the last, `se`
-    and the interval are NaN rather than a confident-looking number.
+    `verdict` is "identifiable", "prior-dominated", "not identifiable" or "at bound"; for the
+    last two, `se` and the interval are NaN rather than a confident-looking number, and
+    `bound` says which bound ("lower" / "upper") the value sits on.
+
+    `se` and `ci95` are the headline (`se_method`: "gauss-newton", or "hac" when the fit's
+    residuals are not white); `se_gauss_newton` and `se_hac` (Newey-West sandwich) are both
+    kept.
     """
 
     name: str
@@ -77,11 +95,38 @@ class ParameterEstimate:
     verdict: str
     experiment: str | None = None
     prior: tuple[float, float] | None = None
+    se_gauss_newton: float = float("nan")
+    se_hac: float = float("nan")
+    se_method: str = "gauss-newton"
+    bound: str | None = None
 
 
 @dataclasses.dataclass(frozen=True)
 class FitResult:
-    """Everything a fit established. All fit % are free-run simulation (`horizon`)."""
+    """Everything a fit established. All fit % are free-run simulation (`horizon`).
+
+    - `status`: "converged" (an interior optimum, every start that reached the lowest cost
+      agrees), "local optimum" (the starting values stopped at a higher cost than another
+      start; the best start's estimate is reported), "at bound" (a parameter ended on one of
+      its bounds: the estimate is the boundary, not an optimum of the data, and its intervals
+      mean nothing), "not converged" (step budget or stall, or a simulation failed), or
+      "diverged". `valid` is True for the first two. `converged` is the optimiser's own
+      answer (tolerances met, every simulation succeeded), whatever the bounds say.
+    - `free`: the free-parameter specs as fitted (a `scale` left at None is filled in).
+    - `covariance_raw`: the headline covariance of the raw coordinates (`se_method`:
+      "gauss-newton", or "hac" when the residuals are not white);
+      `covariance_gauss_newton_raw`, `covariance_hac_raw`: both, determined subspace only;
+      `hac_bandwidth`: Newey-West bandwidth in frames.
+    - `sigma` (n_y,): noise sd per output [SI]; `sigma_source`: "estimated" (robust scale of
+      the residuals), "declared" (`fit(sigma=...)`) or "per-frame" (`Experiment.sigma`; `sigma`
+      is then its RMS); `goodness_of_fit`: the test against known noise (None if estimated).
+    - per run name: `fit_percent`, `fit_percent_robust`, `noise_ceiling` ((n_y,) arrays, one
+      figure per output channel), `n_outliers` (readings flagged).
+    - `residuals`: the residual analysis (whiteness, correlations with the inputs).
+    - `multistart_costs`: ((cost, converged) per start, at the first noise scale);
+      `best_start`: the start whose estimate is reported; `n_starts_at_best`: how many
+      starts reached its cost.
+    """
 
     model: object
     experiment_models: tuple
@@ -97,18 +142,51 @@ class FitResult:
     converged: bool
     message: str
     n_steps: int
-    fit_percent: dict  # simulation fit % on every valid frame, per run
+    fit_percent: dict  # run -> (n_y,) simulation fit % on every valid frame
     fit_percent_robust: dict  # the same without the frames flagged as outliers
     n_outliers: dict
     identifiability: IdentifiabilityReport
     loss: str
     method: str
     multistart_costs: tuple
+    status: str
+    valid: bool
+    noise_ceiling: dict  # run -> (n_y,) fit % of the true model given the noise
+    residuals: ResidualAnalysis
+    covariance_gauss_newton_raw: np.ndarray
+    covariance_hac_raw: np.ndarray
+    se_method: str
+    hac_bandwidth: int
+    sigma_source: str
+    goodness_of_fit: GoodnessOfFit | None
+    best_start: int
+    n_starts_at_best: int
     horizon: str = "simulation"
+
+    @property
+    def posterior(self) -> Posterior:
+        """What the fit established, as the object predictions and designs take."""
+        return Posterior(
+            self.model,
+            self.free,
+            self.raw,
+            self.covariance_raw,
+            self.identifiability.null_directions,
+            self.sigma,
+            self.method,
+        )
 
     @property
     def n_params(self) -> int:
         return self.raw.size
+
+    @property
+    def n_outputs(self) -> int:
+        return int(np.size(self.sigma))
+
+    @property
+    def noise_known(self) -> bool:
+        return self.sigma_source != "estimated"
 
     def estimate(self, name: str) -> ParameterEstimate:
         for p in self.parameters:
@@ -142,6 +220,7 @@ class _Problem(eqx.Module):
     sched: dict
     y: jnp.ndarray
     w: jnp.ndarray
+    noise: jnp.ndarray  # (E, N, n_y) known per-frame noise sd (ones when not known)
     settings: jnp.ndarray  # (E, K) known per-run values for `setting_paths`
     setting_paths: tuple = eqx.field(static=True)
     shared: tuple = eqx.field(static=True)
@@ -164,11 +243,14 @@ class _Problem(eqx.Module):
         n_y = experiments[0].y.shape[1]
         y = np.zeros((n_exp, n_frames, n_y))
         w = np.zeros_like(y)
+        noise = np.ones_like(y)
         for i, e in enumerate(experiments):
             if e.y.shape[1] != n_y:
                 raise ValueError(f"{e.name}: has {e.y.shape[1]} output columns, others {n_y}")
             y[i, : e.n_frames] = np.nan_to_num(e.y)
             w[i, : e.n_frames] = e.mask
+            if e.sigma is not None:
+                noise[i, : e.n_frames] = np.where(e.mask, e.sigma, 1.0)
         setting_paths = tuple(sorted({k for e in experiments for k in e.settings}))
         settings = np.array(
             [
@@ -191,6 +273,7 @@ class _Problem(eqx.Module):
             sched=sched,
             y=jnp.asarray(y),
             w=jnp.asarray(w),
+            noise=jnp.asarray(noise),
             settings=jnp.asarray(settings.reshape(n_exp, len(setting_paths))),
             setting_paths=setting_paths,
             shared=tuple(p for p in free if not p.per_experiment),
@@ -234,14 +317,12 @@ class _Problem(eqx.Module):
     def models(self, raw):
         """(shared model, per-experiment raw block (E, P))."""
         ns = len(self.shared)
-        shared_vals = [p.to_value(raw[k]) for k, p in enumerate(self.shared)]
-        base = set_values(self.model, [p.path for p in self.shared], shared_vals)
+        base = apply_raw(self.model, self.shared, raw)
         return base, raw[ns:].reshape(self.n_exp, len(self.per_exp))
 
     def experiment_model(self, base, per_raw_row, settings_row):
         model = set_values(base, list(self.setting_paths), list(settings_row))
-        vals = [p.to_value(per_raw_row[j]) for j, p in enumerate(self.per_exp)]
-        return set_values(model, [p.path for p in self.per_exp], vals)
+        return apply_raw(model, self.per_exp, per_raw_row)
 
     def predictions(self, raw):
         """Camera readings (E, N, n_y) and per-experiment success flags."""
@@ -260,7 +341,7 @@ class _Problem(eqx.Module):
 
     def data_residuals(self, raw, sigma):
         z, ok = self.predictions(raw)
-        r = (z - self.y) / sigma * self.w
+        r = (z - self.y) / (sigma * self.noise) * self.w
         return jnp.where(ok[:, None, None], r, FAILED_SOLVE_RESIDUAL * self.w)
 
     def residuals(self, raw, sigma):
@@ -279,22 +360,16 @@ def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_st
     keeps compile time to one trace of the model. Never throws: the result code says how the
     solve ended.
     """
-    lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(
-        lambda r, s: problem.residuals(r, s),
-        lm,
-        raw_start,
-        args=sigma,
-        max_steps=max_steps,
-        throw=False,
+    raw, ok, steps = levenberg_marquardt(
+        problem.residuals, raw_start, sigma, rtol=rtol, atol=atol, max_steps=max_steps
     )
-    raw = sol.value
     z, solved = problem.predictions(raw)
     return dict(
         raw=raw,
-        ok=sol.result == optx.RESULTS.successful,
-        steps=sol.stats["num_steps"],
+        ok=ok,
+        steps=steps,
         cost=0.5 * jnp.sum(problem.residuals(raw, sigma) ** 2),
+        residuals=problem.residuals(raw, sigma),
         data_residuals=problem.data_residuals(raw, sigma),
         jacobian=jax.jacfwd(lambda r: problem.residuals(r, sigma))(raw),
         predictions=z,
@@ -302,11 +377,15 @@ def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_st
     )
 
 
+def _start_values(free, model) -> list[float]:
+    """Each parameter's starting value in SI: its `initial`, else the model's value."""
+    return [p.initial if p.initial is not None else float(get_value(model, p.path)) for p in free]
+
+
 def _initial_raw(problem: _Problem, model) -> np.ndarray:
     """Raw start vector: each parameter's `initial` or else the model's value (bounds checked)."""
     raw = []
-    for p in problem.flat_free:
-        v = p.initial if p.initial is not None else get_value(model, p.path)
+    for p, v in zip(problem.flat_free, _start_values(problem.flat_free, model)):
         p.check_value(v)
         raw.append(float(p.to_raw(v)))
     return np.asarray(raw)
@@ -330,6 +409,27 @@ def _robust_sigma(r_scaled: np.ndarray, w: np.ndarray, sigma: np.ndarray) -> np.
     return np.maximum(np.asarray(out), 1e-300)
 
 
+def _noise_source(experiments, sigma) -> str:
+    """ "per-frame" (every run carries `Experiment.sigma`), "declared" (`sigma=` given) or
+    "estimated"; mixing is an error (which noise would be meant is ambiguous)."""
+    carry = [e.sigma is not None for e in experiments]
+    if any(carry) and not all(carry):
+        have = [e.name for e, c in zip(experiments, carry) if c]
+        lack = [e.name for e, c in zip(experiments, carry) if not c]
+        raise ValueError(
+            f"sigma: runs {have} carry a per-frame noise level and {lack} do not; give "
+            "Experiment.sigma for every run or for none"
+        )
+    if all(carry):
+        if sigma is not None:
+            raise ValueError(
+                "sigma: the runs carry per-frame noise (Experiment.sigma); do not pass "
+                "sigma= as well"
+            )
+        return "per-frame"
+    return "declared" if sigma is not None else "estimated"
+
+
 def fit(
     model,
     experiments: Sequence[Experiment],
@@ -340,7 +440,7 @@ def fit(
     huber_c: float = 1.5,
     student_nu: float = 4.0,
     sigma: float | Sequence[float] | None = None,
-    n_starts: int = 1,
+    n_starts: int | None = None,
     seed: int = 0,
     max_steps: int = 200,
     rtol: float = 1e-6,
@@ -354,38 +454,44 @@ def fit(
 
     **Main arguments:**
     - `model`: device at its starting values; fields not in `free` stay fixed.
-    - `experiments`: runs to fit (their `role` is not consulted; pass estimation runs).
+    - `experiments`: runs to fit (their `role` is not consulted; pass estimation runs). Runs
+      that carry `Experiment.sigma` (known noise per frame) are weighted by it.
     - `free`: `FreeParameter`s (shared or per-experiment, bounds, priors).
 
     **Other arguments:**
     - `method`: "zoh" (exact, linear devices) or "adaptive" (diffrax with jump times); None
-      = the device's default (ZOH where it is linear).
+      takes the device's default.
     - `loss`: "huber" (default; threshold `huber_c` sigmas), "student_t" (`student_nu` dof) or "l2".
-    - `sigma`: measurement noise [SI] per output; None estimates it robustly from residuals.
-    - `n_starts`, `seed`: multi-start count (>= 1) and its random seed.
+    - `sigma`: known measurement noise [SI] per output (declared): the readings are weighted
+      by it, it is not re-estimated, and the residuals are tested against it. None estimates
+      it robustly from the residuals.
+    - `n_starts`, `seed`: multi-start count and its random seed; None starts `AUTO_STARTS`
+      times when more than two shared parameters are free, else once.
     - `max_steps`, `rtol`, `atol`: Levenberg-Marquardt budget and tolerances (raw space).
     - `solver_*`: adaptive ODE solver tolerances and step budget.
     - `progress`: called with a short text line at each stage (the CLI prints it).
 
-    **Returns:** a `FitResult`. A fit that does not converge says so in `converged`/`message`;
-    it never presents NaN parameters as a success.
+    **Returns:** a `FitResult`. Its `status` and `valid` say whether the estimate is usable:
+    a fit that does not converge, ends on a bound or diverges says so; it never presents NaN
+    parameters as a success.
     """
     require_x64("fit")
     experiments = tuple(experiments)
-    free = tuple(free)
     say = progress or (lambda _msg: None)
     if not experiments:
         raise ValueError("experiments: zero runs in the estimation set; give at least one")
     if not free:
         raise ValueError("free: no free parameters; list at least one FreeParameter")
+    method = check_method(model, method)
     if loss not in LOSSES:
         raise ValueError(f"loss: {loss!r} is unknown; use one of {LOSSES}")
-    method = check_method(model, method)
     paths = [p.path for p in free]
     if len(set(paths)) != len(paths):
         raise ValueError(f"free: a parameter is listed twice ({paths})")
     for p in free:
         get_value(model, p.path)  # a clear error for a misspelt path
+    free = tuple(p.with_scale_from(v) for p, v in zip(free, _start_values(free, model)))
+    source = _noise_source(experiments, sigma)
 
     problem = _Problem.build(
         model,
@@ -410,17 +516,21 @@ def fit(
     def solve(raw_start, sig):
         return _solve(problem, raw_start, sig, float(rtol), float(atol), int(max_steps))
 
-    if sigma is None:
+    if source == "estimated":
         sig = np.full(n_y, _initial_sigma_guess(experiments))
-        estimate_sigma = True
-    else:
+    elif source == "declared":
         sig = np.broadcast_to(np.asarray(sigma, dtype=float), (n_y,)).copy()
         if not np.all(sig > 0):
             raise ValueError("sigma: noise scale must be > 0 (SI units of the output)")
-        estimate_sigma = False
+    else:
+        sig = np.ones(n_y)  # the per-frame levels are in the problem's `noise`
 
+    if n_starts is None:
+        n_starts = AUTO_STARTS if len(problem.shared) > 2 else 1
+    if int(n_starts) < 1:
+        raise ValueError(f"n_starts: {n_starts} starts; give at least 1 (or None for auto)")
     rng = np.random.default_rng(seed)
-    starts = [raw0] + [_perturbed(problem, raw0, rng) for _ in range(max(n_starts, 1) - 1)]
+    starts = [raw0] + [_perturbed(problem, raw0, rng) for _ in range(int(n_starts) - 1)]
     runs = []
     for i, start in enumerate(starts):
         say(
@@ -433,11 +543,14 @@ def fit(
             f"start {i + 1}/{len(starts)}: cost {float(out['cost']):.6g}, "
             f"{'converged' if out['ok'] else 'not converged'} after {int(out['steps'])} steps"
         )
-    finite = [r for r in runs if np.isfinite(r["cost"]) and np.all(np.isfinite(r["raw"]))]
-    best = min(finite, key=lambda r: r["cost"]) if finite else runs[0]
+    finite = [
+        i for i, r in enumerate(runs) if np.isfinite(r["cost"]) and np.all(np.isfinite(r["raw"]))
+    ]
+    best_index = min(finite, key=lambda i: float(runs[i]["cost"])) if finite else 0
+    best = runs[best_index]
     steps = int(best["steps"])
 
-    if estimate_sigma and np.all(np.isfinite(best["raw"])):
+    if source == "estimated" and np.all(np.isfinite(best["raw"])):
         sig = _robust_sigma(np.asarray(best["data_residuals"]), np.asarray(problem.w), sig)
         say(
             f"noise estimated from residuals: sigma = {', '.join(f'{s:.4g}' for s in sig)} (SI); "
@@ -446,7 +559,9 @@ def fit(
         best = jax.device_get(solve(jnp.asarray(best["raw"]), jnp.asarray(sig)))
         steps += int(best["steps"])
 
-    return _assemble(problem, best, sig, steps, runs, experiments, free, say)
+    return _assemble(
+        problem, best, sig, steps, runs, best_index, raw0, experiments, free, source, say
+    )
 
 
 def _initial_sigma_guess(experiments) -> float:
@@ -458,46 +573,110 @@ def _initial_sigma_guess(experiments) -> float:
     return float(max(scale, 1e-3 * span, 1e-300))
 
 
-def _assemble(problem, best, sig, steps, runs, experiments, free, say) -> FitResult:
+def _frame_sigma(e: Experiment, sig: np.ndarray) -> np.ndarray:
+    """(N, n_y) noise sd [SI] of each reading: the known per-frame level, else `sig`."""
+    if e.sigma is not None:
+        return np.asarray(e.sigma, dtype=float)
+    return np.broadcast_to(np.asarray(sig, dtype=float), e.y.shape)
+
+
+def _rms_sigma(experiments, n_y: int) -> np.ndarray:
+    """(n_y,) RMS of the known per-frame noise over every valid reading."""
+    num, den = np.zeros(n_y), np.zeros(n_y)
+    for e in experiments:
+        s = np.where(e.mask, e.sigma, 0.0)
+        num += np.sum(s**2, axis=0)
+        den += e.mask.sum(axis=0)
+    return np.sqrt(num / np.maximum(den, 1))
+
+
+def _residual_runs(experiments, predictions) -> list:
+    """(name, t_s, residual, valid, inputs at the frames) per run, for `_residuals.analyse`."""
+    out = []
+    for e, z in zip(experiments, predictions):
+        u = np.asarray(e.inputs(e.t_s), dtype=float).reshape(e.n_frames, -1)
+        out.append((e.name, e.t_s, e.y - z, e.mask, u))
+    return out
+
+
+def _scores(problem: _Problem, jac_data: np.ndarray, resid: np.ndarray, experiments) -> list:
+    """(t_s, per-frame score contributions (N, P)) per run: g_t = sum_outputs J_t^T r_t."""
+    e_n, n_f, n_y = problem.y.shape
+    j4 = jac_data.reshape(e_n, n_f, n_y, -1)
+    r3 = resid.reshape(e_n, n_f, n_y)
+    g = np.einsum("efyp,efy->efp", j4, r3)
+    return [(e.t_s, g[i, : e.n_frames]) for i, e in enumerate(experiments)]
+
+
+def _assemble(
+    problem, best, sig, steps, runs, best_index, raw0, experiments, free, source, say
+) -> FitResult:
     raw, cost, ok = np.asarray(best["raw"]), float(best["cost"]), bool(best["ok"])
     raw_j = jnp.asarray(raw)
     finite = bool(np.all(np.isfinite(raw))) and np.isfinite(cost)
-    if not finite:
-        message = "the fit diverged (non-finite parameters or cost); no estimate is reported"
-        ok = False
-    elif not ok:
-        message = (
-            "Levenberg-Marquardt stopped without meeting its tolerances (step budget or "
-            "stalled); treat the estimates as unconverged"
-        )
-    else:
-        message = "converged"
-    say("computing covariance and identifiability")
+    say("computing covariance, identifiability and residual tests")
     jac = np.asarray(best["jacobian"]) if finite else np.full_like(best["jacobian"], np.nan)
     n_rows_data = jac.shape[0] - len(problem.priors)
     labels, owners = _labels(problem, experiments)
-    report = analyse(jac[:n_rows_data], jac[n_rows_data:], problem.flat_free, raw, labels)
+    flat_free = problem.flat_free
+    bounds = [p.bound_hit(raw[k], raw0[k]) if finite else None for k, p in enumerate(flat_free)]
+    report = analyse(jac[:n_rows_data], jac[n_rows_data:], flat_free, raw, labels, bounds)
 
-    cov = report.covariance_raw
-    corr = correlation(report)
-    params = parameter_estimates(problem.flat_free, raw, report, labels, owners)
-    unidentified = [p.name for p in params if p.verdict == "not identifiable"]
-    if ok and unidentified:
-        message = (
-            f"converged, but {len(unidentified)} parameter(s) are not identifiable from "
-            f"these data: {', '.join(unidentified)}"
-        )
+    z, solved = np.asarray(best["predictions"]), np.asarray(best["solved"])
+    preds = [z[i, : e.n_frames] for i, e in enumerate(experiments)]
+    n_y = problem.y.shape[-1]
+    residuals = analyse_residuals(_residual_runs(experiments, preds))
+
+    # Gauss-Newton and Newey-West sandwich covariance (same determined subspace)
+    cov_gn = report.covariance_raw
+    hac = None
+    if finite:
+        resid = np.asarray(best["residuals"])[:n_rows_data]
+        hac = hac_meat(_scores(problem, jac[:n_rows_data], resid, experiments))
+        jp = jac[n_rows_data:]
+        cov_hac = cov_gn @ (hac.meat + jp.T @ jp) @ cov_gn
+    else:
+        cov_hac = np.full_like(cov_gn, np.nan)
+    se_method = "gauss-newton" if residuals.all_white else "hac"
+    cov = cov_hac if se_method == "hac" else cov_gn
+    params = parameter_estimates(
+        flat_free, raw, report, labels, owners, covariance_hac=cov_hac, headline=se_method
+    )
+    corr = correlation(report, cov)
 
     base, per = problem.models(raw_j)
     exp_models = tuple(
         problem.experiment_model(base, per[i], problem.settings[i]) for i in range(problem.n_exp)
     )
-    z, solved = np.asarray(best["predictions"]), np.asarray(best["solved"])
-    fits, robust, outliers = {}, {}, {}
-    for i, e in enumerate(experiments):
-        fits[e.name], robust[e.name], outliers[e.name] = _scored(e, z[i, : e.n_frames], sig)
-    if not bool(np.all(np.asarray(solved))):
-        ok, message = False, "an experiment's simulation failed at the final parameters"
+    sigma_out = _rms_sigma(experiments, n_y) if source == "per-frame" else np.asarray(sig)
+    fits, robust, outliers, ceilings = {}, {}, {}, {}
+    scaled = []
+    for e, zi in zip(experiments, preds):
+        s_frame = _frame_sigma(e, sigma_out)
+        fits[e.name], robust[e.name], outliers[e.name], ceilings[e.name] = _scored(e, zi, s_frame)
+        scaled.append((e.y - zi) / s_frame)
+    gof = (
+        goodness_of_fit(scaled, [e.mask for e in experiments], problem.n_raw)
+        if source != "estimated" and finite
+        else None
+    )
+
+    pinned = [
+        (p.name, p.bound, _bound_value(q, p.bound))
+        for p, q in zip(params, flat_free)
+        if p.bound is not None
+    ]
+    unidentified = [p.name for p in params if p.verdict == "not identifiable"]
+    status, message, at_best = fit_status(
+        finite=finite,
+        solved=bool(np.all(solved)),
+        optimiser_ok=ok,
+        pinned=pinned,
+        costs=[float(r["cost"]) for r in runs],
+        best_index=best_index,
+        unidentified=unidentified,
+    )
+    converged = bool(ok and finite and np.all(solved))
     return FitResult(
         model=base,
         experiment_models=exp_models,
@@ -507,10 +686,10 @@ def _assemble(problem, best, sig, steps, runs, experiments, free, say) -> FitRes
         raw=raw,
         covariance_raw=cov,
         correlation=corr,
-        sigma=np.asarray(sig),
+        sigma=np.asarray(sigma_out, dtype=float),
         cost=float(cost),
         n_data=problem.n_data,
-        converged=bool(ok),
+        converged=converged,
         message=message,
         n_steps=int(steps),
         fit_percent=fits,
@@ -520,45 +699,178 @@ def _assemble(problem, best, sig, steps, runs, experiments, free, say) -> FitRes
         loss=problem.loss,
         method=problem.method,
         multistart_costs=tuple((float(r["cost"]), bool(r["ok"])) for r in runs),
+        status=status,
+        valid=status in VALID_STATUSES,
+        noise_ceiling=ceilings,
+        residuals=residuals,
+        covariance_gauss_newton_raw=cov_gn,
+        covariance_hac_raw=cov_hac,
+        se_method=se_method,
+        hac_bandwidth=int(hac.bandwidth) if hac is not None else 0,
+        sigma_source=source,
+        goodness_of_fit=gof,
+        best_start=int(best_index),
+        n_starts_at_best=len(at_best),
     )
+
+
+def _bound_value(p: FreeParameter, bound: str) -> float:
+    return float(p.lower if bound == "lower" else p.upper)
+
+
+def _unidentified_note(names) -> str:
+    if not names:
+        return ""
+    return f"; {len(names)} parameter(s) are not identifiable from these data: {', '.join(names)}"
+
+
+def fit_status(
+    *,
+    finite: bool,
+    solved: bool,
+    optimiser_ok: bool,
+    pinned,
+    costs,
+    best_index: int,
+    unidentified=(),
+) -> tuple[str, str, list]:
+    """(status, message, indices of the starts that reached the lowest cost) of a fit.
+
+    Most serious first: "diverged" (non-finite estimate), "not converged" (a simulation
+    failed, or the optimiser stopped short while no parameter sits on a bound), "at bound"
+    (`pinned`: (name, "lower"/"upper", bound value) per parameter on a bound; an optimiser
+    chasing a bound often stops short, and the bound is then the cause), "local optimum"
+    (start 0, the given values, stopped above the lowest cost of `costs` by more than
+    SAME_COST relative; the best start is `best_index`), else "converged".
+    """
+    costs = [float(c) for c in costs]
+    best = costs[best_index] if costs else float("nan")
+    tol = SAME_COST * abs(best) + 1e-12
+    at_best = [i for i, c in enumerate(costs) if np.isfinite(c) and c <= best + tol]
+    if not finite:
+        return (
+            "diverged",
+            "the fit diverged (non-finite parameters or cost); no estimate is reported",
+            at_best,
+        )
+    if not solved:
+        return (
+            "not converged",
+            "an experiment's simulation failed at the final parameters (the adaptive ODE "
+            "solver ran out of steps or its step size collapsed): check the parameters, or "
+            "raise the solver's step budget (`solver_max_steps`; [fit] solver_max_steps in "
+            "experiment.toml), which is not the optimiser's max_steps",
+            at_best,
+        )
+    if pinned:
+        where = ", ".join(f"{name} at its {side} bound {value:g}" for name, side, value in pinned)
+        message = (
+            f"at bound: {where}; the estimate is not valid (the best fit the bounds allow is "
+            "on the boundary, not an optimum of the data, so its standard errors and "
+            "intervals mean nothing): widen the bound, fix the parameter, or revise the model"
+        )
+        if not optimiser_ok:
+            message += " (the optimiser also stopped short, as it does chasing a bound)"
+        return "at bound", message + _unidentified_note(unidentified), at_best
+    if not optimiser_ok:
+        return (
+            "not converged",
+            "Levenberg-Marquardt stopped without meeting its tolerances (its step budget "
+            "`max_steps`, or stalled); treat the estimates as unconverged"
+            + _unidentified_note(unidentified),
+            at_best,
+        )
+    if 0 not in at_best:
+        status = "local optimum"
+        message = (
+            f"local optimum: the starting values stopped at cost {costs[0]:.6g}; start "
+            f"{best_index + 1} reached a lower cost {best:.6g} ({len(at_best)} of "
+            f"{len(costs)} starts reached it) and its estimate is reported"
+        )
+    else:
+        status, message = "converged", "converged"
+        if len(costs) > 1 and len(at_best) < len(costs):
+            message += (
+                f" ({len(at_best)} of {len(costs)} starts reached the lowest cost; the "
+                "others stopped in local optima)"
+            )
+    return status, message + _unidentified_note(unidentified), at_best
 
 
 Z95 = 1.959963984540054  # two-sided 95 % normal quantile
 
 
-def correlation(report: IdentifiabilityReport) -> np.ndarray:
-    """Correlation matrix of the raw coordinates (NaN rows/columns where undetermined)."""
-    cov = report.covariance_raw
+def correlation(report: IdentifiabilityReport, covariance=None) -> np.ndarray:
+    """Correlation matrix of the raw coordinates (NaN rows/columns where undetermined), of
+    `covariance` (default: the report's Gauss-Newton covariance)."""
+    cov = report.covariance_raw if covariance is None else np.asarray(covariance)
     sd = np.where(report.undetermined, np.nan, np.sqrt(np.clip(np.diag(cov), 0, None)))
     with np.errstate(invalid="ignore", divide="ignore"):
         return cov / np.outer(sd, sd)
 
 
 def parameter_estimates(
-    free_flat, raw, report: IdentifiabilityReport, labels=None, owners=None
+    free_flat,
+    raw,
+    report: IdentifiabilityReport,
+    labels=None,
+    owners=None,
+    *,
+    covariance_hac=None,
+    headline: str = "gauss-newton",
 ) -> tuple:
     """One `ParameterEstimate` per raw coordinate: SI value, delta-method standard error and a
     95 % interval mapped through the transform (so bounds and positivity are respected).
 
-    A parameter reported "not identifiable" (or touching an undetermined direction) gets NaN
-    standard error and interval: no confident-looking number for what the data cannot tell.
+    A parameter reported "not identifiable" or "at bound" (or touching an undetermined
+    direction) gets NaN standard error and interval: no confident-looking number for what
+    the data cannot tell. `headline` ("gauss-newton" or "hac") chooses which covariance gives
+    `se` and `ci95`; both standard errors are kept.
     """
-    cov = report.covariance_raw
-    sd_raw = np.where(report.undetermined, np.nan, np.sqrt(np.clip(np.diag(cov), 0, None)))
+    undetermined = report.undetermined
+
+    def sds(cov):
+        if cov is None:
+            return np.full(len(free_flat), np.nan)
+        return np.where(undetermined, np.nan, np.sqrt(np.clip(np.diag(cov), 0, None)))
+
+    sd_gn, sd_hac = sds(report.covariance_raw), sds(covariance_hac)
+    sd_head = sd_hac if headline == "hac" else sd_gn
+    bounds = report.bounds or (None,) * len(free_flat)
     out = []
     for k, p in enumerate(free_flat):
         value = float(p.to_value(raw[k]))
         verdict = report.verdicts[k]
-        if verdict == "not identifiable" or not np.isfinite(sd_raw[k]):
+        deriv = abs(p.value_derivative(raw[k]))
+        blank = verdict in ("not identifiable", "at bound")
+        se_gn = float("nan") if blank else deriv * sd_gn[k]
+        se_hac = float("nan") if blank else deriv * sd_hac[k]
+        if blank or not np.isfinite(sd_head[k]):
             se, ci = float("nan"), (float("nan"), float("nan"))
         else:
-            se = abs(p.value_derivative(raw[k])) * sd_raw[k]
-            lo, hi = (float(p.to_value(raw[k] + s * Z95 * sd_raw[k])) for s in (-1, 1))
+            se = deriv * sd_head[k]
+            lo, hi = (float(p.to_value(raw[k] + s * Z95 * sd_head[k])) for s in (-1, 1))
             ci = (min(lo, hi), max(lo, hi))
         prior = (p.prior_median, p.prior_log_sd) if p.has_prior else None
         label = labels[k] if labels is not None else p.path
         owner = owners[k] if owners is not None else None
-        out.append(ParameterEstimate(label, p.path, p.unit, value, se, ci, verdict, owner, prior))
+        out.append(
+            ParameterEstimate(
+                label,
+                p.path,
+                p.unit,
+                value,
+                se,
+                ci,
+                verdict,
+                owner,
+                prior,
+                se_gauss_newton=float(se_gn),
+                se_hac=float(se_hac),
+                se_method=headline,
+                bound=bounds[k],
+            )
+        )
     return tuple(out)
 
 
@@ -578,7 +890,10 @@ class ValidationResult:
 
     Only per-run nuisance parameters (offsets, drift, initial state) are re-estimated on each
     validation run, as MATLAB `compare` estimates initial conditions; `fit_percent` is
-    simulation fit %, never one-step prediction.
+    simulation fit %, never one-step prediction. Per run name: `fit_percent`,
+    `fit_percent_robust`, `noise_ceiling` ((n_y,) per output), `n_outliers`; `residuals`: the
+    residual analysis of the validation runs; `goodness_of_fit`: against the known noise
+    (None when the fit estimated it).
     """
 
     experiments: tuple
@@ -586,6 +901,9 @@ class ValidationResult:
     fit_percent: dict  # every valid frame
     fit_percent_robust: dict  # without the frames flagged as outliers
     n_outliers: dict
+    noise_ceiling: dict
+    residuals: ResidualAnalysis
+    goodness_of_fit: GoodnessOfFit | None = None
     horizon: str = "simulation"
 
 
@@ -597,11 +915,12 @@ def validate(
     experiments = tuple(experiments)
     if not experiments:
         raise ValueError("experiments: no validation runs given")
+    known = result.noise_known
     if not per_exp:
-        preds, fits, robust, outl = [], {}, {}, {}
-        for e in experiments:
-            from greybox._simulate import simulate
+        from greybox._simulate import simulate
 
+        preds = []
+        for e in experiments:
             z = np.asarray(
                 simulate(
                     e.apply_settings(result.model),
@@ -612,29 +931,54 @@ def validate(
                 )
             ).reshape(e.n_frames, -1)
             preds.append(z)
-            fits[e.name], robust[e.name], outl[e.name] = _scored(e, z, result.sigma)
-        return ValidationResult(experiments, tuple(preds), fits, robust, outl)
+        return _validation_scores(experiments, preds, result.sigma, known, 0)
     fit_kwargs.setdefault("method", result.method)
     fit_kwargs.setdefault("loss", result.loss)
-    fit_kwargs.setdefault("sigma", result.sigma)
+    if not all(e.sigma is not None for e in experiments):
+        fit_kwargs.setdefault("sigma", result.sigma)
     nuisance = fit(result.model, experiments, per_exp, **fit_kwargs)
-    preds = tuple(nuisance.predict(i) for i in range(len(experiments)))
+    preds = [nuisance.predict(i) for i in range(len(experiments))]
+    return _validation_scores(experiments, preds, result.sigma, known, nuisance.n_params)
+
+
+def _validation_scores(experiments, preds, sigma, known: bool, n_params: int):
+    fits, robust, outl, ceilings, scaled = {}, {}, {}, {}, []
+    for e, z in zip(experiments, preds):
+        s_frame = _frame_sigma(e, sigma)
+        fits[e.name], robust[e.name], outl[e.name], ceilings[e.name] = _scored(e, z, s_frame)
+        scaled.append((e.y - z) / s_frame)
+    gof = goodness_of_fit(scaled, [e.mask for e in experiments], n_params) if known else None
     return ValidationResult(
-        experiments, preds, nuisance.fit_percent, nuisance.fit_percent_robust, nuisance.n_outliers
+        experiments,
+        tuple(preds),
+        fits,
+        robust,
+        outl,
+        ceilings,
+        analyse_residuals(_residual_runs(experiments, preds)),
+        gof,
     )
 
 
-def _scored(e: Experiment, z: np.ndarray, sigma) -> tuple[float, float, int]:
-    """(simulation fit % on every valid frame, fit % without the frames more than
-    OUTLIER_SIGMAS from the model, the number of such frames).
+def _scored(e: Experiment, z: np.ndarray, s_frame) -> tuple:
+    """Per output (n_y,) arrays: (simulation fit % on every valid frame, fit % without the
+    readings more than OUTLIER_SIGMAS from the model, the number of such readings (int), the
+    noise ceiling). `s_frame`: noise sd per reading (N, n_y).
 
-    The first is MATLAB `compare`'s figure and the honest headline: a model that drifts away
-    from the data loses fit % for it. The second shows what a few corrupted camera frames
-    cost; reports label both.
+    The first is MATLAB `compare`'s figure (per output channel, as `compare` reports it) and
+    the honest headline: a model that drifts away from the data loses fit % for it. The
+    second shows what a few corrupted camera frames cost; reports label both. The ceiling is
+    the fit % the true model would score at this noise on the unflagged readings (a few
+    corrupted frames would otherwise inflate std(y) and the ceiling with it); compare it with
+    the second figure.
     """
-    flagged = (np.abs((e.y - z) / sigma) > OUTLIER_SIGMAS) & e.mask
-
-    def score(y):
-        return fit_percent(y, z) if np.isfinite(y).sum() > 1 else float("nan")
-
-    return score(e.y), score(np.where(flagged, np.nan, e.y)), int(np.sum(flagged))
+    s_frame = np.broadcast_to(np.asarray(s_frame, dtype=float), e.y.shape)
+    flagged = (np.abs((e.y - z) / s_frame) > OUTLIER_SIGMAS) & e.mask
+    clean = np.where(flagged, np.nan, e.y)
+    ceiling = np.array([noise_ceiling(clean[:, j], s_frame[:, j]) for j in range(e.y.shape[1])])
+    return (
+        fit_percent_per_output(e.y, z),
+        fit_percent_per_output(clean, z),
+        int(np.sum(flagged)),
+        ceiling,
+    )

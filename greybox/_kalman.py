@@ -11,11 +11,15 @@ steps through the union of the switching times and the frame times, so each step
 constant input and its discretisation is exact (Van Loan 1978):
 
     expm([[-A, Qc, 0], [0, A^T, 0], [0, B^T, 0]] h) gives
-    Ad = e^{A h},  Bd = int_0^h e^{A s} ds B,  Qd = int_0^h e^{A s} Qc e^{A^T s} ds.
+    Ad = e^{A h},  Bd = int_0^h e^{A s} ds B,  Qd = int_0^h e^{A s} Qc e^{A^T s} ds,
+
+evaluated on sub-steps short enough for a Taylor polynomial to be exact in float64 and
+combined by doubling (`discretise`).
 
 Prediction is m <- Ad m + Bd u, P <- Ad P Ad^T + Qd; the update at a frame uses the finite
-outputs only (a NaN output is dropped, an all-NaN frame is a pure prediction), with a
-Cholesky factor of the innovation covariance S and the Joseph form of the covariance update.
+outputs only (a NaN output is dropped, an all-NaN frame is a pure prediction). With the
+Cholesky factor S = L L^T of the innovation covariance S = H P H^T + R, one triangular solve
+gives W = L^{-1} H P and w = L^{-1} v, and m <- m + W^T w, P <- P - W^T W (symmetrised).
 The log-likelihood is the prediction-error decomposition
 
     log p(y_1..y_N) = sum_k -1/2 (v_k^T S_k^{-1} v_k + log det S_k + m_k log 2 pi),
@@ -23,15 +27,14 @@ The log-likelihood is the prediction-error decomposition
 v_k the innovations and m_k the number of finite outputs in frame k.
 
 What is exact: for a linear output (`C`, `D`, `d`) the filtered and smoothed moments and the
-log-likelihood are the exact Gaussian ones (up to rounding). Van Loan's matrix contains
-e^{-A h}, so its rounding error grows like e^{2 ||A|| h}: fine for steps up to tens of time
-constants, not for a stiff mode stepped over hundreds. With a nonlinear output function
+log-likelihood are the exact Gaussian ones (up to rounding), for any step length and
+stiffness. With a nonlinear output function
 `h(x, u)` the update is the extended Kalman update (h linearised at the predicted mean by
 `jax.jacfwd`), so the likelihood is the usual EKF approximation. The dynamics are always linear.
 
-Everything is a pure function of arrays (`lax.scan` over the grid, discretisations batched
-with `jax.vmap`): differentiable, `jit`- and `vmap`-able. The library never sets float64;
-enable it in your program.
+Everything is a pure function of arrays (`lax.scan` over the grid, all the steps'
+discretisations computed as one batch): differentiable, `jit`- and `vmap`-able. The library
+never sets float64; enable it in your program.
 """
 
 from __future__ import annotations
@@ -56,6 +59,7 @@ __all__ = [
     "kalman_filter",
     "log_likelihood",
     "rts_smoother",
+    "with_output_random_walks",
 ]
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -77,7 +81,9 @@ class LinearGaussianSDE(eqx.Module):
     - `D`: feedthrough, shape (q, p); zeros by default. `u(t_k)` is the level at the frame.
     - `d`: output offset, shape (q,); zeros by default.
     - `output`: optional nonlinear measurement function `h(x, u) -> y` (shapes (n,), (p,) ->
-      (q,)); then the filter uses the extended update and `C`, `D`, `d` are not used.
+      (q,)); then the filter uses the extended update and `C`, `D`, `d` are not used. It is a
+      static part of the model: reuse one function object (or pass an `eqx.Module`, whose
+      arrays stay traced) so that calls do not recompile.
     """
 
     A: Float[Array, "n n"]
@@ -143,28 +149,142 @@ class LinearGaussianSDE(eqx.Module):
         return self.C @ x + self.D @ u + self.d
 
 
-def discretise(A, B, Qc, dt_s):
-    """Exact ZOH discretisation over one step of length `dt_s` [s] (Van Loan's method).
+def with_output_random_walks(model: LinearGaussianSDE, intensities, loading=None, x0=None, P0=None):
+    """Append random-walk disturbance states that add to the outputs (ambient, drift, offset).
 
-    **Returns:** `(Ad, Bd, Qd)` with `Ad = e^{A h}` (n, n), `Bd = int_0^h e^{A s} ds B` (n, p)
-    and `Qd = int_0^h e^{A s} Qc e^{A^T s} ds` (n, n), from one matrix exponential of size
-    2n + p. `jax.vmap` it over an array of steps.
+    **Arguments:**
+
+    - `model`: a linear-output `LinearGaussianSDE` with n states and q outputs.
+    - `intensities`: diffusion intensity of each new state [output unit^2 / s], shape (m,);
+      each state does d = sqrt(intensity) dW (variance intensity * t after time t).
+    - `loading`: how the m states enter the outputs, shape (q, m); identity by default
+      (m = q: one disturbance per output).
+    - `x0`, `P0`: initial mean (m,) and covariance (m, m) of the new states; zeros by default
+      (then `x0` is the disturbance at `t0`, e.g. a fitted initial ambient offset).
+
+    **Returns:** the model with n + m states (dynamics, input and output of the first n
+    states unchanged; the new states evolve independently of them).
+    """
+    if model.output is not None:
+        raise ValueError("with_output_random_walks: needs a linear output (C), not `output`")
+    q_new = jnp.atleast_1d(jnp.asarray(intensities))
+    m, n, q = q_new.shape[0], model.n_states, model.n_outputs
+    loading = jnp.eye(q, m, dtype=q_new.dtype) if loading is None else jnp.asarray(loading)
+    if loading.shape != (q, m):
+        raise ValueError(f"loading: shape {loading.shape}, expected ({q}, {m}) (outputs, walks)")
+    x0 = jnp.zeros(m, q_new.dtype) if x0 is None else jnp.asarray(x0).reshape(m)
+    P0 = jnp.zeros((m, m), q_new.dtype) if P0 is None else jnp.asarray(P0)
+    zeros_nm = jnp.zeros((n, m), model.A.dtype)
+    return LinearGaussianSDE(
+        A=jnp.block([[model.A, zeros_nm], [zeros_nm.T, jnp.zeros((m, m), model.A.dtype)]]),
+        B=jnp.concatenate([model.B, jnp.zeros((m, model.n_inputs), model.B.dtype)]),
+        Qc=jnp.block([[model.Qc, zeros_nm], [zeros_nm.T, jnp.diag(q_new)]]),
+        C=jnp.concatenate([model.C, loading], axis=1),
+        R=model.R,
+        x0=jnp.concatenate([model.x0, x0]),
+        P0=jnp.block([[model.P0, zeros_nm], [zeros_nm.T, P0]]),
+        D=model.D,
+        d=model.d,
+    )
+
+
+# Taylor polynomial of degree 15 on a matrix with ||M||_1 <= 1/2: the truncation error is
+# below (1/2)^16 / 16! e^(1/2) ~ 1e-18, i.e. exact in float64 (Higham 2008, ch. 10)
+_TAYLOR_DEGREE = 15
+# Van Loan is applied on sub-steps with ||A h||_1 <= 1/4 (the other blocks are scaled to 1/8
+# each); 2^24 sub-steps cover ||A h||_1 up to 4e6, beyond which the result is NaN
+_THETA_A = 0.25
+_MAX_DOUBLINGS = 24
+
+
+def _norm1(X):
+    """Matrix 1-norm (largest column sum) over the last two axes."""
+    return jnp.max(jnp.sum(jnp.abs(X), axis=-2), axis=-1)
+
+
+def _expm_small(M):
+    """e^M for a batch (..., m, m) with ||M||_1 <= 1/2: degree-15 Taylor polynomial.
+
+    Paterson-Stockmeyer evaluation: 6 matrix products and no linear solve (no LAPACK call:
+    jaxlib 0.10's batched LAPACK solves, as in a Pade approximant, deadlocked the CPU thread
+    pool after 2-50 repeated fits, `lapack_dtrsm_ffi` waiting in `ParallelBatchMap`).
+    """
+    c = [1.0 / math.factorial(k) for k in range(_TAYLOR_DEGREE + 1)]
+    eye = jnp.eye(M.shape[-1], dtype=M.dtype)
+    powers = [eye, M, M @ M]
+    powers.append(powers[2] @ M)
+    M4 = powers[2] @ powers[2]
+    # p(M) = sum_j (M^4)^j B_j(M), B_j = sum_{i<4} c[4j+i] M^i, by Horner in M^4
+    blocks = [sum(c[4 * j + i] * powers[i] for i in range(4)) for j in range(4)]
+    E = blocks[3]
+    for j in (2, 1, 0):
+        E = E @ M4 + blocks[j]
+    return E
+
+
+def _pow2_scale(X, h):
+    """Powers of two 2^-k with ||X h||_1 2^-k <= 1/8 (1 where X h = 0), shape of `h`."""
+    norm = _norm1(X) * jnp.abs(h)
+    k = jnp.where(norm > 0, jnp.ceil(jnp.log2(jnp.where(norm > 0, norm, 1.0))) + 3, 0.0)
+    return jax.lax.stop_gradient(2.0**-k)
+
+
+@jax.jit
+def discretise(A, B, Qc, dt_s):
+    """Exact ZOH discretisation over steps of length `dt_s` [s] (Van Loan's method).
+
+    **Arguments:** `A` (n, n), `B` (n, p), `Qc` (n, n) as in `LinearGaussianSDE`; `dt_s` a
+    scalar or an array of step lengths of any shape (...).
+
+    **Returns:** `(Ad, Bd, Qd)` of shapes (..., n, n), (..., n, p), (..., n, n) with
+    `Ad = e^{A h}`, `Bd = int_0^h e^{A s} ds B`, `Qd = int_0^h e^{A s} Qc e^{A^T s} ds`.
+
+    Each step is split into 2^s equal sub-steps with ||A h 2^-s||_1 <= 1/4. Van Loan's
+    exponential of the sub-step (size 2n + p, with the `Qc` and `B` blocks rescaled by powers
+    of two, an exact similarity transform) gives its (Ad, Bd, Qd), and s doublings
+    Qd <- Qd + Ad Qd Ad^T, Bd <- Bd + Ad Bd, Ad <- Ad Ad give the step's. Unlike squaring the
+    Van Loan exponential itself, whose e^{-A h} block grows without bound, the doublings only
+    add positive semi-definite terms, so stiff or long steps stay accurate. The doubling loop
+    (masked per step) runs (`lax.cond`) only if some step needs it, forward and backward.
     """
     A = jnp.asarray(A)
     n = A.shape[0]
     B = jnp.asarray(B).reshape(n, -1)
     p = B.shape[1]
     Qc = jnp.asarray(Qc)
-    dtype = jnp.result_type(A, B, Qc, dt_s)
-    z_np = jnp.zeros((n, p), dtype)
-    top = jnp.concatenate([-A, Qc, z_np], axis=1)
-    middle = jnp.concatenate([jnp.zeros((n, n), dtype), A.T, z_np], axis=1)
-    bottom = jnp.concatenate([jnp.zeros((p, n), dtype), B.T, jnp.zeros((p, p), dtype)], axis=1)
-    E = jsl.expm(jnp.concatenate([top, middle, bottom], axis=0) * dt_s)
-    Ad = E[n : 2 * n, n : 2 * n].T
-    Bd = E[2 * n :, n : 2 * n].T
-    Qd = Ad @ E[:n, n : 2 * n]
-    return Ad, Bd, 0.5 * (Qd + Qd.T)
+    h = jnp.asarray(dt_s)
+    dtype = jnp.result_type(A, B, Qc, h)
+    s = jnp.ceil(jnp.log2(jnp.maximum(_norm1(A) * jnp.abs(h), 1e-300) / _THETA_A))
+    s = jax.lax.stop_gradient(jnp.maximum(s, 0))
+    h_sub = h / 2.0 ** jnp.minimum(s, _MAX_DOUBLINGS)
+    m = 2 * n + p
+    Z_diag = jnp.zeros((m, m), dtype).at[:n, :n].set(-A).at[n : 2 * n, n : 2 * n].set(A.T)
+    Z_q = jnp.zeros((m, m), dtype).at[:n, n : 2 * n].set(Qc)
+    Z_b = jnp.zeros((m, m), dtype).at[2 * n :, n : 2 * n].set(B.T)
+    alpha = _pow2_scale(Qc, h_sub)[..., None, None]
+    beta = _pow2_scale(B, h_sub)[..., None, None]
+    E = _expm_small((Z_diag + alpha * Z_q + beta * Z_b) * h_sub[..., None, None])
+    Ad = jnp.swapaxes(E[..., n : 2 * n, n : 2 * n], -1, -2)
+    Bd = jnp.swapaxes(E[..., 2 * n :, n : 2 * n], -1, -2) / beta
+    Qd = Ad @ E[..., :n, n : 2 * n] / alpha
+
+    def doublings(carry):
+        def double(i, carry):
+            Ad, Bd, Qd = carry
+            on = (i < s)[..., None, None]
+            Qd2 = Qd + Ad @ Qd @ jnp.swapaxes(Ad, -1, -2)
+            return (
+                jnp.where(on, Ad @ Ad, Ad),
+                jnp.where(on, Bd + Ad @ Bd, Bd),
+                jnp.where(on, Qd2, Qd),
+            )
+
+        return jax.lax.fori_loop(0, _MAX_DOUBLINGS, double, carry)
+
+    Ad, Bd, Qd = jax.lax.cond(jnp.max(s) > 0, doublings, lambda c: c, (Ad, Bd, Qd))
+    ok = (s <= _MAX_DOUBLINGS)[..., None, None]
+    Qd = 0.5 * (Qd + jnp.swapaxes(Qd, -1, -2))
+    return jnp.where(ok, Ad, jnp.nan), jnp.where(ok, Bd, jnp.nan), jnp.where(ok, Qd, jnp.nan)
 
 
 class FilterGrid(eqx.Module):
@@ -301,19 +421,41 @@ def _as_rows(model: LinearGaussianSDE, grid: FilterGrid, y) -> Array:
     return y
 
 
+_UNROLL_MAX = 4  # outputs up to which the Cholesky factorisation is written out
+
+
+def _cholesky_solve(S, rhs):
+    """S = L L^T; returns (log diag L, L^{-1} rhs).
+
+    For a few outputs the factorisation and the forward substitution are written out element
+    by element: XLA fuses them, which inside the filter's `lax.scan` (one tiny S per step) is
+    several times cheaper, forward and backward, than calling LAPACK once per step.
+    """
+    q = S.shape[0]
+    if q > _UNROLL_MAX:
+        L = jnp.linalg.cholesky(S)
+        return jnp.log(jnp.diag(L)), jsl.solve_triangular(L, rhs, lower=True)
+    L = [[None] * q for _ in range(q)]
+    for j in range(q):
+        L[j][j] = jnp.sqrt(S[j, j] - sum(L[j][k] ** 2 for k in range(j)))
+        for i in range(j + 1, q):
+            L[i][j] = (S[i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
+    rows = []
+    for i in range(q):
+        rows.append((rhs[i] - sum(L[i][k] * rows[k] for k in range(i))) / L[i][i])
+    return jnp.log(jnp.stack([L[j][j] for j in range(q)])), jnp.stack(rows)
+
+
 def _run(model: LinearGaussianSDE, grid: FilterGrid, y, keep_path: bool):
     """Forward pass over the L grid steps; per-step moments when `keep_path`."""
     y = _as_rows(model, grid, y)
     dtype = jnp.result_type(model.A, y)
     n = model.n_states
-    Ad, Bd, Qd = jax.vmap(discretise, in_axes=(None, None, None, 0))(
-        model.A, model.B, model.Qc, jnp.asarray(grid.dt_s, dtype)
-    )
+    Ad, Bd, Qd = discretise(model.A, model.B, model.Qc, jnp.asarray(grid.dt_s, dtype))
     is_frame = grid.frame >= 0
     idx = jnp.maximum(grid.frame, 0)
     y_step = jnp.where(is_frame[:, None], y[idx], jnp.nan)
     u_obs = jnp.asarray(grid.u_frame, dtype)[idx]
-    eye = jnp.eye(n, dtype=dtype)
 
     def step(carry, inputs):
         m, P, ll = carry
@@ -329,15 +471,14 @@ def _run(model: LinearGaussianSDE, grid: FilterGrid, y, keep_path: bool):
         both = mask[:, None] & mask[None, :]
         Rm = jnp.where(both, model.R, 0.0) + jnp.diag(jnp.where(mask, 0.0, 1.0))
         S = Hm @ P_p @ Hm.T + Rm
-        L = jnp.linalg.cholesky(S)
-        K = jsl.cho_solve((L, True), Hm @ P_p).T
-        m_f = m_p + K @ v
-        IKH = eye - K @ Hm
-        P_f = IKH @ P_p @ IKH.T + K @ Rm @ K.T
+        # one triangular solve gives W = L^{-1} H P and w = L^{-1} v: K v = W^T w, K S K^T = W^T W
+        log_diag_L, Ww = _cholesky_solve(S, jnp.concatenate([Hm @ P_p, v[:, None]], axis=1))
+        W, w = Ww[:, :n], Ww[:, n]
+        m_f = m_p + W.T @ w
+        P_f = P_p - W.T @ W
         P_f = 0.5 * (P_f + P_f.T)
-        w = jsl.solve_triangular(L, v, lower=True)
         n_obs = jnp.sum(mask.astype(dtype))
-        ll_i = -0.5 * (w @ w) - jnp.sum(jnp.log(jnp.diag(L))) - 0.5 * _LOG_2PI * n_obs
+        ll_i = -0.5 * (w @ w) - jnp.sum(log_diag_L) - 0.5 * _LOG_2PI * n_obs
         out = None
         if keep_path:
             S_full = H @ P_p @ H.T + model.R
@@ -431,4 +572,3 @@ def free_run(model: LinearGaussianSDE, grid: FilterGrid) -> tuple[Array, Array]:
     y = jnp.full((grid.n_frames, model.n_outputs), jnp.nan, jnp.result_type(model.A))
     res = kalman_filter(model, grid, y)
     return res.y_pred, res.y_pred_cov
-

@@ -2,6 +2,11 @@
 
 Every function here is horizon-agnostic: whether `y_hat` is a free-run simulation or a
 k-step-ahead prediction is the caller's statement, and reports must say which.
+
+Fit % is a per-output figure: channels with different spreads (a shuttle that swings 5 um
+and one that stays within 0.1 um) cannot be pooled into one number, so `fit_percent` takes
+one output and `fit_percent_per_output` scores each column of (N, n_y) arrays on its own
+valid samples, as MATLAB `compare` does.
 """
 
 from __future__ import annotations
@@ -21,10 +26,16 @@ def _valid(y, y_hat):
 
 
 def fit_percent(y, y_hat) -> float:
-    """MATLAB `compare` fit: 100 (1 - ||y - y_hat|| / ||y - mean(y)||), in percent.
+    """MATLAB `compare` fit of one output: 100 (1 - ||y - y_hat|| / ||y - mean(y)||), in
+    percent. `y`, `y_hat`: (N,) or (N, 1); several outputs: `fit_percent_per_output`.
 
     100 is a perfect fit, 0 is no better than the mean, and it is unbounded below.
     """
+    if np.ndim(y) == 2 and np.shape(y)[1] > 1:
+        raise ValueError(
+            f"y: has {np.shape(y)[1]} output columns; fit % is per output, use "
+            "fit_percent_per_output (pooling channels with different spreads misleads)"
+        )
     y, y_hat = _valid(y, y_hat)
     spread = np.linalg.norm(y - y.mean())
     if spread == 0:
@@ -54,3 +65,37 @@ def r_squared(y, y_hat) -> float:
     """Coefficient of determination 1 - SSE/SST (variance explained, not fit %)."""
     y, y_hat = _valid(y, y_hat)
     return float(1.0 - np.sum((y - y_hat) ** 2) / np.sum((y - y.mean()) ** 2))
+
+
+def fit_percent_per_output(y, y_hat) -> np.ndarray:
+    """(n_y,) fit % of each output column of `y`, `y_hat` ((N,) or (N, n_y)), each over its
+    own finite samples; NaN for a column with fewer than two of them or no spread."""
+    y = np.asarray(y, dtype=float)
+    y_hat = np.asarray(y_hat, dtype=float)
+    if y.shape != y_hat.shape:
+        raise ValueError(f"y and y_hat: shapes differ ({y.shape} vs {y_hat.shape})")
+    y2, h2 = y.reshape(y.shape[0], -1), y_hat.reshape(y.shape[0], -1)
+    out = np.full(y2.shape[1], np.nan)
+    for j in range(y2.shape[1]):
+        ok = np.isfinite(y2[:, j]) & np.isfinite(h2[:, j])
+        if ok.sum() > 1:
+            out[j] = fit_percent(y2[ok, j], h2[ok, j])
+    return out
+
+
+def noise_ceiling(y, sigma) -> float:
+    """Fit % that the true model would score on one output `y` (N,) with noise sd `sigma`:
+    about 100 (1 - sigma / std(y)) (finite samples of `y` only; NaN when the spread is not
+    above the noise). `sigma` is a scalar or per-sample (N,) (its RMS over the samples used).
+
+    Only as good as `sigma`: a noise level estimated from the residuals of a wrong model is
+    inflated by the misfit, and the ceiling it gives is too low.
+    """
+    y = np.asarray(y, dtype=float).reshape(-1)
+    s = np.broadcast_to(np.asarray(sigma, dtype=float), y.shape)
+    ok = np.isfinite(y) & np.isfinite(s)
+    if ok.sum() < 2:
+        return float("nan")
+    spread = float(np.std(y[ok]))
+    level = float(np.sqrt(np.mean(s[ok] ** 2)))
+    return 100.0 * (1.0 - level / spread) if spread > level else float("nan")

@@ -95,6 +95,11 @@ def check_scalar_path(model, path: str) -> float:
             f"{type(model).__name__}, not a parameter value; choose it through the "
             "device's [model] options"
         ) from None
+    if not eqx.is_array_like(value) or isinstance(value, bool):
+        raise ValueError(
+            f"parameter path {path!r}: holds a {type(value).__name__}, not a number; name a "
+            "numeric field"
+        )
     if jnp.ndim(value) != 0:
         raise ValueError(
             f"parameter path {path!r}: holds {jnp.size(value)} values, not one; name one "

@@ -51,13 +51,14 @@ def run_figure(
     y_model,
     inputs,
     sigma,
-    fit_percent: float,
+    fit_percent,
     outputs: tuple = (("shuttle displacement", "m"),),
     input_labels: tuple = (("laser power", "W"),),
 ) -> None:
     """Measured vs model for one run, one panel per output, the input waveform(s) beneath.
 
     `y`, `y_model`: readings (N,) or (N, n_y) in SI; `sigma`: noise per output (SI);
+    `fit_percent`: simulation fit % per output (a scalar for one output), shown on each panel;
     `outputs`, `input_labels`: (label, SI unit) per output / input channel. Outputs are shown
     relative to the model's reading at the first frame (the rest position, which absorbs the
     camera offset); frames further than the outlier threshold from the model are marked.
@@ -66,6 +67,7 @@ def run_figure(
     y, y_model = _columns(y, t.size), _columns(y_model, t.size)
     n_y = y.shape[1]
     sig = np.broadcast_to(np.asarray(sigma, dtype=float), (n_y,))
+    pct = np.broadcast_to(np.asarray(fit_percent, dtype=float).reshape(-1), (n_y,))
     fig = _figure(9.0, 2.2 + 3.0 * n_y)
     axes = fig.subplots(n_y + 1, 1, sharex=True, height_ratios=[3] * n_y + [1])
     for j, top in enumerate(axes[:-1]):
@@ -96,7 +98,10 @@ def run_figure(
         top.set_ylabel(f"{label} [{uy}]\n(relative to rest)")
         top.legend(loc="upper right", fontsize=8)
         top.grid(alpha=0.3)
-    axes[0].set_title(f"{name} ({role}): simulation fit {fit_percent:.1f} %")
+        fit_text = f"simulation fit {pct[j]:.1f} %"
+        top.set_title(
+            f"{name} ({role}): {fit_text}" if j == 0 else f"{label}: {fit_text}", fontsize=10
+        )
     bottom = axes[-1]
     tt, vv = _steps(inputs, float(t.min()), float(t.max()))
     for k in range(vv.shape[1]):
@@ -219,4 +224,43 @@ def band_figure(
     bottom.set_xlabel("time [s]")
     bottom.set_xlim(float(t.min()), float(t.max()))
     bottom.grid(alpha=0.3)
+    fig.savefig(Path(path), dpi=DPI)
+
+
+def residual_correlation_figure(path, analysis, *, outputs=None, input_labels=None) -> None:
+    """Residual tests of a fit (`FitResult.residuals` or `ValidationResult.residuals`), as
+    MATLAB `resid`: per output, the autocorrelation of the residuals over lags 0..M frames
+    and their cross-correlation with each input (input leading: positive lags), pooled over
+    the runs, with the 99 % band of white noise. The title of each panel carries the
+    Ljung-Box p-value."""
+    a = analysis
+    n_y = a.autocorrelation.shape[0]
+    n_u = a.cross_correlation.shape[1]
+    names = outputs or a.output_names
+    inputs = input_labels or tuple(f"input {k + 1}" for k in range(n_u))
+    fig = _figure(4.2 * (1 + n_u), 2.6 * n_y + 0.4)
+    axes = np.atleast_2d(fig.subplots(n_y, 1 + n_u, squeeze=False))
+    band = a.band()
+    with np.errstate(divide="ignore"):
+        cband = 2.5758293035489004 / np.sqrt(a.cross_pairs)  # z(0.995)
+    for j in range(n_y):
+        ax = axes[j, 0]
+        ax.bar(a.lags[1:], a.autocorrelation[j, 1:], width=0.6, color="C0")
+        ax.fill_between(a.lags[1:], -band[j, 1:], band[j, 1:], color="0.8", zorder=0)
+        p = a.p_value[j]
+        ax.set_title(f"{names[j]}: autocorrelation (Ljung-Box p = {p:.2g})", fontsize=9)
+        ax.set_xlabel("lag [frames]", fontsize=8)
+        ax.grid(alpha=0.3)
+        for k in range(n_u):
+            ax = axes[j, 1 + k]
+            ax.bar(a.cross_lags, a.cross_correlation[j, k], width=0.6, color="C1")
+            ax.fill_between(a.cross_lags, -cband[j], cband[j], color="0.8", zorder=0)
+            ax.set_title(f"{names[j]}: cross-correlation with {inputs[k]}", fontsize=9)
+            ax.set_xlabel("lag [frames] (positive: the input leads)", fontsize=8)
+            ax.grid(alpha=0.3)
+    fig.suptitle(
+        f"Residuals (measured - model): {a.verdict}; grey: 99 % band of white noise "
+        f"(frames of {a.frame_interval_s * 1e3:.3g} ms)",
+        fontsize=8,
+    )
     fig.savefig(Path(path), dpi=DPI)

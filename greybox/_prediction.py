@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from greybox._device import check_method
-from greybox._parameters import set_values
+from greybox._freeparams import apply_raw
 from greybox._simulate import (
     as_arrays,
     observe_schedule,
@@ -171,9 +171,7 @@ def with_shared(model, free, raw):
     `raw` holds the shared raw coordinates first, in the order of `free` (as a fit's `raw`);
     jit/vmap-able, so functions of the fitted model can be mapped over parameter draws.
     """
-    shared = [p for p in free if not p.per_experiment]
-    values = [p.to_value(raw[i]) for i, p in enumerate(shared)]
-    return set_values(model, [p.path for p in shared], values)
+    return apply_raw(model, [p for p in free if not p.per_experiment], raw)
 
 
 def raw_draws(raw, covariance_raw, free, n: int, *, seed: int = 0) -> np.ndarray:

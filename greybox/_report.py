@@ -1,9 +1,11 @@
 """Markdown fit reports (pure: results in, text out; no files, no printing).
 
 The report states plainly what every number is: fit % are free-run simulation (the model
-driven by the laser waveform alone, never corrected by measured outputs), sigma is
-estimated from the residuals, outliers are flagged at a fixed threshold, and each parameter
-carries a verdict on whether the data determine it.
+driven by the laser waveform alone, never corrected by measured outputs), one figure per
+output channel; sigma is estimated from the residuals or known; outliers are flagged at a
+fixed threshold; each parameter carries a verdict on whether the data determine it. Its
+first lines say whether the estimate is valid (the fit's status) and whether the residuals
+are white (a model that misses dynamics leaves structure in them, however good its fit %).
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from greybox._fit import OUTLIER_SIGMAS
+from greybox._metrics import noise_ceiling as noise_ceiling
+from greybox._residuals import OUTLIER_SCALES, _ranges
 
 _DISPLAY = {"m": (1e6, "um"), "s": (1e3, "ms"), "m/s": (1e6, "um/s"), "W": (1e3, "mW")}
 
@@ -20,6 +24,18 @@ VERDICT_MEANING = {
     "did not shrink the prior's spread by 2x",
     "not identifiable": "the data do not determine it (only a combination with other "
     "parameters is known); no interval is reported",
+    "at bound": "the fit ended on one of its bounds: the estimate is the boundary, not what "
+    "the data say, and no interval is reported",
+}
+
+STATUS_MEANING = {
+    "converged": "an interior optimum; the estimate is valid",
+    "local optimum": "the starting values led to a higher optimum than another start; the "
+    "best start's estimate is reported and valid, but the cost surface has several minima",
+    "at bound": "a parameter ended on one of its bounds; the estimate is NOT valid",
+    "not converged": "the optimiser stopped before meeting its tolerances; the estimate is "
+    "NOT valid",
+    "diverged": "the fit diverged; there is no estimate",
 }
 
 
@@ -50,7 +66,10 @@ def display_unit(unit: str, value: float | None = None) -> tuple[float, str]:
 
 
 def fmt(x, digits: int = 4) -> str:
-    """A number for a table: `digits` significant figures, "n/a" for NaN/None."""
+    """A number for a table: `digits` significant figures, "n/a" for NaN/None; an array (a
+    figure per output channel) is written as its entries joined by " / "."""
+    if x is not None and np.ndim(x) > 0:
+        return " / ".join(fmt(v, digits) for v in np.asarray(x, dtype=float).reshape(-1))
     if x is None or not np.isfinite(x):
         return "n/a"
     return f"{x:.{digits}g}"
@@ -79,14 +98,31 @@ def _value_cells(p) -> list[str]:
     return [value, unit if unit != "1" else "-", fmt(p.se * f, 2), ci]
 
 
-def parameter_table(parameters, *, truth: dict | None = None) -> list[str]:
-    """Markdown table rows for `ParameterEstimate`s (optionally with a true-value column)."""
+def _verdict_text(p) -> str:
+    text = p.verdict + (" (prior)" if p.prior else "")
+    if p.verdict == "at bound" and getattr(p, "bound", None):
+        text += f" ({p.bound})"
+    return text
+
+
+def parameter_table(
+    parameters, *, truth: dict | None = None, both_errors: bool = False
+) -> list[str]:
+    """Markdown table rows for `ParameterEstimate`s (optionally with a true-value column).
+
+    `both_errors` adds the Gauss-Newton and the Newey-West (HAC) standard errors beside the
+    headline one (which of the two the headline is: `ParameterEstimate.se_method`)."""
     head = ["parameter", "value", "unit", "std. error", "95 % interval", "verdict"]
+    if both_errors:
+        head += ["s.e. Gauss-Newton", "s.e. HAC (Newey-West)"]
     if truth is not None:
         head.insert(2, "true")
     rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for p in parameters:
-        cells = [f"`{p.name}`", *_value_cells(p), p.verdict + (" (prior)" if p.prior else "")]
+        cells = [f"`{p.name}`", *_value_cells(p), _verdict_text(p)]
+        if both_errors:
+            f, _ = display_unit(p.unit, p.value)
+            cells += [fmt(p.se_gauss_newton * f, 2), fmt(p.se_hac * f, 2)]
         if truth is not None:
             f, _ = display_unit(p.unit, p.value)
             t = truth.get(p.name)
@@ -95,39 +131,134 @@ def parameter_table(parameters, *, truth: dict | None = None) -> list[str]:
     return rows
 
 
-def noise_ceiling(y, sigma: float) -> float:
-    """Fit % a perfect model would score on readings `y` with noise `sigma` (approx.)."""
-    y = np.asarray(y, dtype=float)
-    y = y[np.isfinite(y)]
-    spread = float(np.std(y)) if y.size > 1 else 0.0
-    return 100.0 * (1.0 - sigma / spread) if spread > sigma else float("nan")
+def _output_names(n_y: int, outputs) -> tuple:
+    if outputs is not None and len(outputs) == n_y:
+        return tuple(outputs)
+    return tuple(f"output {j + 1}" for j in range(n_y))
 
 
-def _run_rows(result, validation, runs) -> list[str]:
+def _run_rows(result, validation, runs, outputs=None) -> list[str]:
+    """One row per run and output channel: frames, outliers, fit %, noise ceiling, and the
+    run's own Ljung-Box p-value."""
     info = {r.name: r for r in runs}
-    sigma = float(np.asarray(result.sigma).reshape(-1)[0])
-    rows = [
-        "| run | role | input waveform | frames (valid) | outliers flagged | "
-        "fit % (simulation, all valid frames) | fit % without flagged frames | "
-        "noise ceiling % |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
+    n_y = result.n_outputs
+    names = _output_names(n_y, outputs)
+    multi = n_y > 1
+    head = (
+        ["run", "role"]
+        + (["output"] if multi else [])
+        + [
+            "input waveform",
+            "frames (valid)",
+            "outliers flagged",
+            "fit % (simulation, all valid frames)",
+            "fit % without flagged frames",
+            "noise ceiling % (unflagged frames)",
+            "whiteness p (Ljung-Box)",
+        ]
+    )
+    rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
 
     def add(res, role):
+        tests = {r.name: r for r in res.residuals.runs}
         for e in res.experiments:
             r = info.get(e.name)
-            valid = int(e.mask.all(axis=1).sum())
-            rows.append(
-                f"| {e.name} | {role} | {r.waveform if r else '-'} | {e.n_frames} "
-                f"({valid}) | {res.n_outliers[e.name]} | {fmt(res.fit_percent[e.name], 3)} | "
-                f"{fmt(res.fit_percent_robust[e.name], 3)} | "
-                f"{fmt(noise_ceiling(e.y[:, 0], sigma), 3)} |"
-            )
+            t = tests.get(e.name)
+            for j in range(n_y):
+                valid = int(e.mask[:, j].sum())
+                cells = [e.name, role] + ([names[j]] if multi else [])
+                cells += [
+                    r.waveform if r else "-",
+                    f"{e.n_frames} ({valid})",
+                    str(res.n_outliers[e.name]) if j == 0 else "",
+                    fmt(res.fit_percent[e.name][j], 3),
+                    fmt(res.fit_percent_robust[e.name][j], 3),
+                    fmt(res.noise_ceiling[e.name][j], 3),
+                    _p_cell(t.p_value[j]) if t is not None else "n/a",
+                ]
+                rows.append("| " + " | ".join(cells) + " |")
 
     add(result, "estimation")
     if validation is not None:
         add(validation, "validation")
     return rows
+
+
+def _p_cell(p) -> str:
+    if p is None or not np.isfinite(p):
+        return "n/a"
+    return "< 1e-300" if p < 1e-300 else f"{p:.2g}"
+
+
+def status_lines(result, validation=None) -> list[str]:
+    """The first lines of a report: is the estimate valid, are the residuals white."""
+    status = result.status
+    head = f"**Fit status: {status}** ({STATUS_MEANING.get(status, '')})"
+    lines = [head + ("." if status == "converged" else f": {result.message}.")]
+    lines.append(f"**Residuals (estimation runs): {result.residuals.verdict}.**")
+    if validation is not None:
+        lines.append(f"**Residuals (validation runs): {validation.residuals.verdict}.**")
+    if result.goodness_of_fit is not None:
+        lines.append(
+            f"**Against the known noise: {result.goodness_of_fit.line}.** A ratio well above "
+            "1 means the model leaves more than noise."
+        )
+    return lines
+
+
+def residual_lines(result, validation=None, outputs=None) -> list[str]:
+    """The residual analysis in words: the test, its verdict per output and set of runs,
+    lags outside the band, correlation with the inputs, and how frames were handled."""
+    names = _output_names(result.n_outputs, outputs)
+    lines = []
+    for label, res in (("estimation", result), ("validation", validation)):
+        if res is None:
+            continue
+        a = res.residuals
+        lines.append(f"- {label.capitalize()} runs: {a.verdict}.")
+        for j in range(len(a.q)):
+            lags = a.lags_outside[j]
+            out = f"lags outside the band: {_ranges(lags)}" if lags else "no lag outside the band"
+            lines.append(
+                f"  - {names[j]}: Q = {fmt(a.q[j], 4)} on {a.dof} dof, p = "
+                f"{_p_cell(a.p_value[j])}; {out}."
+            )
+        lines += [f"  - {c}." for c in a.cross_lines()]
+        lines += [f"  - Note: {n}." for n in a.notes]
+    lines += [
+        "",
+        "Residuals are measured - model. Autocorrelation over lags 1-"
+        f"{result.residuals.max_lag} frames and cross-correlation with each input, with 99 % "
+        "bands, as MATLAB `resid`; Ljung-Box statistic over lags 1-"
+        f"{result.residuals.test_lag} pooled over the runs of each set, compared with "
+        "chi-square (whiteness rejected at p < 0.01, split over the outputs). Frames sit on "
+        "a uniform grid at the median frame interval; dropped frames leave empty slots and "
+        "only pairs "
+        "of valid frames enter a correlation; readings further than "
+        f"{OUTLIER_SCALES:g} robust scales from the median residual are left out. A white "
+        "result says the model leaves only noise; structure at short lags points at missing "
+        "fast dynamics, at long lags at a missing slow mode or drift.",
+    ]
+    return lines
+
+
+def error_lines(result) -> list[str]:
+    """Which standard errors are the headline and why."""
+    if result.se_method == "hac":
+        why = (
+            "**the residuals are not white, so the headline standard errors and intervals "
+            "are the Newey-West (HAC) sandwich ones**, which allow for the autocorrelated "
+            "misfit; the Gauss-Newton ones assume white residuals and are shown beside them"
+        )
+    else:
+        why = (
+            "the residuals are white, so the headline standard errors are the Gauss-Newton "
+            "ones; the Newey-West (HAC) sandwich ones are shown beside them and should agree"
+        )
+    return [
+        f"Standard errors: {why}. HAC: Bartlett kernel, bandwidth {result.hac_bandwidth} "
+        "frames from Andrews' (1991) AR(1) plug-in rule on the score contributions.",
+    ]
 
 
 def identifiability_lines(result, parameter_notes: dict | None = None) -> list[str]:
@@ -137,12 +268,23 @@ def identifiability_lines(result, parameter_notes: dict | None = None) -> list[s
     verdicts = {p.name: p.verdict for p in result.parameters}
     shared = [p for p in result.parameters if p.experiment is None]
     lines = []
-    bad = [p.name for p in result.parameters if p.verdict != "identifiable"]
-    if not bad:
+    pinned = [p for p in result.parameters if p.verdict == "at bound"]
+    bad = [p.name for p in result.parameters if p.verdict not in ("identifiable", "at bound")]
+    if pinned:
+        lines.append(
+            f"**{len(pinned)} fitted value(s) ended on a bound:** "
+            + ", ".join(f"`{p.name}` ({p.bound} bound)" for p in pinned)
+            + ". The optimum the data want lies beyond the bound; identifiability is not "
+            "the question for these, the model or its bounds are."
+        )
+        lines.append("")
+    if not bad and not pinned:
         lines.append(
             "**Verdict: every fitted parameter is identifiable** from these data "
             "(no parameter combination is left undetermined)."
         )
+    elif not bad:
+        lines.append("Every other fitted parameter is identifiable from these data.")
     else:
         lines.append(
             f"**Verdict: {len(bad)} of {len(result.parameters)} fitted values are not "
@@ -169,7 +311,7 @@ def identifiability_lines(result, parameter_notes: dict | None = None) -> list[s
                     lines.append(f"  - `{n}`: {notes[n]}")
     lines += [
         "",
-        f"Singular values of the weighted Jacobian: "
+        f"Singular values of the column-scaled weighted Jacobian: "
         f"{', '.join(fmt(s, 3) for s in ident.singular_values)} (condition number "
         f"{fmt(ident.condition_number, 3)}).",
     ]
@@ -218,6 +360,7 @@ def fit_report(
     figures=(),
     source: str = "",
     output_unit: str = "m",
+    outputs: tuple | None = None,
 ) -> str:
     """Markdown report of a fit (and its validation) for people who did not run it.
 
@@ -225,14 +368,15 @@ def fit_report(
     - `runs`: per-run info with `name` and `waveform` (one-line laser description).
     - `parameter_notes`: {path: what limits its identifiability} from the device table.
     - `figures`: relative paths of figures to link; `source`: where the data came from.
-    - `output_unit`: SI unit of the measured output (for sigma).
+    - `output_unit`: SI unit of the measured outputs (for sigma); `outputs`: their names
+      (default "output 1", ...).
     """
     shared = [p for p in result.parameters if p.experiment is None]
     per_run = [p for p in result.parameters if p.experiment is not None]
     n_frames = sum(e.n_frames for e in result.experiments)
     sigma_f, sigma_u = display_unit(output_unit)
     n_out = sum(result.n_outliers.values())
-    lines = [f"# greybox fit: {title}", ""]
+    lines = [f"# greybox fit: {title}", "", *status_lines(result, validation), ""]
     if source:
         lines += [source, ""]
     lines += [
@@ -253,28 +397,38 @@ def fit_report(
         "",
         "## Parameters",
         "",
-        *parameter_table(shared),
+        *parameter_table(shared, both_errors=True),
         "",
     ]
     if per_run:
         lines += [
             "Per-run nuisance values (one per estimation run):",
             "",
-            *parameter_table(per_run),
+            *parameter_table(per_run, both_errors=True),
             "",
         ]
     lines += [
         "Verdicts: " + "; ".join(f"*{k}*: {v}" for k, v in VERDICT_MEANING.items()) + ".",
         "",
+        *error_lines(result),
+        "",
         "## Fit per run (simulation)",
         "",
-        *_run_rows(result, validation, runs),
+        *_run_rows(result, validation, runs, outputs),
         "",
     ]
+    ceiling_sigma = (
+        "the known noise level"
+        if result.noise_known
+        else "the noise sigma estimated from the residuals (inflated by any misfit, so the "
+        "ceiling is then too low: trust it only when the residuals are white)"
+    )
     lines += [
-        "Noise ceiling: the fit % that a perfect model would score given the noise "
-        "sigma, about 100 (1 - sigma / std(y)); a run whose fit % is close to it is "
-        "fitted down to the measurement noise, whatever the absolute number.",
+        "Fit % and noise ceiling are per output channel (channels are never pooled). Noise "
+        f"ceiling: the fit % that the true model would score given {ceiling_sigma}, about "
+        "100 (1 - sigma / std(y)) over the frames not flagged as outliers (compare it with "
+        "the fit % without flagged frames); a run whose fit % is close to it is fitted down "
+        "to the measurement noise, whatever the absolute number.",
         "",
     ]
     if validation is not None:
@@ -289,12 +443,23 @@ def fit_report(
             ),
             "",
         ]
+    sigmas = ", ".join(fmt(s * sigma_f, 3) for s in result.sigma)
+    noise = {
+        "estimated": "estimated from the residuals (robust median-absolute-deviation scale), "
+        "then the fit was repeated at that scale",
+        "declared": "known (declared by the user): the readings are weighted by it and it is "
+        "not re-estimated",
+        "per-frame": "known per frame (RMS shown): each reading is weighted by its own level "
+        "and the noise is not re-estimated",
+    }[result.sigma_source]
     lines += [
+        "## Residual analysis",
+        "",
+        *residual_lines(result, validation, outputs),
+        "",
         "## Noise, outliers and convergence",
         "",
-        f"- Measurement noise sigma: **{', '.join(fmt(s * sigma_f, 3) for s in result.sigma)} "
-        f"{sigma_u}**, estimated from the residuals (robust median-absolute-deviation scale), "
-        "then the fit was repeated at that scale.",
+        f"- Measurement noise sigma: **{sigmas} {sigma_u}**, {noise}.",
         f"- Outliers flagged: **{n_out}** frames further than {OUTLIER_SIGMAS:g} sigma from the "
         f"model (estimation runs); the {result.loss} loss limits their pull. The headline "
         "fit % counts every valid frame; the column beside it leaves the flagged frames out. "
@@ -302,14 +467,22 @@ def fit_report(
         "that the camera failed.",
         f"- Frames: {n_frames} in estimation runs, {result.n_data} valid readings fitted; "
         f"{result.n_params} fitted values.",
-        f"- Convergence: **{'converged' if result.converged else 'NOT CONVERGED'}**"
-        f"{'' if result.converged else ' (' + result.message + ')'}; {result.n_steps} "
-        "Levenberg-Marquardt steps, cost "
-        f"{fmt(result.cost, 6)}, simulation path `{result.method}`.",
+        f"- Status: **{result.status}**"
+        f"{'' if result.valid else ' (the estimate is NOT valid)'}: {result.message}; "
+        f"optimiser {'converged' if result.converged else 'NOT CONVERGED'} after "
+        f"{result.n_steps} Levenberg-Marquardt steps, cost {fmt(result.cost, 6)}, simulation "
+        f"path `{result.method}`.",
     ]
+    if result.goodness_of_fit is not None:
+        lines.append(
+            f"- Goodness of fit against the known noise: {result.goodness_of_fit.line} "
+            "(all valid readings of the estimation runs)."
+        )
     if len(result.multistart_costs) > 1:
         lines.append(
-            "- Multi-start costs: "
+            f"- Multi-start: {len(result.multistart_costs)} starts (the first from the given "
+            f"values), {result.n_starts_at_best} reached the lowest cost; start "
+            f"{result.best_start + 1} is reported. Costs (at the first noise scale): "
             + ", ".join(
                 f"{fmt(c, 6)}{'' if ok else ' (not converged)'}"
                 for c, ok in result.multistart_costs

@@ -368,7 +368,7 @@ def simulate(
         if throw:
             raise ValueError(
                 "simulate: the adaptive solver failed (max_steps reached or step "
-                "size collapsed); raise max_steps or check the parameters"
+                "size collapsed); raise the solver's max_steps or check the parameters"
             )
         z = jnp.full_like(z, jnp.nan)
     z = np.asarray(z)[: np.size(t_s)]

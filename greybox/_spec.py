@@ -92,6 +92,12 @@ class DeviceSpec:
     - `options`: the structural `Option`s accepted in ``[model]``.
     - `start_values`: optional hook ``(model, free, experiments) -> free`` that sets starting
       values of per-run parameters from the data (e.g. camera offsets from rest readings).
+    - `run_settings`: optional hook ``(model, experiment, options) -> {path: SI value}``:
+      per-run settings the device can read off a run's own data when the experiment file
+      does not give them (TCLab: the initial temperatures from each sensor's first valid
+      reading). `experiment` is the loaded `Experiment` (SI, NaN = missing); values the file
+      gives (per-run or [experiment] settings) or that are fitted always win. Loaders call it
+      once per run, so io stays device-agnostic.
     - `description`: one paragraph for ``greybox describe``.
     """
 
@@ -104,6 +110,7 @@ class DeviceSpec:
     options: tuple[Option, ...] = ()
     start_values: Callable | None = None
     description: str = ""
+    run_settings: Callable | None = None
 
     def option(self, name: str) -> Option:
         for o in self.options:
@@ -167,6 +174,8 @@ class DeviceSpec:
                 fail(f"{kind}: channel names repeat ({names})")
         if not callable(self.build):
             fail("build must be a function build(**options) -> device model")
+        if self.run_settings is not None and not callable(self.run_settings):
+            fail("run_settings must be a function (model, experiment, options) -> {path: value}")
         seen = set()
         for o in self.options:
             if not isinstance(o, Option):

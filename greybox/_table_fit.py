@@ -24,13 +24,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from greybox._fit import ParameterEstimate, correlation, parameter_estimates
-from greybox._freeparams import FreeParameter
+from greybox._freeparams import FreeParameter, apply_raw, levenberg_marquardt
 from greybox._identifiability import IdentifiabilityReport, analyse
 from greybox._metrics import r_squared, rmse
-from greybox._parameters import get_value, set_values
+from greybox._parameters import get_value
 from greybox._simulate import as_arrays, require_x64
 
 
@@ -45,11 +44,7 @@ class _TableProblem(eqx.Module):
     shared: tuple = eqx.field(static=True)
 
     def model_at(self, raw):
-        return set_values(
-            self.model,
-            [p.path for p in self.shared],
-            [p.to_value(raw[k]) for k, p in enumerate(self.shared)],
-        )
+        return apply_raw(self.model, self.shared, raw)
 
     def data_residuals(self, raw, sigma):
         return (self.predict(self.model_at(raw), self.x) - self.y) / sigma * self.w
@@ -64,15 +59,13 @@ class _TableProblem(eqx.Module):
 
 @eqx.filter_jit
 def _solve(problem: _TableProblem, raw0, sigma, rtol: float, atol: float, max_steps: int):
-    lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    sol = optx.least_squares(
-        problem.residuals, lm, raw0, args=sigma, max_steps=max_steps, throw=False
+    raw, ok, steps = levenberg_marquardt(
+        problem.residuals, raw0, sigma, rtol=rtol, atol=atol, max_steps=max_steps
     )
-    raw = sol.value
     return dict(
         raw=raw,
-        ok=sol.result == optx.RESULTS.successful,
-        steps=sol.stats["num_steps"],
+        ok=ok,
+        steps=steps,
         jacobian=jax.jacfwd(lambda r: problem.residuals(r, sigma))(raw),
         prediction=problem.predict(problem.model_at(raw), problem.x),
     )

@@ -124,8 +124,8 @@ class PulseTrain:
             ("duty", 0 < self.duty <= 1, "duty is the on-fraction, in (0, 1]"),
             (
                 "n_pulses",
-                int(self.n_pulses) == self.n_pulses and self.n_pulses >= 1,
-                "give a whole number of pulses >= 1",
+                int(self.n_pulses) == self.n_pulses and 1 <= self.n_pulses <= 10_000_000,
+                "give a whole number of pulses, 1 to 10,000,000 (every edge is stored)",
             ),
             ("delay_s", self.delay_s >= 0, "the delay cannot be negative"),
             ("tail_s", self.tail_s >= 0, "the tail cannot be negative"),
@@ -168,7 +168,8 @@ def from_samples(
 ) -> PiecewiseConstant:
     """Piecewise-constant trace from logged samples (each sample held until the next one).
 
-    Raises `ValueError` naming `name` for NaN, non-monotonic times or negative power.
+    Raises `ValueError` naming `name` for NaN or non-monotonic times (whether a level may be
+    negative is the input channel's declaration, checked where files are read).
     """
     times = np.asarray(times_s, dtype=float).reshape(-1)
     vals = np.asarray(values, dtype=float)
@@ -178,8 +179,6 @@ def from_samples(
         )
     if not np.all(np.isfinite(vals)):
         raise ValueError(f"{name}: logged values contain NaN; fill or remove those samples")
-    if np.any(vals < 0):
-        raise ValueError(f"{name}: negative values are not allowed (power/heater level >= 0)")
     if np.any(np.diff(times) <= 0):
         raise ValueError(f"{name}: sample times must be strictly increasing")
     if end_s is None:

@@ -17,6 +17,7 @@ from greybox._tracking import assess as assess
 from greybox._tracking import measure_sequence as measure_sequence
 from greybox._tracking import pose_track as pose_track
 from greybox._tracking import reference_frame as reference_frame
+from greybox._tracking import saturation_level_for as saturation_level_for
 from greybox._tracking import search_crop as search_crop
 from greybox._tracking import shuttle_track as shuttle_track
 from greybox._tracking import track_pose as track_pose

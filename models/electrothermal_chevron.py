@@ -20,6 +20,15 @@ gives no geometry for them. Nominal values (tags as in PHYSICS.md):
 At 24 V DC this gives a ~80 K mean beam rise and a ~19 um stroke; at 400 Hz the swing is ~10 %
 of that (tau = 7 ms against a 2.5 ms period).
 
+Structural options ([model]): `thermal_nodes` = 1 (the one-node RC above) or n >= 2, a
+`ThermalChain` of n beam segments from the shuttle end (adiabatic by symmetry) to the anchor,
+Joule heat shared equally, each segment cooled through the air gap, with nominals from the
+geometry [derived]: C_seg = rho c_p 2 L w h / n, series R = L / (2 k w h n) between segment
+centres (half of it for the last one to the anchor), air R = n / (g 2 L w) with g calibrated
+so the uniformly heated beams have the one-node steady gain: 1 / R_th = 6 k w h / L + g 2 L w
+(g ≈ 2.0e4 W/(m^2 K)); `elongation_lag` adds a first-order lag `thermal.lag_s` between the
+mean beam rise and the elongation. The TCR acts on the mean beam rise (not the lagged one).
+
 What an amplitude-frequency table of peak-to-peak strokes identifies: tau (from the roll-off in
 frequency), the gain R_th alpha L / (R0 sin a) (the stroke scale), and the TCR (the curvature in
 V^2 beyond the known chevron kinematics). R_th, R0, alpha and kappa enter only as a product, so a
@@ -49,6 +58,7 @@ from greybox.blocks import (
     FirstOrderThermal,
     JouleHeating,
     QuasiStaticShuttle,
+    ThermalChain,
     ThermalElongation,
     chevron_blocked_force_N,
     chevron_stiffness_N_per_m,
@@ -56,7 +66,12 @@ from greybox.blocks import (
 
 from . import _surface as surface  # noqa: F401  (polynomial response surfaces of ch. 5)
 from ._force_sensor import ForceSensor, RepeatAverage, average_repeats  # noqa: F401
-from ._thermal_chevron import AbstractThermalChevron
+from ._thermal_chevron import (
+    AbstractThermalChevron,
+    chain_free_parameters,
+    chain_nominals,
+    chain_parameter_table,
+)
 
 NAME = "electrothermal_chevron"
 VOLTAGE = Channel("V", "V", {"V": (1.0, 0.0), "mV": (1e-3, 0.0)}, "voltage across the chevron")
@@ -74,6 +89,14 @@ NOMINAL_TAU_S = 0.007
 NOMINAL_RESISTANCE_K_PER_W = 300.0
 NOMINAL_R0_OHM = 2000.0
 NOMINAL_TCR_PER_K = 1e-3
+NOMINAL_LAG_S = 0.002  # elongation lag [assumed]
+K_SI_W_PER_MK = 148.0
+# Air-gap conductance per footprint area [W/(m^2 K)] that gives uniformly Joule-heated beams
+# (mean rise q L / (6 k w h) by conduction alone) the one-node gain R_th [derived]
+AIR_W_PER_M2K = (
+    1.0 / NOMINAL_RESISTANCE_K_PER_W
+    - 6 * K_SI_W_PER_MK * BEAM_WIDTH_M * BEAM_THICKNESS_M / BEAM_LENGTH_M
+) / (2 * BEAM_LENGTH_M * BEAM_WIDTH_M)
 
 
 class ElectrothermalChevron(AbstractThermalChevron, AbstractStateAffineDevice):
@@ -106,7 +129,7 @@ class ElectrothermalChevron(AbstractThermalChevron, AbstractStateAffineDevice):
 
     def heat_W(self, u, x):
         """Heat input (thermal.n_inputs,) [W] for input `u` (1,) [V] and state `x`."""
-        q = self.joule.power_W(jnp.reshape(u, (-1,))[0], x[self.heated_node])
+        q = self.joule.power_W(jnp.reshape(u, (-1,))[0], self.beam_rise_K(x))
         return jnp.broadcast_to(q, (self.thermal.n_inputs,))
 
     def state_affine_form(self):
@@ -123,7 +146,7 @@ class ElectrothermalChevron(AbstractThermalChevron, AbstractStateAffineDevice):
         if not isinstance(self.thermal, FirstOrderThermal):
             from greybox import steady_state
 
-            return steady_state(self, jnp.reshape(voltage_V, (1,)))[self.heated_node]
+            return self.beam_rise_K(steady_state(self, jnp.reshape(voltage_V, (1,))))
         return self.joule.steady_rise_K(voltage_V, self.thermal.resistance_K_per_W)
 
     def stiffness_N_per_m(self):
@@ -164,8 +187,34 @@ class ElectrothermalChevron(AbstractThermalChevron, AbstractStateAffineDevice):
         )
 
 
-def build(*, kinematics: str = "exact") -> ElectrothermalChevron:
-    """The nominal electro-thermal chevron (`kinematics`: "exact" or "linear")."""
+def _thermal_block(thermal_nodes: int, elongation_lag: bool):
+    lag = NOMINAL_LAG_S if elongation_lag else None
+    if thermal_nodes == 1:
+        if lag is None:
+            return FirstOrderThermal(
+                tau_s=NOMINAL_TAU_S, resistance_K_per_W=NOMINAL_RESISTANCE_K_PER_W
+            )
+        return ThermalChain(
+            capacity_J_per_K=(NOMINAL_TAU_S / NOMINAL_RESISTANCE_K_PER_W,),
+            resistance_K_per_W=(NOMINAL_RESISTANCE_K_PER_W,),
+            lag_s=lag,
+        )
+    values = chain_nominals(
+        thermal_nodes,
+        length_m=BEAM_LENGTH_M,
+        width_m=BEAM_WIDTH_M,
+        thickness_m=BEAM_THICKNESS_M,
+        air_W_per_m2K=AIR_W_PER_M2K,
+        pad_size_m=None,
+    )
+    return ThermalChain(**values, lag_s=lag)
+
+
+def build(
+    *, kinematics: str = "exact", thermal_nodes: int = 1, elongation_lag: bool = False
+) -> ElectrothermalChevron:
+    """The nominal electro-thermal chevron (`kinematics`: "exact" or "linear"; thermal
+    structure: see the module docstring)."""
     stiffness = float(
         chevron_stiffness_N_per_m(
             YOUNGS_SI_PA, BEAM_WIDTH_M, BEAM_THICKNESS_M, BEAM_LENGTH_M, ANGLE_RAD
@@ -173,9 +222,7 @@ def build(*, kinematics: str = "exact") -> ElectrothermalChevron:
     )
     model = ElectrothermalChevron(
         joule=JouleHeating(resistance_ohm=NOMINAL_R0_OHM, tcr_per_K=NOMINAL_TCR_PER_K),
-        thermal=FirstOrderThermal(
-            tau_s=NOMINAL_TAU_S, resistance_K_per_W=NOMINAL_RESISTANCE_K_PER_W
-        ),
+        thermal=_thermal_block(thermal_nodes, elongation_lag),
         elongation=ThermalElongation(
             cte_per_K=CTE_SI_PER_K, length_m=BEAM_LENGTH_M, beam_fraction=1.0
         ),
@@ -188,7 +235,7 @@ def build(*, kinematics: str = "exact") -> ElectrothermalChevron:
     return model
 
 
-PARAMETERS = (
+_ONE_NODE_ROWS = (
     ParameterInfo(
         "thermal.tau_s",
         "s",
@@ -207,6 +254,8 @@ PARAMETERS = (
         "mean beam rise per watt",
         "product with 1/R0, alpha, kappa only",
     ),
+)
+_OTHER_ROWS = (
     ParameterInfo(
         "joule.resistance_ohm",
         "ohm",
@@ -241,13 +290,40 @@ PARAMETERS = (
 )
 
 
-def default_free_parameters(**_options) -> list[FreeParameter]:
-    """The amplitude-frequency table fit: tau, R_th and the TCR (R0 measured, geometry known)."""
-    return [
-        FreeParameter("thermal.tau_s", unit="s", lower=1e-4, upper=1.0),
-        FreeParameter("thermal.resistance_K_per_W", unit="K/W", lower=1.0, upper=1e4),
-        FreeParameter("joule.tcr_per_K", unit="1/K", scale=1e-3),
-    ]
+def parameters(**options) -> tuple[ParameterInfo, ...]:
+    """The parameter table for the structural options."""
+    thermal = build(**options).thermal
+    rows = (
+        _ONE_NODE_ROWS if isinstance(thermal, FirstOrderThermal) else chain_parameter_table(thermal)
+    )
+    return (*rows, *_OTHER_ROWS)
+
+
+PARAMETERS = parameters()
+
+
+def default_free_parameters(**options) -> list[FreeParameter]:
+    """The amplitude-frequency table fit: tau, R_th and the TCR (R0 measured, geometry known).
+
+    A chain frees its first and last series resistances (the time constants and the gain;
+    a one-node chain its capacity and resistance) and the lag instead of tau and R_th."""
+    tcr = FreeParameter("joule.tcr_per_K", unit="1/K", scale=1e-3)
+    thermal = build(**options).thermal
+    if isinstance(thermal, FirstOrderThermal):
+        return [
+            FreeParameter("thermal.tau_s", unit="s", lower=1e-4, upper=1.0),
+            FreeParameter("thermal.resistance_K_per_W", unit="K/W", lower=1.0, upper=1e4),
+            tcr,
+        ]
+    n = thermal.n_nodes
+    free = []
+    if n == 1:
+        c = float(thermal.capacity_J_per_K[0])
+        free.append(
+            FreeParameter("thermal.capacity_J_per_K[0]", unit="J/K", lower=c / 30, upper=c * 30)
+        )
+    free += chain_free_parameters(thermal)
+    return [*free, tcr]
 
 
 def force_predictor(sensor_stiffness_N_per_m: float):
@@ -273,7 +349,7 @@ SPEC = DeviceSpec(
     inputs=INPUTS,
     outputs=OUTPUTS,
     build=build,
-    parameters=PARAMETERS,
+    parameters=parameters,
     default_free=default_free_parameters,
     options=(
         Option(
@@ -281,6 +357,18 @@ SPEC = DeviceSpec(
             "exact",
             "chevron kinematics: exact rigid-link geometry or its small-stroke linearisation",
             choices=("exact", "linear"),
+        ),
+        Option(
+            "thermal_nodes",
+            1,
+            "thermal nodes: 1 = one-node RC (tau, R); n >= 2 = n Joule-heated beam segments",
+            minimum=1,
+            maximum=8,
+        ),
+        Option(
+            "elongation_lag",
+            False,
+            "a first-order lag (thermal.lag_s) between the mean beam rise and the elongation",
         ),
     ),
     description=__doc__.split("\n\n")[0],

@@ -11,7 +11,11 @@ Us As and radiation eps sigma As between the heaters, and a first-order lag per 
 Fixed constants are the paper's (Ta = 23 C, m = 4 g, cp = 500 J/(kg K), A = 10 cm^2,
 As = 2 cm^2, eps = 0.9). Inputs are heater levels in % of full scale; outputs are the two
 sensor temperatures in K. The initial heater and sensor temperatures are per-run known
-settings (the first measurement, as in the paper).
+settings: unless a run gives them, each is the sensor's first valid reading (as in the
+paper; `run_settings`), the other sensor's when a sensor has no reading in the run. The
+ambient temperature is the paper's 23 C unless a run sets `ambient_K` (a per-run setting),
+frees it per run (`{ path = "ambient_K", per_run = true }` in [fit] free), or the option
+`ambient = "first_reading"` takes it from the run's first readings (the board at rest).
 
 Two structures (static flag `shared_sensor_lag`):
 - default (False): one lag per sensor, tau1 and tau2 free (6 parameters: U, Us, alpha1,
@@ -43,8 +47,8 @@ NAME = "tclab"
 _PCT = {"pct": (1.0, 0.0)}
 _TEMP = {"C": (1.0, 273.15), "K": (1.0, 0.0)}
 INPUTS = (
-    Channel("H1", "%", _PCT, "heater 1 level, % of full scale"),
-    Channel("H2", "%", _PCT, "heater 2 level, % of full scale"),
+    Channel("H1", "%", _PCT, "heater 1 level, % of full scale", minimum=0.0, maximum=100.0),
+    Channel("H2", "%", _PCT, "heater 2 level, % of full scale", minimum=0.0, maximum=100.0),
 )
 OUTPUTS = (
     Channel("T1", "K", _TEMP, "sensor 1 temperature (TMP36 on heater 1)"),
@@ -181,10 +185,12 @@ class LinearTCLab(AbstractTCLab, AbstractLinearDevice):
         return AbstractLinearDevice.vector_field(self, t, x, u)
 
 
-def build(*, radiation: bool = True, shared_sensor_lag: bool = False) -> AbstractTCLab:
+def build(
+    *, radiation: bool = True, shared_sensor_lag: bool = False, ambient: str = "fixed"
+) -> AbstractTCLab:
     """TCLab at the paper's published estimates (both sensor lags at the paper's 20.68 s);
     `shared_sensor_lag=True` is the paper's one-lag structure; without `radiation` the board
-    is linear."""
+    is linear. `ambient` is a per-run rule applied by `run_settings`, not a model field."""
     cls = TCLab if radiation else LinearTCLab
     return cls(
         **PUBLISHED,
@@ -256,7 +262,7 @@ PARAMETERS = (
         None,
         None,
         "initial heater/sensor 1 temperature",
-        "known per run (first measurement)",
+        "known per run (default: sensor 1's first valid reading)",
     ),
     ParameterInfo(
         "initial_T2_K",
@@ -265,9 +271,20 @@ PARAMETERS = (
         None,
         None,
         "initial heater/sensor 2 temperature",
-        "known per run (first measurement)",
+        "known per run (default: sensor 2's first valid reading)",
     ),
-    ParameterInfo("ambient_K", "K", AMBIENT_K, None, None, "ambient temperature", "fixed (paper)"),
+    ParameterInfo(
+        "ambient_K",
+        "K",
+        AMBIENT_K,
+        250.0,
+        330.0,
+        "ambient (room) temperature; 23 C is the paper's room: set each run's own with "
+        "[[runs]] settings = { ambient_K = ... }, take it from each run's first readings "
+        '([model] ambient = "first_reading") or free it per run '
+        '({ path = "ambient_K", per_run = true } in [fit] free)',
+        "per run: known setting, or fitted per run from a rest segment",
+    ),
 )
 
 
@@ -278,6 +295,33 @@ def default_free_parameters(shared_sensor_lag: bool = False, **_options) -> list
     return [
         FreeParameter(p.path, unit=p.unit, lower=p.lower, upper=p.upper) for p in PARAMETERS[:n]
     ]
+
+
+def run_settings(model, experiment, options) -> dict:
+    """Per-run defaults read off the run's own data (the file's settings win).
+
+    - `initial_T1_K`, `initial_T2_K`: each sensor's first valid reading (heater and sensor
+      start there); a sensor with no reading in the run starts at the other's first reading.
+    - `ambient_K` (only with the option ``ambient = "first_reading"``): the mean of those two
+      first readings: the board is taken to be at rest at room temperature when the run
+      starts (TCLab practice: wait until it has cooled). Otherwise the model's ambient (23 C
+      unless set in [experiment] settings) stays.
+    """
+    import numpy as np
+
+    y = np.asarray(experiment.y, dtype=float).reshape(experiment.n_frames, -1)
+    first = []
+    for j in range(y.shape[1]):
+        ok = np.flatnonzero(np.isfinite(y[:, j]))
+        first.append(float(y[ok[0], j]) if ok.size else None)
+    known = [v for v in first if v is not None]
+    if not known:
+        return {}
+    first = [known[0] if v is None else v for v in first]
+    out = {"initial_T1_K": first[0], "initial_T2_K": first[1]}
+    if options.get("ambient") == "first_reading":
+        out["ambient_K"] = float(np.mean(known))
+    return out
 
 
 SPEC = DeviceSpec(
@@ -291,9 +335,18 @@ SPEC = DeviceSpec(
         Option(
             "shared_sensor_lag",
             False,
-            "one lag shared by both sensors (the paper's 5-parameter structure) instead of one each",
+            "one lag shared by both sensors (the paper's 5-parameter structure) instead of "
+            "one each",
         ),
         Option("radiation", True, "include radiation (T^4) to ambient and between heaters"),
+        Option(
+            "ambient",
+            "fixed",
+            "ambient per run: 'fixed' (ambient_K: 23 C, or [experiment]/run settings) or "
+            "'first_reading' (each run's mean first sensor reading: the board starts at rest)",
+            choices=("fixed", "first_reading"),
+        ),
     ),
+    run_settings=run_settings,
     description=__doc__.split("\n\n")[0],
 )

@@ -51,15 +51,21 @@ CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 ROOT = next(p for p in (Path.cwd(), *Path.cwd().parents) if (p / "experiments").is_dir())
 DATA = ROOT / "experiments" / "chevron_laser"
 
+from greybox import (  # noqa: E402  # noqa: E402  # noqa: E402
+    CameraDefects,
+    PulseTrain,
+    concatenate,
+    fit,
+    fit_percent,  # noqa: E402
+    multilevel_prbs,
+    parameter_table,  # noqa: E402
+    propagate,  # noqa: E402
+    record,
+    set_values,  # noqa: E402
+    validate,
+)
 from greybox import blackbox as bb  # noqa: E402
-from greybox._fit import fit, validate  # noqa: E402
 from greybox.io import load_experiment_set  # noqa: E402
-from greybox._metrics import fit_percent  # noqa: E402
-from greybox._parameters import set_values  # noqa: E402
-from greybox._prediction import propagate  # noqa: E402
-from greybox._report import parameter_table  # noqa: E402
-from greybox._synthetic import CameraDefects, record  # noqa: E402
-from greybox._waveforms import PulseTrain, concatenate, multilevel_prbs  # noqa: E402
 
 
 def table(header, rows):
@@ -75,7 +81,7 @@ print(f"CI mode: {CI}; repository: {ROOT}")
 # %% [markdown]
 # ## 1. The grey-box fit
 #
-# `greybox._fit` minimises the free-run **simulation** error at the camera timestamps (robust
+# `greybox.fit` minimises the free-run **simulation** error at the camera timestamps (robust
 # Huber loss: the burst of corrupted frames in `e4_15mW_400ms` is down-weighted, not
 # modelled). Free: absorptance and the thermal time constant (shared), one camera offset
 # per run. Everything else stays at the device's nominal value.
@@ -294,7 +300,7 @@ print("extrapolation runs:", {e.name: e.n_frames for e in extrapolation})
 # that run, which is why *every* model scores about 20 % there. (`greybox fit` itself reports
 # fit % without the frames it flags as outliers; here all models are treated alike.)
 #
-# Grey-box on new runs: `greybox._fit.validate` keeps the physics fixed and re-fits only each
+# Grey-box on new runs: `greybox.validate` keeps the physics fixed and re-fits only each
 # run's camera offset, then simulates. The grey-box is an **output-error model with no noise
 # model**: its one-step predictor is its simulation, so its one-step fit equals its
 # simulation fit. Black-box one-step fits are computed on the resampled 10 ms grid (where
@@ -424,7 +430,7 @@ plt.show()
 # **Grey-box**: the thermal time constant and the static gain (small-signal displacement per
 # watt, `static_gain_m_per_W`), each with a 95 % interval. The gain is a function of the
 # fitted absorptance; its interval comes from sampling the raw (transformed) parameter
-# covariance and pushing every draw through the model (`greybox._prediction.propagate`).
+# covariance and pushing every draw through the model (`greybox.propagate`).
 #
 # **Black-box**: the discrete poles converted to continuous time (`d2c`, Tustin as in the
 # thesis; ZOH where it exists) give time constants -1/Re(s); the DC gain is `dc_gain`.

@@ -21,7 +21,8 @@
 # net step per cycle is about max(0, swing - W) for play width W). Where the spot sits
 # relative to the two frames sets the left/right heating ratio, and so the turning.
 #
-# This notebook uses the pure gait functions of `greybox._gait` (one `jax.vmap` and one
+# This notebook uses the micro-robot's pure gait functions
+# (`greybox.device_module("microrobot")`; one `jax.vmap` and one
 # compilation per sweep):
 #
 # 1. one gait: pose and foot strokes under a pulse train;
@@ -38,6 +39,7 @@ import time
 from pathlib import Path
 
 import jax
+
 import greybox
 
 jax.config.update("jax_enable_x64", True)
@@ -51,11 +53,15 @@ CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 ROOT = next(p for p in (Path.cwd(), *Path.cwd().parents) if (p / "experiments").is_dir())
 DATA = ROOT / "experiments" / "microrobot"
 
-from greybox import gait  # noqa: E402
-from greybox._fit import fit, validate  # noqa: E402
+from greybox import (  # noqa: E402  # noqa: E402
+    delta_method,
+    fit,
+    propagate,
+    set_values,  # noqa: E402
+    validate,
+)
 from greybox.io import load_experiment_set  # noqa: E402
-from greybox._parameters import set_values  # noqa: E402
-from greybox._prediction import delta_method, propagate  # noqa: E402
+
 microrobot = greybox.device_module("microrobot")  # noqa: E402
 
 T_START = time.perf_counter()
@@ -80,7 +86,7 @@ print(
 # %%
 PERIOD_S, DUTY, N_CYCLES, SPC = 0.016, 0.5, 12, 40
 states = np.asarray(
-    jax.jit(lambda m: gait.pose_history(m, PERIOD_S, DUTY, POWER_W, N_CYCLES, SPC))(model)
+    jax.jit(lambda m: microrobot.pose_history(m, PERIOD_S, DUTY, POWER_W, N_CYCLES, SPC))(model)
 )
 t = PERIOD_S / SPC * np.arange(states.shape[0])
 strokes = np.asarray(jax.vmap(model.strokes_m)(jnp.asarray(states[:, :4])))
@@ -115,11 +121,13 @@ plt.show()
 
 # %%
 periods = np.geomspace(2e-3, 0.2, N_SWEEP)
-sweep = jax.jit(lambda m, p: gait.speed_vs_period(m, p, DUTY, POWER_W))(model, jnp.asarray(periods))
+sweep = jax.jit(lambda m, p: microrobot.speed_vs_period(m, p, DUTY, POWER_W))(
+    model, jnp.asarray(periods)
+)
 speed = np.asarray(sweep["speed_m_per_s"])
 best = int(np.argmax(speed))
 duties = np.linspace(0.05, 0.95, 9 if CI else 19)
-dsweep = jax.jit(lambda m, d: gait.speed_vs_duty(m, d, float(periods[best]), POWER_W))(
+dsweep = jax.jit(lambda m, d: microrobot.speed_vs_duty(m, d, float(periods[best]), POWER_W))(
     model, jnp.asarray(duties)
 )
 fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(13, 4.2), layout="constrained")
@@ -170,7 +178,7 @@ print(
 
 # %%
 spots = np.linspace(-100e-6, 100e-6, 9 if CI else 21)
-turn = jax.jit(lambda m, y: gait.turning_vs_power_ratio(m, y, PERIOD_S, DUTY, POWER_W))(
+turn = jax.jit(lambda m, y: microrobot.turning_vs_power_ratio(m, y, PERIOD_S, DUTY, POWER_W))(
     model, jnp.asarray(spots)
 )
 fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(13, 4.2), layout="constrained")
@@ -331,7 +339,7 @@ print(
 # %% [markdown]
 # Measured and simulated image positions of the front feature, relative to where the model
 # starts, for the run with the largest motion and for the validation run (physics fixed,
-# only its image offsets re-fitted by `greybox._fit.validate`). The simulation fit % is close
+# only its image offsets re-fitted by `greybox.validate`). The simulation fit % is close
 # to 100 % for every run only because the features sit +-200 um from the image origin; the
 # residual sigma against the 65 nm tracking noise is the meaningful measure.
 
@@ -358,7 +366,8 @@ for ax, (e, z, role) in zip(axes, shown):
     score = (result.fit_percent if role == "estimation" else checked.fit_percent)[e.name]
     ax.set_xlabel("time [s]")
     ax.set_ylabel("image position relative to the start [um]")
-    ax.set_title(f"{e.name} ({role}): simulation fit {score:.2f} %")
+    per_output = " / ".join(f"{v:.1f}" for v in score)
+    ax.set_title(f"{e.name} ({role}): simulation fit {per_output} % (f1_x / f1_y / f2_x / f2_y)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
 plt.show()
@@ -370,7 +379,7 @@ plt.show()
 # - **delta method** (first order in the raw parameters): along the undetermined friction
 #   direction W does not change to first order, so only the identified quantities (gain,
 #   heat capacity, W) widen the band;
-# - **sampling** (`greybox._prediction.propagate`: Gaussian draws of the raw shared
+# - **sampling** (`greybox.propagate`: Gaussian draws of the raw shared
 #   parameters, each pushed through the gait), the usual tool for an optimum or a threshold.
 
 # %%
@@ -382,7 +391,7 @@ true_robot = set_values(
 
 
 def speeds(m):
-    return gait.speed_vs_period(m, jnp.asarray(periods), DUTY, POWER_W)["speed_m_per_s"]
+    return microrobot.speed_vs_period(m, jnp.asarray(periods), DUTY, POWER_W)["speed_m_per_s"]
 
 
 fitted_curve, v = delta_method(speeds, fitted_robot, result.free, result.raw, result.covariance_raw)

@@ -52,11 +52,15 @@ ROOT = next(p for p in (Path.cwd(), *Path.cwd().parents) if (p / "experiments").
 DATA = ROOT / "experiments" / "chevron_laser"
 
 from greybox import blackbox as bb  # noqa: E402
-from greybox._fit import fit, validate  # noqa: E402
+from greybox import (  # noqa: E402  # noqa: E402
+    fit,
+    fit_percent,
+    rmse,
+    set_values,  # noqa: E402
+    simulate,  # noqa: E402
+    validate,
+)
 from greybox.io import load_experiment_set  # noqa: E402
-from greybox._metrics import fit_percent, rmse  # noqa: E402
-from greybox._parameters import set_values  # noqa: E402
-from greybox._simulate import simulate  # noqa: E402
 
 T_START = time.perf_counter()
 fitset = load_experiment_set(DATA)
@@ -100,7 +104,7 @@ print(
 )
 
 # %% [markdown]
-# **What the grey-box does instead.** Nothing is stitched. `greybox._fit` takes the six runs
+# **What the grey-box does instead.** Nothing is stitched. `greybox.fit` takes the six runs
 # as six `Experiment`s, each on its own time axis, simulates them all (vmapped) and fits the
 # shared physics (absorptance, thermal time constant) and one camera offset per run, with
 # intervals. A pseudo-random record is not needed either: what identifies tau and the gain
@@ -327,7 +331,7 @@ for data, label in ((est_st, "estimation"), (val_st, "validation")):
 grey_val = validate(grey, val)
 for i, e in enumerate(val):
     print(
-        f"  grey-box {e.name}: simulation fit {grey_val.fit_percent[e.name]:.1f} % "
+        f"  grey-box {e.name}: simulation fit {grey_val.fit_percent[e.name][0]:.1f} % "
         f"(at the camera frames, {grey_val.n_outliers[e.name]} outliers flagged)"
     )
 print(
@@ -493,7 +497,7 @@ print(
 #
 # **What the grey-box does instead.** The physics does not change between runs, so the
 # parameters are fitted once, on all estimation runs together, with a covariance; on the
-# validation runs `greybox._fit.validate` holds them fixed and re-fits only each run's camera
+# validation runs `greybox.validate` holds them fixed and re-fits only each run's camera
 # offset (what genuinely changes from run to run), then simulates. If a parameter were
 # suspected to drift, the grey-box answer is to free it per run (`per_experiment=True`) and
 # compare the per-run intervals: a drift then has a physical name and a size, instead of

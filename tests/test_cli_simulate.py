@@ -5,17 +5,18 @@ parameter combinations the data do not determine."""
 import json
 
 import jax
-import greybox
 import numpy as np
 import pytest
 from test_cli_fit import EMBEDDED, fitted_dir
 
-from greybox.cli import main
-from greybox.io._params_file import load_params
+import greybox
 from greybox._parameters import get_value, set_values
 from greybox._prediction import prediction_band
 from greybox._simulate import simulate
 from greybox._waveforms import PulseTrain
+from greybox.cli import main
+from greybox.io._params_file import load_params
+
 chevron_laser = greybox.device_module("chevron_laser")
 
 NEW_WAVE = "pulse:power_mW=25,period_ms=300,duty=0.5,n=10,delay_ms=100,tail_ms=400"

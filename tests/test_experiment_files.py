@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from greybox.cli import main
 from greybox._errors import InputError
+from greybox.cli import main
 from greybox.io import load_experiment_set
 from greybox.io._toml import TomlLines
 
@@ -96,7 +96,7 @@ def test_good_folder_loads_and_converts_units(good):
     fs = load_experiment_set(good)
     assert [e.name for e in fs.estimation] == ["est"]
     assert [e.name for e in fs.validation] == ["val"]
-    assert fs.camera == {"fps": 30.0, "exposure_s": 0.01, "m_per_px": 0.645e-6}
+    assert fs.camera == {"fps": 30.0, "exposure_s": 0.01, "m_per_px": 0.645e-6, "noise_m": None}
     assert fs.model.camera.exposure_s == 0.01
     t, y = _frames()
     e = fs.estimation[0]
@@ -125,7 +125,7 @@ def test_logged_laser_trace_and_micrometre_column(good):
     t = np.arange(0, 1.6, 0.001)  # a DAQ log at 1 kHz, with camera frames every 33 ms
     laser = np.where((t >= 0.2) & (t < 0.4), 20.0, 0.0)
     y = np.full(t.size, np.nan)
-    y[::33] = 201.0
+    y[::33] = 201.0 + 0.5 * (t[::33] > 0.3)  # a response (a constant series is refused)
     _write_csv(good / "est.csv", t, y, col="y_um", laser=laser)
     text = (
         (good / "experiment.toml")
@@ -142,7 +142,7 @@ def test_logged_laser_trace_and_micrometre_column(good):
     e = fs.estimation[0]
     assert fs.run_info("est").input_source == "logged"
     np.testing.assert_allclose(e.inputs.switch_times(), [0.2, 0.4], atol=1e-9)
-    assert np.nanmax(e.y) == pytest.approx(201e-6)
+    assert np.nanmax(e.y) == pytest.approx(201.5e-6)
 
 
 def test_tracker_csv_with_two_scales_needs_y_column(good, tmp_path, capsys):
@@ -151,10 +151,13 @@ def test_tracker_csv_with_two_scales_needs_y_column(good, tmp_path, capsys):
     lines += [f"{a:.6f},{b:.4f},{b * 0.645:.5f},0.99,,0.05" for a, b in zip(t, y)]
     (good / "est.csv").write_text("\n".join(lines) + "\n")
     _bad(tmp_path, capsys, good, "est.csv", "y_px", "y_column", line=1)
+    # every run tracked: the known noise (sigma_px) is then in every run, as it must be
+    (good / "val.csv").write_text("\n".join(lines) + "\n")
     text = (
         (good / "experiment.toml")
         .read_text()
         .replace('file = "est.csv"', 'file = "est.csv"\ny_column = "y_um"')
+        .replace('file = "val.csv"', 'file = "val.csv"\ny_column = "y_um"')
     )
     (good / "experiment.toml").write_text(text)
     fs = load_experiment_set(good)
@@ -191,17 +194,19 @@ def test_bad_missing_column(good, tmp_path, capsys):
 
 
 def test_bad_wrong_unit_suffix(good, tmp_path, capsys):
+    # any length unit pint knows is converted (y_mm); a unit of another dimension is refused
     t, y = _frames()
-    _write_csv(good / "est.csv", t, y, col="y_mm")
-    _bad(tmp_path, capsys, good, good / "est.csv", "y_mm", "y_um, y_nm, y_px", line=1)
+    _write_csv(good / "est.csv", t, y, col="y_degC")
+    _bad(tmp_path, capsys, good, good / "est.csv", "y_degC", "y_um, y_nm, y_px", line=1)
 
 
-def test_bad_time_in_milliseconds_column(good, tmp_path, capsys):
+def test_bad_time_column_unit(good, tmp_path, capsys):
+    # t_ms is a time unit (converted); a suffix that is no time unit is refused
     t, y = _frames()
     (good / "est.csv").write_text(
-        "t_ms,y_px\n" + "".join(f"{a * 1e3:.3f},{b:.4f}\n" for a, b in zip(t, y))
+        "t_px,y_px\n" + "".join(f"{a * 1e3:.3f},{b:.4f}\n" for a, b in zip(t, y))
     )
-    _bad(tmp_path, capsys, good, good / "est.csv", "t_ms", "t_s", line=1)
+    _bad(tmp_path, capsys, good, good / "est.csv", "t_px", "t_s", line=1)
 
 
 def test_bad_time_values_in_milliseconds(good, tmp_path, capsys):
@@ -446,3 +451,50 @@ def test_generate_script_reproduces_committed_data(tmp_path):
         and truth["parameters"]["thermal.tau_s"]["value"]
         != truth["parameters"]["thermal.tau_s"]["nominal"]
     )
+
+
+def test_known_noise_from_the_tracker_column_and_from_the_camera(good, tmp_path, capsys):
+    """A `sigma_px` column (what `greybox track` writes) becomes each frame's known noise in
+    SI; `[camera] noise_um` declares one level for every reading; mixing runs with and
+    without the column is a located error."""
+    t, y = _frames()
+    for name, shift in (("est", 0.0), ("val", 2.0)):
+        rows = ["t_s,y_px,sigma_px"] + [
+            f"{a:.6f},{b - shift:.4f},{0.05 + 0.01 * (k % 3):.3f}"
+            for k, (a, b) in enumerate(zip(t, y))
+        ]
+        (good / f"{name}.csv").write_text("\n".join(rows) + "\n")
+    fs = load_experiment_set(good)
+    e = fs.estimation[0]
+    np.testing.assert_allclose(e.sigma[:3, 0], np.array([0.05, 0.06, 0.07]) * 0.645e-6)
+    assert "sigma" not in fs.fit_options
+
+    _write_csv(good / "val.csv", t, y)  # no noise column in one run
+    _bad(tmp_path, capsys, good, good / "experiment.toml", "runs", "per-frame noise")
+
+    for name in ("est", "val"):
+        _write_csv(good / f"{name}.csv", t, y)
+    text = (good / "experiment.toml").read_text()
+    text = text.replace("um_per_px = 0.645", "um_per_px = 0.645\nnoise_um = 0.04")
+    (good / "experiment.toml").write_text(text)
+    fs = load_experiment_set(good)
+    assert fs.fit_options["sigma"] == pytest.approx(0.04e-6)
+    assert fs.estimation[0].sigma is None
+
+
+def test_input_outside_its_channel_range_is_refused_at_its_line(good, tmp_path, capsys):
+    """A logged laser power below 0 (the channel's declared minimum) is refused, naming the
+    file, the line of the first bad row and the column."""
+    t, y = _frames()
+    laser = np.where(t > 0.2, 20.0, 0.0)
+    laser[7] = -3.0
+    _write_csv(good / "est.csv", t, y, laser=laser)
+    text = (good / "experiment.toml").read_text()
+    text = text.replace(
+        'waveform = { type = "pulse_train", power_mW = 20, period_ms = 400, n_pulses = 3, '
+        "delay_ms = 200 }",
+        'waveform = { type = "logged" }',
+        1,
+    )
+    (good / "experiment.toml").write_text(text)
+    _bad(tmp_path, capsys, good, good / "est.csv", "laser_mW", "below 0", line=9)

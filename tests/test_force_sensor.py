@@ -1,14 +1,14 @@
 """Force-sensor conversion (thesis eqs. 5.2-5.3), repeat averaging, and force-model selection."""
 
 import numpy as np
-
-import greybox
 import pytest
 
-from greybox import surface
-from greybox._force_sensor import ForceSensor, average_repeats
-from greybox._table_fit import fit_table
+import greybox
+from greybox import fit_table
+
 ec = greybox.device_module("electrothermal_chevron")
+SURFACE = ec.surface
+ForceSensor, average_repeats = ec.ForceSensor, ec.average_repeats
 
 SENSOR = ForceSensor(
     length_m=1e-3, thickness_m=50e-6, gauge_factor=100.0, bridge_V=5.0, stiffness_N_per_m=1000.0
@@ -55,9 +55,9 @@ def force_data():
 
 def test_eighth_order_overfits_held_out_voltages(force_data):
     v, f, se = force_data.voltage_V, force_data.mean, force_data.pooled_se
-    cv2 = surface.cross_validate(surface.polynomial_predictor(2), v, f)
-    cv8 = surface.cross_validate(surface.polynomial_predictor(8), v, f)
-    fit2, fit8 = surface.fit_polynomial(v, f, 2), surface.fit_polynomial(v, f, 8)
+    cv2 = SURFACE.cross_validate(SURFACE.polynomial_predictor(2), v, f)
+    cv8 = SURFACE.cross_validate(SURFACE.polynomial_predictor(8), v, f)
+    fit2, fit8 = SURFACE.fit_polynomial(v, f, 2), SURFACE.fit_polynomial(v, f, 8)
     assert fit8.rmse < fit2.rmse  # closer to the training points ...
     assert cv8.rmse > 3 * cv2.rmse  # ... far worse on held-out voltages
     assert fit2.criteria["aicc"] < fit8.criteria["aicc"]
@@ -70,7 +70,7 @@ def test_eighth_order_overfits_held_out_voltages(force_data):
         res = fit_table(start, predict, x, z, free, sigma=se, weights=train.astype(float))
         return np.asarray(predict(res.model, x))
 
-    cvg = surface.cross_validate(greybox, v, f)
+    cvg = SURFACE.cross_validate(greybox, v, f)
     # no over-fit: comparable to order 2 (0.9-1.6x over seeds 0-7), far below order 8
     assert cvg.rmse < 2 * cv2.rmse and cvg.rmse < cv8.rmse / 3
     full = fit_table(start, predict, v, f, free, sigma=se)

@@ -35,7 +35,7 @@ def test_fit_recovers_truth_and_reports_verdicts(fitted):
         assert shared[path]["prior"] is not None
     assert doc["convergence"]["converged"]
     assert doc["fit_percent"]["horizon"] == "simulation"
-    assert min(doc["fit_percent"]["validation"].values()) > 90.0
+    assert min(min(v) for v in doc["fit_percent_robust"]["validation"].values()) > 75.0
     assert (out / "report.md").is_file()
 
 
@@ -53,9 +53,10 @@ def test_fit_started_above_the_walk_lands_in_the_dead_zone_and_says_so():
     free = [
         dataclasses.replace(p, initial=nominal[p.path]) if p.path in nominal else p for p in fs.free
     ]
-    result = fit(fs.model, fs.estimation, free, **fs.fit_options)
+    # one start only: the automatic multi-start (4 starts here) is what rescues such a start
+    result = fit(fs.model, fs.estimation, free, **{**fs.fit_options, "n_starts": 1})
     verdicts = {p.name: p.verdict for p in result.parameters}
     assert result.estimate("absorptance_left").value < 0.2  # no motion left
-    assert verdicts["absorptance_left"] == "not identifiable"
-    assert verdicts["locomotion.turn_gain"] == "not identifiable"
-    assert "not identifiable" in result.message
+    assert verdicts["absorptance_left"] in ("not identifiable", "at bound")
+    assert verdicts["locomotion.turn_gain"] in ("not identifiable", "at bound")
+    assert not result.valid

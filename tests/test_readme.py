@@ -70,7 +70,7 @@ def test_readme_greybox_commands_parse(command):
                 "Exit status",
             ],
         ),
-        (["simulate"], ["power_mW", "period_ms", "t_s [s]", "y_um [um]", "laser_mW [mW]", "95 %"]),
+        (["simulate"], ["power_mW", "period_ms", "t_s [s]", "y_um", "laser_mW", "H1_pct", "95 %"]),
         (["demo"], ["ms", "um", "mW", "SI", "simulation"]),
     ],
 )

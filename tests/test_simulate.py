@@ -2,15 +2,16 @@
 
 import equinox as eqx
 import jax
-import greybox
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from greybox.blocks._mechanics import ChevronLinear
+import greybox
 from greybox._parameters import set_values
 from greybox._simulate import as_arrays, observe_schedule, pad_schedules, schedule_for, simulate
 from greybox._waveforms import PiecewiseConstant, PulseTrain
+from greybox.blocks._mechanics import ChevronLinear
+
 default_model = greybox.get_device("chevron_laser").model
 
 P_W = 0.02

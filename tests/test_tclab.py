@@ -9,9 +9,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import greybox
-import pytest
 
 HERE = Path(__file__).resolve().parents[1] / "experiments" / "tclab"
 sys.path.insert(0, str(HERE))

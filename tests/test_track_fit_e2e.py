@@ -13,15 +13,15 @@ CLI fitter, params.json.
 import json
 
 import numpy as np
-
-import greybox
 import pytest
 
-from greybox.cli import main
-from greybox.io._video import write_video
+import greybox
 from greybox._render import exposure_times, render_shuttle
 from greybox._simulate import simulate
 from greybox._waveforms import PulseTrain
+from greybox.cli import main
+from greybox.io._video import write_video
+
 chevron_laser = greybox.device_module("chevron_laser")
 
 TRUE_TAU_S = 0.050

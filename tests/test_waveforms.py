@@ -66,8 +66,12 @@ def test_pulse_train_rejects_bad_values(kwargs, field):
 
 
 def test_logged_trace_rejects_bad_samples():
-    with pytest.raises(ValueError, match="negative"):
-        from_samples([0, 1, 2], [0.0, -1e-3, 0.0], name="laser_mW")
+    # the sign of a level is the input channel's business (a force may be negative; a laser
+    # power may not, which the loader checks against the channel's declared range)
+    wave = from_samples([0, 1, 2], [0.0, -1e-3, 0.0], name="force_N")
+    assert float(wave(1.5)) == -1e-3
+    with pytest.raises(ValueError, match="NaN"):
+        from_samples([0, 1, 2], [0.0, np.nan, 0.0], name="laser_mW")
     with pytest.raises(ValueError, match="strictly increasing"):
         from_samples([0, 2, 1], [0.0, 1e-3, 0.0])
     with pytest.raises(ValueError, match="lengths must match"):

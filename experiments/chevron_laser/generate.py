@@ -20,17 +20,27 @@ import json
 from pathlib import Path
 
 import jax
+
 import greybox
 
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from greybox._channels import LASER_POWER  # noqa: E402
-from greybox.io import waveform_from_description  # noqa: E402
-from greybox.io._experiment_writer import pulse_train_description, run_csv, run_table  # noqa: E402
-from greybox._parameters import get_value, set_values  # noqa: E402
-from greybox._synthetic import CameraDefects, record  # noqa: E402
+from greybox import (  # noqa: E402  # noqa: E402
+    LASER_POWER,  # noqa: E402
+    CameraDefects,
+    get_value,
+    record,
+    set_values,
+)
+from greybox.io import (  # noqa: E402
+    pulse_train_description,
+    run_csv,
+    run_table,
+    waveform_from_description,  # noqa: E402
+)
+
 chevron_laser = greybox.device_module("chevron_laser")  # noqa: E402
 
 SEED = 20120815

@@ -14,6 +14,7 @@ import pathlib
 import sys
 
 import jax
+
 import greybox
 
 jax.config.update("jax_enable_x64", True)
@@ -23,12 +24,11 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from greybox import periodic, surface  # noqa: E402
-from greybox._force_sensor import ForceSensor, average_repeats  # noqa: E402
-from greybox.io._atomic import atomic_output_file  # noqa: E402
-from greybox._metrics import rmse  # noqa: E402
-from greybox._table_fit import fit_table  # noqa: E402
+from greybox import fit_table, rmse  # noqa: E402
+from greybox.io import atomic_output_file  # noqa: E402
+
 ec = greybox.device_module("electrothermal_chevron")  # noqa: E402
+SURFACE = greybox.device_module("electrothermal_chevron").surface  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 N_STEPS = 16  # samples per half-cycle in the fit (2e-6 relative accuracy against a long simulation)
@@ -53,24 +53,24 @@ def fmt_param(p, scale=1.0, unit=""):
 
 def surface_study(truth_info, lines, figures):
     t = read_csv(HERE / "table.csv", ("amplitude_V", "frequency_Hz", "y_pp_um"))
-    amps, freqs, table = surface.check_grid(t["amplitude_V"], t["frequency_Hz"], t["y_pp_um"])
+    amps, freqs, table = SURFACE.check_grid(t["amplitude_V"], t["frequency_Hz"], t["y_pp_um"])
     a, f, y_um = t["amplitude_V"], t["frequency_Hz"], t["y_pp_um"]
     x = np.column_stack([a, f])
-    poly32 = surface.fit_polynomial(x, y_um, (3, 2))
-    poly33 = surface.fit_polynomial(x, y_um, (3, 3))
-    xs, ys, fine = surface.grid(poly32, (0.0, amps[-1]), (0.0, freqs[-1]), dx=0.1, dy=1.0)
+    poly32 = SURFACE.fit_polynomial(x, y_um, (3, 2))
+    poly33 = SURFACE.fit_polynomial(x, y_um, (3, 3))
+    xs, ys, fine = SURFACE.grid(poly32, (0.0, amps[-1]), (0.0, freqs[-1]), dx=0.1, dy=1.0)
 
     start = ec.SPEC.model(
         thermal__tau_s=0.015, thermal__resistance_K_per_W=150.0, joule__tcr_per_K=0.0
     )
-    respond = periodic.response_function(start, n_steps=N_STEPS)
+    respond = greybox.response_function(start, n_steps=N_STEPS)
     predict = lambda m, xx: respond(m, xx[0], xx[1])[1]  # noqa: E731
     free = ec.default_free_parameters()
     gb = fit_table(start, predict, (a, f), y_um * 1e-6, free)
     gb_um = gb.prediction * 1e6
 
     inside = (a <= TRAIN_MAX_V) & (f <= TRAIN_MAX_HZ)
-    p_in = surface.fit_polynomial(x[inside], y_um[inside], (3, 2))
+    p_in = SURFACE.fit_polynomial(x[inside], y_um[inside], (3, 2))
     gb_in = fit_table(start, predict, (a, f), y_um * 1e-6, free, weights=inside.astype(float))
     out = ~inside
     ext = {
@@ -165,7 +165,7 @@ def surface_study(truth_info, lines, figures):
 def force_study(truth_info, lines, figures):
     r = read_csv(HERE / "force_readings.csv", ("voltage_V", "repeat", "sensor_mV"))
     s = truth_info["force"]["sensor"]
-    sensor = ForceSensor(
+    sensor = ec.ForceSensor(
         s["length_m"],
         s["thickness_m"],
         s["gauge_factor"],
@@ -173,7 +173,7 @@ def force_study(truth_info, lines, figures):
         s["stiffness_N_per_m"],
         s["resistor_position"],
     )
-    avg = average_repeats(
+    avg = ec.average_repeats(
         r["voltage_V"],
         sensor.force_N(r["sensor_mV"] * 1e-3) * 1e3,
         expected_repeats=truth_info["force"]["n_repeats"],
@@ -181,8 +181,8 @@ def force_study(truth_info, lines, figures):
     v, fm, se = avg.voltage_V, avg.mean, avg.pooled_se
     rows, cv = [], {}
     for order in (2, 8):
-        p = surface.fit_polynomial(v, fm, order)
-        c = surface.cross_validate(surface.polynomial_predictor(order), v, fm)
+        p = SURFACE.fit_polynomial(v, fm, order)
+        c = SURFACE.cross_validate(SURFACE.polynomial_predictor(order), v, fm)
         cv[order] = c.rmse
         rows.append(
             f"| poly order {order} | {p.n_params} | {p.rmse:.4f} | {c.rmse:.4f} | "
@@ -198,10 +198,10 @@ def force_study(truth_info, lines, figures):
         res = fit_table(start, pred_mN, x, z, free, sigma=se, weights=train.astype(float))
         return np.asarray(pred_mN(res.model, x))
 
-    cg = surface.cross_validate(greybox, v, fm)
+    cg = SURFACE.cross_validate(greybox, v, fm)
     cv["greybox"] = cg.rmse
     rss = float(np.sum((gb.prediction - fm) ** 2))
-    crit = surface.information_criteria(rss, v.size, len(free))
+    crit = SURFACE.information_criteria(rss, v.size, len(free))
     rows.append(
         f"| grey-box (R_th, TCR) | 2 | {gb.rmse:.4f} | {cg.rmse:.4f} | "
         f"{cg.rmse_interior:.4f} | {crit['aicc']:.1f} | {crit['bic']:.1f} |"
@@ -236,7 +236,7 @@ def force_study(truth_info, lines, figures):
     fig, ax = plt.subplots(figsize=(6.5, 4.5), constrained_layout=True)
     ax.errorbar(v, fm, yerr=1.96 * se, fmt="ko", label="mean of repeats (95 %)")
     for order, col in ((2, "C1"), (8, "C3")):
-        p = surface.fit_polynomial(v, fm, order)
+        p = SURFACE.fit_polynomial(v, fm, order)
         ax.plot(vv, p(vv), col, label=f"poly order {order}")
     ax.plot(vv, np.asarray(pred_mN(gb.model, vv)), "C0", label="grey-box sensor force")
     ax.plot(vv, blocked, "C0--", label="grey-box blocked force")

@@ -18,6 +18,7 @@ import pathlib
 import sys
 
 import jax
+
 import greybox
 
 jax.config.update("jax_enable_x64", True)
@@ -27,9 +28,8 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from greybox import periodic  # noqa: E402
-from greybox._force_sensor import ForceSensor  # noqa: E402
-from greybox.io._atomic import atomic_output_file  # noqa: E402
+from greybox.io import atomic_output_file  # noqa: E402
+
 ec = greybox.device_module("electrothermal_chevron")  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
@@ -40,7 +40,7 @@ NOISE_UM = 0.1  # interferometer repeatability [assumed], the size of the thesis
 FORCE_VOLTAGES_V = np.arange(0.0, 21.0, 2.0)
 N_REPEATS = 5
 SENSOR_NOISE_MV = 2.0  # repeat scatter of the sensor reading ("wide deviations", thesis §5.5)
-SENSOR = ForceSensor(
+SENSOR = ec.ForceSensor(
     length_m=1e-3, thickness_m=50e-6, gauge_factor=100.0, bridge_V=5.0, stiffness_N_per_m=1000.0
 )  # [assumed]: the thesis gives no AE801 constants
 N_STEPS = 64
@@ -50,7 +50,7 @@ def main() -> None:
     rng = np.random.default_rng(SEED)
     truth = ec.SPEC.model()
     a, f = (g.ravel() for g in np.meshgrid(AMPLITUDES_V, FREQUENCIES_HZ, indexing="ij"))
-    _, pp = periodic.square_wave_response(truth, a, f, n_steps=N_STEPS)
+    _, pp = greybox.square_wave_response(truth, a, f, n_steps=N_STEPS)
     y_um = pp * 1e6 + rng.normal(0.0, NOISE_UM, pp.shape)
     with atomic_output_file(HERE / "table.csv") as tmp:
         np.savetxt(

@@ -12,13 +12,9 @@ import dataclasses
 import numpy as np
 
 import greybox
-
+from greybox import Experiment, FitResult, FreeParameter, fit, sae, simulate
 from greybox import blackbox as bb
-from greybox._data import Experiment
-from greybox._fit import FitResult, fit
-from greybox._freeparams import FreeParameter
-from greybox._metrics import sae
-from greybox._simulate import simulate
+
 tclab = greybox.device_module("tclab")
 
 # Park et al. (2020), sae_summary.xlsx: SAE [degC] (estimation, validation)

@@ -1,83 +1,43 @@
 """Load the TCLab experiment folders next to this file into greybox objects.
 
-A small reader for exactly what these folders use (logged heater inputs, T1/T2 in degC or K,
-known settings); the general experiment-folder loader reads the same files.
+Through the public experiment-folder loader (`greybox.io.load_experiment_set`), so the paper
+comparison reads exactly what `greybox fit` reads: initial temperatures from each sensor's
+first reading (the device's rule), heater levels held from each logged sample.
 """
 
 from __future__ import annotations
 
-import tomllib
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 
 import greybox
-
+from greybox import Experiment
 from greybox.blackbox import UniformData
-from greybox._data import Experiment
-from greybox._waveforms import from_samples
+from greybox.io import load_experiment_set
+
 tclab = greybox.device_module("tclab")
 
 HERE = Path(__file__).resolve().parent
 
 
-def _column(header: list[str], channel, path: Path) -> tuple[int, str]:
-    for unit in channel.units:
-        if f"{channel.name}_{unit}" in header:
-            return header.index(f"{channel.name}_{unit}"), unit
-    raise ValueError(
-        f"{path}: no column for {channel.name}; add one of {', '.join(channel.column_names())}"
-    )
+def load_folder(folder: str | Path, *, ambient: str = "paper") -> dict[str, Experiment]:
+    """{run name: Experiment} for an experiment folder (device must be "tclab").
 
-
-def load_run(path: Path, *, name: str, role: str, settings: dict) -> Experiment:
-    """One run CSV -> `Experiment` (y in K, inputs in % held from each logged sample)."""
-    with open(path) as f:
-        header = f.readline().strip().split(",")
-    data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    if "t_s" not in header:
-        raise ValueError(f"{path}: needs a t_s column (time in s)")
-    t = data[:, header.index("t_s")]
-    u = np.column_stack(
-        [
-            tclab.INPUTS[k].to_si(data[:, i], unit)
-            for k, (i, unit) in enumerate(_column(header, c, path) for c in tclab.INPUTS)
-        ]
-    )
-    y = np.column_stack(
-        [
-            tclab.OUTPUTS[k].to_si(data[:, i], unit)
-            for k, (i, unit) in enumerate(_column(header, c, path) for c in tclab.OUTPUTS)
-        ]
-    )
-    inputs = from_samples(t, u, name=f"{path.name}: H1/H2")
-    return Experiment(
-        name=name,
-        t_s=t,
-        y=y,
-        inputs=inputs,
-        t_start_s=float(t[0]),
-        role=role,
-        settings={k: float(v) for k, v in settings.items()},
-    )
-
-
-def load_folder(folder: str | Path) -> dict[str, Experiment]:
-    """{run name: Experiment} for an experiment folder (device must be "tclab")."""
-    folder = Path(folder)
-    spec = tomllib.loads((folder / "experiment.toml").read_text())
-    if spec["experiment"]["device"] != tclab.NAME:
+    `ambient`: "paper" keeps the paper's fixed 23 C room for every run (the paper's model,
+    used by the comparison table), dropping a per-run ambient the folder's rule read off the
+    data; "folder" keeps what the folder says (as `greybox fit` does)."""
+    fs = load_experiment_set(folder)
+    if fs.device_name != tclab.NAME:
         raise ValueError(f"{folder}/experiment.toml: device is not {tclab.NAME!r}")
     runs = {}
-    for run in spec["runs"]:
-        if run.get("waveform", {}).get("type") != "logged":
-            raise ValueError(f"{folder}/experiment.toml: run {run['name']}: TCLab runs are logged")
-        runs[run["name"]] = load_run(
-            folder / run["file"],
-            name=run["name"],
-            role=run["role"],
-            settings=run.get("settings", {}),
-        )
+    for e in fs.estimation + fs.validation:
+        ruled = {k for k, _ in fs.run_info(e.name).defaults}
+        if ambient == "paper" and "ambient_K" in ruled:
+            settings = {k: v for k, v in e.settings.items() if k != "ambient_K"}
+            e = dataclasses.replace(e, settings=settings)
+        runs[e.name] = e
     return runs
 
 

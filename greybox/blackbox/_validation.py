@@ -13,7 +13,7 @@ from statistics import NormalDist
 
 import numpy as np
 
-from ..metrics import fit_percent
+from .._metrics import fit_percent
 from ._data import UniformData
 from ._poly import _ar_recursion, lfilter
 

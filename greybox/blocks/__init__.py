@@ -34,4 +34,5 @@ from greybox.blocks._spot import RectangularFrame as RectangularFrame
 from greybox.blocks._thermal import STEFAN_BOLTZMANN as STEFAN_BOLTZMANN
 from greybox.blocks._thermal import AbstractThermal as AbstractThermal
 from greybox.blocks._thermal import FirstOrderThermal as FirstOrderThermal
+from greybox.blocks._thermal import ThermalChain as ThermalChain
 from greybox.blocks._thermal import ThermalNetwork as ThermalNetwork

@@ -1,6 +1,6 @@
 """Lumped thermal RC networks (PHYSICS.md §4).
 
-States are temperature rises above ambient [K]. Two concrete blocks:
+States are temperature rises above ambient [K]. Three concrete blocks:
 
 - `FirstOrderThermal`: the one-node model tau dtheta/dt = R q - theta, parameterised by the
   identifiable pair (time constant [s], thermal resistance [K/W]).
@@ -8,6 +8,8 @@ States are temperature rises above ambient [K]. Two concrete blocks:
   several heat inputs, optional T^4 radiation (to ambient and between nodes), and optional
   first-order sensor lags that follow chosen nodes without loading them. The 2-node-per-side
   model of PHYSICS.md and the TCLab board are instances of it.
+- `ThermalChain`: pad -> beam segments -> anchor, with named scalar capacities and
+  resistances (freeable element by element) and an optional elongation lag.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import abc
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 
 STEFAN_BOLTZMANN = 5.670374419e-8  # W/(m^2 K^4)
 
@@ -217,3 +220,113 @@ class ThermalNetwork(AbstractThermal):
                 .set(-1.0 / self.sensor_tau_s[s])
             )
         return a, b
+
+
+class ThermalChain(AbstractThermal):
+    """A linear chain of lumped nodes, each optionally cooled through the air, with an optional
+    first-order lag that follows the mean beam rise (PHYSICS.md §4: the two-node pad + beam
+    model and its n-node refinement).
+
+    C_i dtheta_i/dt = s_i q - (theta_i - theta_{i+1}) / R_i - theta_i / Ra_i   (theta_n = 0)
+    lag_s ds/dt = theta_beam - s,  theta_beam = mean of theta_i over `beam_nodes`
+
+    - `capacity_J_per_K` (n scalars): heat capacity of each node [J/K].
+    - `resistance_K_per_W` (n scalars): series resistance from node i to node i + 1; the last
+      one joins the last node to the anchor (ambient) [K/W].
+    - `air_resistance_K_per_W` (n scalars, or None = no air loss): each node straight to the
+      substrate through the air gap [K/W].
+    - `lag_s`: time constant of a first-order lag between the mean beam rise and the elongation
+      [s]; None = no lag (the elongation follows the beam nodes at once).
+    - `heat_share` (static): fraction of the one heat input entering each node; empty = all
+      of it into node 0 (a laser-heated pad).
+    - `beam_nodes` (static): the nodes whose mean is the mean beam rise; empty = nodes 1..n-1
+      (node 0 is the pad), or node 0 when n = 1.
+
+    Every value is a named scalar, so one element can be freed: ``thermal.capacity_J_per_K[1]``.
+    State layout: [node rises (n), lag state (1 if `lag_s` is not None)].
+    """
+
+    capacity_J_per_K: tuple[float, ...]
+    resistance_K_per_W: tuple[float, ...]
+    air_resistance_K_per_W: tuple[float, ...] | None = None
+    lag_s: float | None = None
+    heat_share: tuple[float, ...] = eqx.field(static=True, default=())
+    beam_nodes: tuple[int, ...] = eqx.field(static=True, default=())
+
+    def __check_init__(self):
+        n = len(self.capacity_J_per_K)
+        if n < 1:
+            raise ValueError("capacity_J_per_K: needs at least one node")
+        if len(self.resistance_K_per_W) != n:
+            raise ValueError(
+                f"resistance_K_per_W: needs {n} values (node i to i + 1, the last to the anchor)"
+            )
+        if self.air_resistance_K_per_W is not None and len(self.air_resistance_K_per_W) != n:
+            raise ValueError(f"air_resistance_K_per_W: needs {n} values, one per node (or None)")
+        if self.heat_share and len(self.heat_share) != n:
+            raise ValueError(f"heat_share: needs {n} fractions, one per node (or () for node 0)")
+        if any(not 0 <= i < n for i in self.beam_nodes):
+            raise ValueError(f"beam_nodes: every node must be in 0..{n - 1}")
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.capacity_J_per_K)
+
+    @property
+    def n_states(self) -> int:
+        return self.n_nodes + (self.lag_s is not None)
+
+    @property
+    def n_inputs(self) -> int:
+        return 1
+
+    @property
+    def is_linear(self) -> bool:
+        return True
+
+    def _beam_weights(self):
+        n = self.n_nodes
+        nodes = self.beam_nodes or (tuple(range(1, n)) if n > 1 else (0,))
+        w = np.zeros(n)
+        w[list(nodes)] = 1.0 / len(nodes)
+        return w
+
+    def _share(self):
+        n = self.n_nodes
+        return np.asarray(self.heat_share, dtype=float) if self.heat_share else np.eye(n)[0]
+
+    def linear_matrices(self):
+        n = self.n_nodes
+        c = jnp.stack([jnp.asarray(v, dtype=float) for v in self.capacity_J_per_K])
+        g = 1.0 / jnp.stack([jnp.asarray(v, dtype=float) for v in self.resistance_K_per_W])
+        ground = jnp.zeros(n).at[n - 1].set(g[n - 1])
+        if self.air_resistance_K_per_W is not None:
+            ground = ground + 1.0 / jnp.stack(
+                [jnp.asarray(v, dtype=float) for v in self.air_resistance_K_per_W]
+            )
+        k = jnp.diag(ground)
+        if n > 1:
+            d = np.zeros((n - 1, n))
+            d[np.arange(n - 1), np.arange(n - 1)] = 1.0
+            d[np.arange(n - 1), np.arange(1, n)] = -1.0
+            k = k + d.T @ (g[: n - 1, None] * d)
+        a = -k / c[:, None]
+        b = (jnp.asarray(self._share()) / c)[:, None]
+        if self.lag_s is None:
+            return a, b
+        rate = 1.0 / jnp.asarray(self.lag_s, dtype=float)
+        row = jnp.concatenate([jnp.asarray(self._beam_weights()) * rate, -rate[None]])
+        a = jnp.concatenate([jnp.concatenate([a, jnp.zeros((n, 1))], axis=1), row[None]], axis=0)
+        return a, jnp.concatenate([b, jnp.zeros((1, 1))], axis=0)
+
+    def derivative(self, theta_K, q_W):
+        a, b = self.linear_matrices()
+        return a @ theta_K + b @ jnp.reshape(q_W, (-1,))
+
+    def beam_rise_K(self, theta_K):
+        """Mean beam rise [K]: the mean of the beam nodes (what heats the beams)."""
+        return jnp.asarray(self._beam_weights()) @ theta_K[: self.n_nodes]
+
+    def elongation_rise_K(self, theta_K):
+        """The rise the elongation follows [K]: the lag state, or the mean beam rise."""
+        return theta_K[self.n_nodes] if self.lag_s is not None else self.beam_rise_K(theta_K)

@@ -2,17 +2,21 @@
 
 Each subcommand lives in its own module `greybox.cli._<name>` exposing
 ``add_parser(subparsers)`` (which sets ``func`` on its parser). Bad input raises
-`greybox._errors.InputError` (or `ValueError`); `main` turns it into one line on stderr and
-exit status 2, so no subcommand prints tracebacks at users.
+`greybox._errors.InputError`; `main` turns it into one line on stderr and exit status 2.
+Any other exception is a bug in greybox: `main` prints its traceback, asks for a report and
+returns 3. SIGTERM is handled like Ctrl-C (message, no partial result, exit 143).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
+import threading
+import traceback
 
-SUBCOMMANDS = ("fit", "simulate", "demo", "track")
+SUBCOMMANDS = ("fit", "compare", "simulate", "describe", "demo", "track", "design", "fit-many")
 
 DESCRIPTION = """\
 greybox: fit physical parameters of laser-actuated thermal MEMS to camera data.
@@ -24,18 +28,36 @@ simulation or one-step prediction.
 """
 
 
+EXIT_STATUS = """\
+Exit status (every command): 0 done; 1 written but not trustworthy (the fit did not
+converge, see report.md); 2 bad input or output location (one line naming the file, line
+and field, nothing written); 3 a bug in greybox (a traceback follows; please report it);
+130 interrupted (Ctrl-C); 143 terminated (SIGTERM). An interrupted or terminated run
+leaves no partial result and an earlier result unchanged.
+"""
+
+
+class Terminated(BaseException):
+    """Raised in the main thread when the process receives SIGTERM (handled like Ctrl-C)."""
+
+
+def _on_sigterm(signum, frame):
+    raise Terminated
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="greybox",
         description=DESCRIPTION,
+        epilog=EXIT_STATUS,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in SUBCOMMANDS:
         try:
-            module = importlib.import_module(f"greybox.cli._{name}")
+            module = importlib.import_module(f"greybox.cli._{name.replace('-', '_')}")
         except ModuleNotFoundError as err:
-            if err.name != f"greybox.cli._{name}":
+            if err.name != f"greybox.cli._{name.replace('-', '_')}":
                 raise
             continue
         module.add_parser(sub)
@@ -43,6 +65,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    """Run one command. Bad input (`InputError`) -> one line and exit 2; any other exception
+    is a bug: its traceback, a request to report it, exit 3 (never disguised as bad input)."""
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
@@ -50,15 +74,52 @@ def main(argv=None) -> int:
         return 2
     from greybox._errors import InputError
 
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return int(args.func(args) or 0)
-    except (InputError, ValueError, FileNotFoundError) as err:
+    except InputError as err:
         message = " ".join(str(err).split())  # one line, whatever the message held
         print(f"greybox {args.command}: error: {message}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"greybox {args.command}: interrupted; no result was written", file=sys.stderr)
         return 130
+    except Terminated:
+        print(
+            f"greybox {args.command}: terminated (SIGTERM); no result was written",
+            file=sys.stderr,
+        )
+        return 143
+    except MemoryError:
+        print(
+            f"greybox {args.command}: error: out of memory; the problem is too large for "
+            "this machine (decimate or split the runs, use fewer starts)",
+            file=sys.stderr,
+        )
+        return 2
+    except Exception:
+        traceback.print_exc()
+        print(
+            f"greybox {args.command}: internal error (a bug in greybox "
+            f"{_version()}, not a problem with your input); please report it with the "
+            "traceback above and the command line. Nothing was written.",
+            file=sys.stderr,
+        )
+        return 3
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _version() -> str:
+    try:
+        from greybox import __version__
+
+        return __version__
+    except Exception:
+        return "(unknown version)"
 
 
 if __name__ == "__main__":

@@ -30,6 +30,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--out", metavar="DIR", default="results/demo", help="result folder (default results/demo)"
     )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace --out even if it is a non-empty folder greybox did not write",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.set_defaults(func=run)
     return p
@@ -89,8 +94,8 @@ def truth_rows(outcome, truth: dict) -> tuple[list[str], bool]:
 def run(args) -> int:
     import jax
 
-    from greybox.cli._fit import Progress, fit_experiment_dir, fit_lines
     from greybox._errors import InputError
+    from greybox.cli._fit import Progress, fit_experiment_dir, fit_lines
 
     jax.config.update("jax_enable_x64", True)
     say = Progress(args.quiet)
@@ -103,7 +108,7 @@ def run(args) -> int:
             field="demo data",
         )
     out = Path(args.out)
-    outcome = fit_experiment_dir(data, out, say)
+    outcome = fit_experiment_dir(data, out, say, force=args.force)
     truth = json.loads((data / "truth.json").read_text())
     rows, ok = truth_rows(outcome, truth)
     print(f"greybox demo: {outcome.fitset.description}")
@@ -117,4 +122,4 @@ def run(args) -> int:
         else "WARNING: a true physical parameter lies outside its 95 % interval"
     )
     print(f"report: {out / 'report.md'}; figures: {out / 'figures'}/ (done in {say.elapsed:.1f} s)")
-    return 0 if ok and outcome.result.converged else 1
+    return 0 if ok and outcome.result.valid else 1

@@ -10,28 +10,39 @@ from pathlib import Path
 import numpy as np
 
 HELP = """\
-Simulate a new laser waveform with a fitted model (the params.json written by
-`greybox fit`; the data are not needed) and write the response with a 95 % band from the
-parameter covariance (delta method).
+Simulate new input waveforms with a fitted model (the params.json written by
+`greybox fit`; the data are not needed) and write the response of every output with a
+95 % band from the parameter covariance (delta method), for any device.
 
---waveform SPEC is either
+--waveform SPEC (repeat it: one per input of a multi-input device) is one of
   pulse:power_mW=25,period_ms=300,duty=0.5,n=10[,delay_ms=200][,tail_ms=500]
-      a square pulse train: power in mW (or power_W in W), period/delay/tail in ms
-      (or period_s, delay_s, tail_s in s), duty = on-fraction in (0, 1], n = pulses;
+      a square pulse train for a single-input device: level named after the input and its
+      unit (laser_mW, power_W, H1_pct), period/delay/tail in ms (or _s), duty = on-fraction
+      in (0, 1], n = pulses;
+  NAME=pulse:...   NAME=const:LEVEL
+      per input channel of a multi-input device, e.g. for tclab
+      --waveform H1=pulse:H1_pct=50,period_s=600,duty=0.5,n=3 --waveform H2=const:0
+      (const: a level in the channel's SI unit, or const:H2_pct=0); every input needs one;
   PATH.csv
-      a logged trace with columns t_s [s] and laser_mW [mW] (or laser_W [W]), each level
-      held until the next sample.
+      a logged trace: a time column (t_s) and one column per input (laser_mW; H1_pct and
+      H2_pct), each level held until the next sample.
 
 Output (in --out, written atomically):
-  simulation.csv   t_s [s], y_um [um], y_lo95_um, y_hi95_um [um], laser_mW [mW]
-                   (displacement from rest: per-run camera offsets belong to the recorded
-                   runs and are not part of a new waveform)
-  simulation.png   response with its band, laser waveform beneath
+  simulation.csv   t_s [s]; per output <name>_<unit>, <name>_lo95_<unit>, <name>_hi95_<unit>;
+                   per input <name>_<unit> (e.g. y_um, ..., laser_mW; T1_K, ..., H1_pct)
+                   (from the model's initial state: per-run camera offsets belong to the
+                   recorded runs and are not part of a new waveform)
+  simulation.png   the first output with its band, the first input beneath
   simulation.json  what the band is (confidence band or prediction interval), the
-                   waveform, the params file used
+                   waveform, the columns, the params file used
+--out must be absent, empty or an earlier greybox result (it holds a .greybox-result
+marker); any other folder is refused before any work unless --force. A response or band
+that is not finite (an overflowing waveform, a damaged params.json) is refused, not
+written. Exit status: 0 done; 2 bad input (one line); 3 a bug (traceback; please report
+it); 130 interrupted; 143 terminated.
 By default the band is a 95 % confidence band of the model response (parameter
 uncertainty only); --noise adds the fitted measurement noise sigma, giving a 95 %
-prediction interval for new camera readings.
+prediction interval for new readings.
 """
 
 
@@ -51,8 +62,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--waveform",
         required=True,
+        action="append",
         metavar="SPEC",
-        help="pulse:power_mW=..,period_ms=..,duty=..,n=.. or a CSV with t_s,laser_mW",
+        help="pulse:power_mW=..,period_ms=..,duty=..,n=.., NAME=pulse:.../NAME=const:LEVEL "
+        "per input, or a CSV with t_s and every input column",
     )
     p.add_argument(
         "--out",
@@ -61,7 +74,16 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="output folder (default results/simulation)",
     )
     p.add_argument(
-        "--dt-ms", type=float, default=1.0, metavar="MS", help="output time step in ms (default 1)"
+        "--dt-ms",
+        type=float,
+        default=None,
+        metavar="MS",
+        help="output time step in ms (default 1, or the waveform's length / 5000 when longer)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace --out even if it is a non-empty folder greybox did not write",
     )
     p.add_argument(
         "--noise",
@@ -76,112 +98,134 @@ def _fmt(v: float) -> str:
     return f"{v:.6g}" if math.isfinite(v) else ("inf" if v > 0 else "-inf" if v < 0 else "nan")
 
 
+def _file_unit(channel, unit):
+    """(unit, (scale, offset)) of the fit's files for an output (params.json "file_units"),
+    or None to use the display unit (pixels, or an older params.json without it)."""
+    from greybox.io._units import channel_conversion
+
+    if not isinstance(unit, str):
+        return None
+    try:
+        conv = channel_conversion(channel, unit)
+    except ValueError:
+        return None
+    return None if conv is None else (unit, conv)
+
+
+def _column_unit(unit: str) -> str:
+    return {"%": "pct"}.get(unit, unit)
+
+
 def run(args) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
     from greybox import _plots as plots
     from greybox._errors import InputError
-    from greybox.io._atomic import atomic_output_dir
-    from greybox.io._waveform_spec import parse_waveform_spec, waveform_from_csv
-    from greybox.io._params_file import load_params
-    from greybox._prediction import prediction_band
     from greybox._report import display_unit
+    from greybox.io._atomic import atomic_output_dir, check_output_dir
+    from greybox.io._params_file import load_params
+    from greybox.io._waveform_spec import parse_channel_specs, waveform_from_csv
 
-    if not (math.isfinite(args.dt_ms) and args.dt_ms > 0):
+    if args.dt_ms is not None and not (math.isfinite(args.dt_ms) and args.dt_ms > 0):
         raise InputError(f"must be a positive number of ms, got {args.dt_ms}", field="--dt-ms")
+    check_output_dir(args.out, force=args.force, inputs=[args.params])
     fitted = load_params(args.params)
-    in_ch, out_ch = fitted.spec.inputs[0], fitted.spec.outputs[0]
-    spec = args.waveform
-    if spec.startswith("pulse:") or not spec.lower().endswith(".csv"):
-        wave, text = parse_waveform_spec(spec, in_ch)
-    elif not Path(spec).is_file():
-        raise InputError(
-            "no such file; give pulse:power_mW=..,period_ms=..,duty=..,n=.. or "
-            f"the path of a CSV with t_s,{in_ch.column_names()[0]} columns",
-            file=spec,
-            field="--waveform",
-        )
+    inputs, outputs = tuple(fitted.spec.inputs), tuple(fitted.spec.outputs)
+    specs = list(args.waveform)
+    csvs = [x for x in specs if x.lower().endswith(".csv") and "=" not in x]
+    if csvs:
+        if len(specs) > 1:
+            raise InputError("a CSV waveform holds every input; give it alone", field="--waveform")
+        if not Path(csvs[0]).is_file():
+            raise InputError(
+                "no such file; give pulse:... (NAME=pulse:... per input) or the path of a "
+                f"CSV with t_s,{','.join(c.column_names()[0] for c in inputs)} columns",
+                file=csvs[0],
+                field="--waveform",
+            )
+        wave, text = waveform_from_csv(csvs[0], inputs)
     else:
-        wave, text = waveform_from_csv(spec, in_ch)
-    dt = args.dt_ms * 1e-3
-    n = int(math.floor((wave.end_s - 0.0) / dt + 1e-9)) + 1
+        wave, text = parse_channel_specs(specs, inputs)
+    end = float(wave.end_s)
+    dt = args.dt_ms * 1e-3 if args.dt_ms is not None else max(1e-3, end / 5000)
+    n = int(math.floor((end - 0.0) / dt + 1e-9)) + 1
     if n > 2_000_000:
         raise InputError(f"{n} output samples; raise --dt-ms", field="--dt-ms")
     t = np.arange(n) * dt
-    sigma = fitted.sigma if args.noise else None
-    band = prediction_band(
-        fitted.model,
-        fitted.free,
-        fitted.raw,
-        fitted.covariance_raw,
-        wave,
-        t,
-        sigma=sigma,
-        null_directions=fitted.null_directions,
-        method=fitted.method,
-    )
-    fy, uy = display_unit(out_ch.si_unit)
-    fu, uu = display_unit(in_ch.si_unit)
-    y_name = f"{out_ch.name}"
-    header = [
-        "t_s",
-        f"{y_name}_{uy}",
-        f"{y_name}_lo95_{uy}",
-        f"{y_name}_hi95_{uy}",
-        f"{in_ch.name}_{uu}",
-    ]
-    level = np.asarray(wave(t)).reshape(n, -1)[:, 0] * fu
+    band = fitted.posterior.band(wave, t, noise=args.noise)
+    y, lo, hi = (np.asarray(a).reshape(n, -1) for a in (band.y, band.lower, band.upper))
+    for name, arr in (("response", y), ("band", lo), ("band", hi)):
+        if not np.all(np.isfinite(arr)):
+            k = int(np.flatnonzero(~np.all(np.isfinite(arr), axis=1))[0])
+            raise InputError(
+                f"the simulated {name} is not finite from t = {t[k]:g} s (a waveform or "
+                "parameter value the model cannot take: lower the power, or check the "
+                "values and covariance in params.json); nothing was written",
+                file=str(args.params),
+                field="--waveform",
+            )
+    header, cols, described = ["t_s"], [t], {"t_s": "time [s]"}
+    peaks = {}
+    file_units = (fitted.document or {}).get("file_units") or {}
+    for j, ch in enumerate(outputs):
+        conv = _file_unit(ch, file_units.get(ch.name))
+        if conv is None:
+            f, u = display_unit(ch.si_unit)
+            conv = (u, (1.0 / f, 0.0))
+        u, (scale, offset) = conv
+        u = _column_unit(u)
+        names = [f"{ch.name}_{u}", f"{ch.name}_lo95_{u}", f"{ch.name}_hi95_{u}"]
+        header += names
+        cols += [(a[:, j] - offset) / scale for a in (y, lo, hi)]
+        described[names[0]] = f"{ch.description or ch.name} [{u}]"
+        described[names[1]] = f"lower end of the band [{u}]"
+        described[names[2]] = f"upper end of the band [{u}]"
+        peaks[ch.name] = {"y": float(np.max(cols[-3])), "unit": u}
+    levels = np.asarray(wave(t)).reshape(n, -1)
+    for k, ch in enumerate(inputs):
+        f, u = display_unit(ch.si_unit)
+        u = _column_unit(u)
+        header.append(f"{ch.name}_{u}")
+        cols.append(levels[:, k] * f)
+        described[header[-1]] = f"{ch.description or ch.name} [{u}]"
+    first = peaks[outputs[0].name]
     meta = {
         "params": str(args.params),
         "device": fitted.device_name,
-        "waveform": {"spec": spec, "description": text},
+        "waveform": {"spec": specs if len(specs) > 1 else specs[0], "description": text},
         "band": {
             "kind": band.kind,
             "level": band.level,
             "includes_noise": band.includes_noise,
             "sigma_m": [float(s) for s in fitted.sigma] if args.noise else None,
         },
-        "columns": {
-            header[0]: "time [s]",
-            header[1]: f"{out_ch.description} from rest [{uy}]",
-            header[2]: f"lower end of the band [{uy}]",
-            header[3]: f"upper end of the band [{uy}]",
-            header[4]: f"{in_ch.description} [{uu}]",
-        },
-        "peak": {"y": float(np.max(band.y[:, 0]) * fy), "unit": uy},
+        "columns": described,
+        "peak": first,
+        "peaks": peaks,
     }
-    with atomic_output_dir(args.out) as tmp:
+    table = np.column_stack(cols)
+    with atomic_output_dir(args.out, kind="simulate", force=args.force) as tmp:
         from greybox.cli._fit import usual_permissions
 
         usual_permissions(tmp)
         rows = [",".join(header)]
         for k in range(n):
-            rows.append(
-                ",".join(
-                    [
-                        f"{t[k]:.6f}",
-                        _fmt(band.y[k, 0] * fy),
-                        _fmt(band.lower[k, 0] * fy),
-                        _fmt(band.upper[k, 0] * fy),
-                        f"{level[k]:.6g}",
-                    ]
-                )
-            )
+            rows.append(",".join([f"{t[k]:.6f}"] + [_fmt(v) for v in table[k, 1:]]))
         (tmp / "simulation.csv").write_text("\n".join(rows) + "\n")
         (tmp / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
         plots.band_figure(
             tmp / "simulation.png",
             band,
             wave,
-            title=f"{fitted.device_name}: {text}",
-            output_label=(out_ch.description, out_ch.si_unit),
-            input_label=(in_ch.description, in_ch.si_unit),
+            title=f"{fitted.device_name}: {text}"[:200],
+            output_label=(outputs[0].description, outputs[0].si_unit),
+            input_label=(inputs[0].description, inputs[0].si_unit),
         )
-    width = float(np.nanmax(band.upper[:, 0] - band.lower[:, 0]) * fy)
+    width = float(np.nanmax(cols[3] - cols[2]))
     print(
-        f"simulated {text}: {n} samples, peak {meta['peak']['y']:.4g} {uy}, widest band "
-        f"{width:.3g} {uy}"
+        f"simulated {text}: {n} samples, peak {first['y']:.4g} {first['unit']}, widest band "
+        f"{width:.3g} {first['unit']}"
     )
     print(f"band: {band.kind}")
     print(f"wrote {Path(args.out)}/ (simulation.csv, simulation.png, simulation.json)")

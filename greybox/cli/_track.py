@@ -6,6 +6,7 @@ import argparse
 import contextlib
 import itertools
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -85,6 +86,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "(one feature) or from the previous frame (two features); default 16",
     )
     p.add_argument("--out", metavar="CSV", help="output run CSV (default runs/<VIDEO stem>.csv)")
+    p.add_argument(
+        "--allow-short",
+        action="store_true",
+        help="write the CSV even when fewer frames decode than the container declares "
+        "(a truncated or damaged video; the shortfall is still reported)",
+    )
     p.set_defaults(func=run)
     return p
 
@@ -132,8 +139,6 @@ def _fmt(v: float, digits: int) -> str:
 
 def run(args) -> int:
     from greybox._errors import InputError
-    from greybox.io._atomic import atomic_output_file
-    from greybox.io._video import iter_frames, prefetch, probe
     from greybox._tracking import (
         FeatureTracker,
         measure_sequence,
@@ -143,6 +148,8 @@ def run(args) -> int:
         search_crop,
         shuttle_track,
     )
+    from greybox.io._atomic import atomic_output_file
+    from greybox.io._video import frame_shortfall, iter_frames, prefetch, probe
 
     # Cheap checks first, so bad options fail before any decoding.
     _positive(args.um_per_px, "--um-per-px")
@@ -196,6 +203,15 @@ def run(args) -> int:
             raise InputError(f"ROI {args.roi}: {err}", file=video, field="--roi") from None
         meas = measure_sequence(trackers, itertools.chain([first], chunks), follow=follow)
     n = len(meas[0].rho)
+    short = frame_shortfall(info, n)
+    if short is not None and not args.allow_short:
+        raise InputError(
+            f"{short}; nothing was written. Re-export or re-copy the video, or pass "
+            "--allow-short to track the frames that decode",
+            file=video,
+        )
+    if short is not None:
+        print(f"greybox track: warning: {short}", file=sys.stderr)
     t = _times(info, n, args.fps, video)
     s = args.um_per_px
     with atomic_output_file(out) as fh:

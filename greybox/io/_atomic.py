@@ -1,40 +1,254 @@
-"""Atomic result writing: an interrupted or failed run leaves no half-written result."""
+"""Result folders and files: written atomically, never over anything greybox did not write.
+
+The output contract of every command that writes a result folder (`greybox fit`,
+`greybox simulate`, `greybox demo`):
+
+- `check_output_dir` (called before any work): the folder must be absent, empty, or an
+  earlier greybox result, recognised by the marker file `MARKER` that every result holds;
+  anything else is refused with an `InputError` naming ``--out`` (``force=True`` overrides
+  for a folder that is not a result, never for the current folder, one of its parents or a
+  folder holding the input). Its parent must be writable.
+- `atomic_output_dir` writes into a private folder beside the result and swaps it in with
+  one atomic ``renameat2(RENAME_EXCHANGE)`` (Linux); where that call does not exist it
+  falls back to two renames and `recover` undoes a crash between them (the old result is
+  kept under ``.NAME.old-PID`` until the new one is in place, and the next run puts it
+  back). A crash at any instant therefore leaves the old result or the new one.
+- Leftovers of killed runs (``.NAME.partial-PID-*``, ``.NAME.old-PID``) are removed by the
+  next run once their process is gone. Writers of the same folder take an `fcntl.flock` on
+  its parent folder while they clean up and swap, so concurrent runs never collide (the
+  last one to finish wins).
+"""
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import ctypes.util
+import errno
+import fcntl
+import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from greybox._errors import InputError
+
+MARKER = ".greybox-result"
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+
+
+def _libc():
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    except OSError:
+        return None
+
+
+_LIBC = _libc()
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two existing paths atomically; False where the system cannot."""
+    fn = getattr(_LIBC, "renameat2", None) if _LIBC is not None else None
+    if fn is None:
+        return False
+    rc = fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE)
+    if rc == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def is_result(folder: Path) -> bool:
+    return (Path(folder) / MARKER).is_file()
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _leftovers(out: Path):
+    """(kind, pid, path) of the partial and old folders a run writing `out` leaves behind."""
+    pattern = re.compile(rf"^\.{re.escape(out.name)}\.(partial|old)-(\d+)(?:-.*)?$")
+    if not out.parent.is_dir():
+        return
+    for p in out.parent.iterdir():
+        m = pattern.match(p.name)
+        if m:
+            yield m.group(1), int(m.group(2)), p
+
+
+def recover(out: str | os.PathLike) -> None:
+    """Undo what killed runs left beside `out`: put back an old result that a crash left
+    renamed away (when `out` is missing), remove partial and stale old folders."""
+    out = Path(out)
+    for kind, pid, p in sorted(_leftovers(out), key=lambda x: x[0] == "partial"):
+        if _alive(pid):
+            continue
+        if kind == "old" and not out.exists() and is_result(p):
+            os.replace(p, out)
+        else:
+            shutil.rmtree(p, ignore_errors=True)
+
 
 @contextlib.contextmanager
-def atomic_output_dir(out: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary directory beside `out`; on success it replaces `out` in one rename.
+def _locked(folder: Path) -> Iterator[None]:
+    """An exclusive `flock` on `folder` (a directory fd: no lock file is left behind)."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing releases the lock
 
-    On any exception (including KeyboardInterrupt) the temporary directory is removed and
-    `out` is left exactly as it was (absent, or the previous complete result).
+
+def _nearest_existing(path: Path) -> Path:
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def check_output_dir(out, *, force: bool = False, inputs=(), field: str = "--out") -> Path:
+    """Refuse an output folder that is not ours to replace; return it as an absolute path.
+
+    `out` must be absent, empty or an earlier greybox result (holding `MARKER`); `force`
+    allows replacing any other folder. The current folder, its parents and folders holding
+    any of `inputs` are refused even with `force`. The nearest existing parent must be
+    writable. Raises `InputError` naming `field`.
     """
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    given = str(out)
+    out = Path(os.path.abspath(out))
+    cwd = Path.cwd().resolve()
+    real = out.resolve()
+    if real == cwd or real in cwd.parents or real == Path(real.anchor):
+        raise InputError(
+            "is the current folder or one of its parents; a result folder is replaced as a "
+            "whole, so give a new folder name (e.g. results/run1)",
+            file=given,
+            field=field,
+        )
+    for inp in inputs:
+        inp = Path(inp).resolve()
+        if inp == real or real in inp.parents:
+            raise InputError(
+                f"holds the input {inp}; a result folder is replaced as a whole, so "
+                "write it somewhere else (e.g. results/NAME)",
+                file=given,
+                field=field,
+            )
+    if out.exists() or out.is_symlink():
+        if not out.is_dir() or out.is_symlink():
+            raise InputError(
+                "exists and is not a folder; give a new folder name",
+                file=given,
+                field=field,
+            )
+        if not is_result(out) and any(out.iterdir()) and not force:
+            raise InputError(
+                f"is a folder that greybox did not write (no {MARKER} marker) and it is not "
+                "empty; nothing was changed. Give a new or empty folder, or pass --force to "
+                "replace it and everything in it",
+                file=given,
+                field=field,
+            )
+    base = _nearest_existing(out.parent)
+    if not base.is_dir():
+        raise InputError(f"{base} is not a folder; give another --out", file=given, field=field)
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".greybox-write-test-", dir=base)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        raise InputError(
+            f"cannot write into {base} ({err.strerror}); choose a writable folder",
+            file=given,
+            field=field,
+        ) from None
+    return out
+
+
+def _write_marker(folder: Path, kind: str) -> None:
+    from greybox import __version__
+
+    (folder / MARKER).write_text(
+        json.dumps({"greybox_result": kind, "greybox_version": __version__}) + "\n"
+    )
+
+
+@contextlib.contextmanager
+def atomic_output_dir(
+    out: str | os.PathLike, *, kind: str = "result", force: bool = False
+) -> Iterator[Path]:
+    """Yield a temporary directory beside `out`; on success it replaces `out` atomically.
+
+    On any exception (including KeyboardInterrupt and the SIGTERM the CLI turns into one)
+    the temporary directory is removed and `out` is left exactly as it was (absent, or the
+    previous complete result). The new folder holds `MARKER`. An `out` that is neither
+    absent, empty nor a greybox result is refused (`InputError`) unless `force`. An
+    `OSError` while writing (read-only or full disk) becomes an `InputError` naming ``--out``.
+    """
+    out = Path(os.path.abspath(out))
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with _locked(out.parent):
+            recover(out)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-{os.getpid()}-", dir=out.parent))
+    except OSError as err:
+        raise _write_error(out, err) from None
     umask = os.umask(0)
     os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it owner-only; results are ordinary folders
     try:
+        os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it owner-only; results are ordinary
         yield tmp
+        _write_marker(tmp, kind)
+        with _locked(out.parent):
+            recover(out)
+            if out.exists():
+                if not (out.is_dir() and (is_result(out) or force or not any(out.iterdir()))):
+                    raise InputError(
+                        "was filled by something else while greybox ran; nothing was "
+                        "replaced (pass --force to replace it)",
+                        file=str(out),
+                        field="--out",
+                    )
+                if _exchange(tmp, out):
+                    shutil.rmtree(tmp, ignore_errors=True)  # tmp now holds the old result
+                    return
+                old = out.with_name(f".{out.name}.old-{os.getpid()}")
+                os.replace(out, old)  # a crash here: `recover` renames old back
+                os.replace(tmp, out)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(tmp, out)
+    except OSError as err:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise _write_error(out, err) from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    old = None
-    if out.exists():
-        old = out.with_name(f".{out.name}.old-{os.getpid()}")
-        os.replace(out, old)
-    os.replace(tmp, out)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+
+
+def _write_error(out: Path, err: OSError) -> InputError:
+    return InputError(
+        f"cannot write the result ({err.strerror or err}); free space or choose a "
+        "writable --out. An earlier result there is unchanged",
+        file=str(out),
+        field="--out",
+    )
 
 
 @contextlib.contextmanager

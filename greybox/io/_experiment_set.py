@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 
-from greybox._channels import PIXELS
 from greybox._data import Experiment
 from greybox._device import check_method, with_camera
 from greybox._errors import InputError
@@ -26,7 +25,14 @@ from greybox._parameters import check_scalar_path
 from greybox._registry import DeviceNotFound, ResolvedDevice, resolve
 from greybox._spec import DeviceSpecError
 from greybox._waveforms import from_samples, stack_channels
-from greybox.io._csv import CsvTable, channel_column, check_increasing, read_csv, time_column
+from greybox.io._csv import (
+    CsvTable,
+    channel_numbers,
+    check_increasing,
+    find_column,
+    read_csv,
+    time_column,
+)
 from greybox.io._toml import TOML_NAME, TomlDocument
 from greybox.io._waveform_spec import (
     WAVEFORM_TYPES,
@@ -35,10 +41,30 @@ from greybox.io._waveform_spec import (
 )
 
 ROLES = ("estimation", "validation")
-_TOP_KEYS = {"experiment", "model", "camera", "fit", "runs"}
+MAX_RUNS = 1000
+MAX_STARTS = 1000
+MAX_FIT_STEPS = 100_000
+MAX_PROBLEM_BYTES = 4e9  # estimated working memory of a fit (GREYBOX_MAX_PROBLEM_GB overrides)
+_TOP_KEYS = {"experiment", "model", "camera", "fit", "runs", "columns", "data", "candidates"}
+_CANDIDATE_KEYS = {"name", "model", "free"}
+# how a run's file is read and its clock and inputs interpreted: [data] for every run, or
+# the same keys in a [[runs]] table for that run (a run's `columns` mapping is merged
+# over [columns] key by key)
+_DATA_KEYS = {
+    "header",
+    "columns",
+    "time_origin",
+    "input_delay_s",
+    "input_applied",
+    "constant_inputs",
+}
+TIME_ORIGINS = ("first_row", "file")
+INPUT_APPLIED = ("at_reading", "before_reading")
+MAX_ERRORS = 20  # loader problems listed together before the rest are only counted
 _EXPERIMENT_KEYS = {"device", "description", "settings"}
-_CAMERA_KEYS = {"fps", "exposure_ms", "um_per_px"}
-_FIT_KEYS = {"method", "loss", "n_starts", "seed", "max_steps", "free"}
+_CAMERA_KEYS = {"fps", "exposure_ms", "um_per_px", "noise_um"}
+_NOISE_UNITS = {"px": None, "um": 1e-6, "nm": 1e-9, "m": 1.0}  # per-frame sigma columns
+_FIT_KEYS = {"method", "loss", "n_starts", "seed", "max_steps", "solver_max_steps", "free"}
 _FREE_KEYS = {
     "path",
     "unit",
@@ -50,7 +76,30 @@ _FREE_KEYS = {
     "initial",
     "scale",
 }
-_RUN_KEYS = {"name", "file", "role", "waveform", "settings", "y_column", "t_start_s", "notes"}
+_RUN_KEYS = {
+    "name",
+    "file",
+    "role",
+    "waveform",
+    "settings",
+    "y_column",
+    "t_start_s",
+    "notes",
+} | _DATA_KEYS
+
+
+class InputErrors(InputError):
+    """Several loader problems at once (`errors`, each an `InputError`); the message lists
+    them one per line, up to `MAX_ERRORS`."""
+
+    def __init__(self, errors, total: int | None = None):
+        self.errors = tuple(errors)
+        total = len(self.errors) if total is None else total
+        lines = [str(e) for e in self.errors[:MAX_ERRORS]]
+        if total > len(lines):
+            lines.append(f"... and {total - len(lines)} more")
+        super().__init__(f"{total} problems (fix them all, then run again):\n" + "\n".join(lines))
+
 
 # --------------------------------------------------------------------------------------
 # The experiment set
@@ -68,6 +117,10 @@ class RunInfo:
     n_valid: int
     waveform: str  # one-line description of the input
     input_source: str  # "described", "logged" or "described (log checked)"
+    # per output: (column, unit as written in the file) or None when the file lacks it
+    output_columns: tuple = ()
+    time_shift_s: float = 0.0  # file time of the run's t = 0 (time_origin)
+    defaults: tuple = ()  # (path, SI value) settings filled by the device's run_settings rule
 
 
 @dataclasses.dataclass(frozen=True)
@@ -133,11 +186,18 @@ def _settings(doc: TomlDocument, table, model, *path) -> dict:
     for key, value in table.items():
         flat = _flatten(value, key) if isinstance(value, dict) else {key: value}
         for k, v in flat.items():
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise doc.error(f"{v!r} must be a finite number (SI units)", *path, key)
+            if (
+                isinstance(v, bool)
+                or not isinstance(v, (int, float))
+                or not abs(v) < 1e300
+                or not math.isfinite(v)
+            ):
+                raise doc.error(
+                    f"{repr(v)[:40]} must be a finite number (SI units)", *path, key[:60]
+                )
             try:
                 check_scalar_path(model, k)
-            except ValueError as err:
+            except (ValueError, AttributeError, IndexError, TypeError) as err:
                 raise doc.error(
                     f"{str(err).split(': ', 1)[-1]} (`greybox describe DEVICE` lists the "
                     "parameters)",
@@ -237,6 +297,7 @@ def _camera(doc: TomlDocument, data: dict) -> dict:
         cam, "exposure_ms", "camera", nonneg=True, unit="ms (0 = instantaneous)"
     )
     um_per_px = doc.number(cam, "um_per_px", "camera", positive=True, unit="um per pixel")
+    noise_um = doc.number(cam, "noise_um", "camera", positive=True, unit="um (1-sigma per frame)")
     if fps is not None and exposure_ms is not None and exposure_ms > 1e3 / fps * 1.0001:
         raise doc.error(
             f"{exposure_ms:g} ms is longer than one frame interval (1/fps = "
@@ -248,41 +309,139 @@ def _camera(doc: TomlDocument, data: dict) -> dict:
         "fps": fps,
         "exposure_s": None if exposure_ms is None else exposure_ms * 1e-3,
         "m_per_px": None if um_per_px is None else um_per_px * 1e-6,
+        "noise_m": None if noise_um is None else noise_um * 1e-6,
     }
 
 
-def _read_outputs(doc: TomlDocument, table: CsvTable, outputs, camera: dict, y_choice, run: str):
-    """(readings (N, n_y) in SI, column names); px columns need [camera] um_per_px."""
-    ys, cols = [], []
+def _read_noise(table: CsvTable, outputs, refs, camera: dict) -> np.ndarray | None:
+    """Known per-frame noise (N, n_y) [SI] from the tracker's ``sigma_<unit>`` column (one
+    output) or ``<output>_sigma_<unit>`` columns, for length outputs; None if absent.
+
+    Every output with readings needs its column (a fit either knows the noise of every
+    reading or estimates it); a column in px needs [camera] um_per_px."""
+    cols = []
+    for ch, ref in zip(outputs, refs):
+        prefixes = [f"{ch.name}_sigma_"] + (["sigma_"] if len(outputs) == 1 else [])
+        found = [c for c in table.header if any(c.startswith(p) for p in prefixes)]
+        found = [c for c in found if c.rsplit("_", 1)[-1] in _NOISE_UNITS]
+        if ch.si_unit != "m" or not found:
+            cols.append(None)
+            continue
+        unit = found[0].rsplit("_", 1)[-1]
+        scale = _NOISE_UNITS[unit] if unit != "px" else camera["m_per_px"]
+        if scale is None:
+            raise InputError(
+                "a per-frame noise in pixels needs the image scale: add um_per_px to [camera]",
+                file=table.file,
+                line=table.header_line,
+                field=found[0],
+            )
+        cols.append(table.numbers(found[0], allow_missing=True, what="noise sd") * scale)
+    with_data = [j for j, r in enumerate(refs) if r is not None]
+    if all(cols[j] is None for j in with_data):
+        return None
+    missing = [j for j in with_data if cols[j] is None]
+    if missing:
+        return _mixed_noise(table, outputs[missing[0]])
+    n = len(table.rows)
+    return np.column_stack([c if c is not None else np.full(n, np.nan) for c in cols])
+
+
+def _known_noise(doc: TomlDocument, spec, camera: dict, fit_options: dict, experiments) -> None:
+    """Per-frame noise columns must be in every run or none; [camera] noise_um declares one
+    noise level for every reading instead (set as the fit's known sigma)."""
+    with_noise = [e.name for e in experiments if e.sigma is not None]
+    if with_noise and len(with_noise) < len(experiments):
+        missing = next(e.name for e in experiments if e.sigma is None)
+        raise doc.error(
+            f"runs {with_noise} have a per-frame noise column but {missing!r} has none; give it "
+            "in every run or in none (the fit either knows the noise or estimates it)",
+            "runs",
+        )
+    if camera.get("noise_m") is None:
+        return
+    if with_noise:
+        raise doc.error(
+            "the run files give a per-frame noise (sigma columns); declare noise_um or give "
+            "the columns, not both",
+            "camera",
+            "noise_um",
+        )
+    if any(c.si_unit != "m" for c in spec.outputs):
+        raise doc.error(
+            f"is a camera position noise, but {spec.name}'s outputs are not positions",
+            "camera",
+            "noise_um",
+        )
+    fit_options["sigma"] = camera["noise_m"]
+
+
+def _mixed_noise(table: CsvTable, channel):
+    raise InputError(
+        f"has a per-frame noise column for some outputs but not for {channel.name}; give "
+        f"{channel.name}_sigma_<unit> too, or none (the fit then estimates the noise)",
+        file=table.file,
+        line=table.header_line,
+        field=f"{channel.name}_sigma",
+    )
+
+
+def _read_outputs(
+    doc: TomlDocument, table: CsvTable, outputs, camera: dict, y_choice, run: str, mapping: dict
+):
+    """(readings (N, n_y) in SI, ColumnRef or None per output).
+
+    A multi-output device's run may lack some outputs (a single-sensor log): those columns
+    are NaN (masked out of the fit); at least one output must have a valid reading. px
+    columns need [camera] um_per_px."""
+    from greybox.io._units import to_si
+
+    single = len(outputs) == 1
+    ys, refs = [], []
     for ch in outputs:
-        col = channel_column(
+        ref = find_column(
             table,
             ch,
-            required=True,
-            choose=y_choice if len(outputs) == 1 else None,
+            required=single,
+            mapped=mapping.get(ch.name),
+            choose=y_choice if single else None,
             choose_hint=f' with y_column = "..." in run {run!r} of {doc.file}',
         )
-        unit = col[len(ch.name) + 1 :]
-        v = table.numbers(col, allow_missing=True, what=f"{ch.name} reading in {unit}")
-        if not np.isfinite(v).any():
+        if ref is None:
+            ys.append(np.full(len(table.rows), np.nan))
+            refs.append(None)
+            continue
+        v = table.numbers(ref.column, allow_missing=True, what=f"{ch.name} reading in {ref.unit}")
+        if ref.conv is None and camera["m_per_px"] is None:
+            raise InputError(
+                f"pixel readings need the image scale: add um_per_px to [camera] "
+                f"in {doc.file} (or give {ch.name}_um)",
+                file=table.file,
+                line=table.header_line,
+                field=ref.column,
+            )
+        if single and not np.isfinite(v).any():
             raise InputError(
                 f"every reading is empty or NaN ({v.size} rows); a run needs at "
                 "least one tracked frame (check the tracker output)",
                 file=table.file,
                 line=table.lines[0],
-                field=col,
+                field=ref.column,
             )
-        if unit == PIXELS and camera["m_per_px"] is None:
-            raise InputError(
-                f"pixel readings need the image scale: add um_per_px to [camera] "
-                f"in {doc.file} (or give {ch.name}_um)",
-                file=table.file,
-                line=1,
-                field=col,
-            )
-        ys.append(ch.to_si(v, unit, camera["m_per_px"]))
-        cols.append(col)
-    return np.column_stack(ys), cols
+        ys.append(to_si(v, ref.conv, camera["m_per_px"]))
+        refs.append(ref if np.isfinite(v).any() else None)
+    y = np.column_stack(ys)
+    if not np.isfinite(y).any():
+        names = ", ".join(c.column_names()[0] for c in outputs)
+        raise InputError(
+            f"no output has a valid reading: give at least one of {names} (or map a column "
+            "to an output in experiment.toml [columns]); a missing output is left out of the "
+            "fit for this run",
+            file=table.file,
+            line=table.header_line,
+            field=outputs[0].name,
+        )
+    return y, refs
 
 
 def _check_frame_rate(
@@ -309,6 +468,20 @@ def _check_frame_rate(
         )
 
 
+def _logged_wave(t, v, end: float, name: str, delay: float, before: bool):
+    """A logged input as a held waveform; `before`: the level logged at row k acted since row
+    k-1 (``input_applied = "before_reading"``); `delay`: levels act `delay` s later (the
+    first level is held before then)."""
+    tt, vv = np.asarray(t, dtype=float), np.asarray(v, dtype=float)
+    if before and tt.size > 1:
+        tt, vv = tt[:-1], vv[1:]
+    if delay > 0:
+        tt = np.concatenate([tt[:1], tt + delay])
+        vv = np.concatenate([vv[:1], vv])
+        end = end + delay
+    return from_samples(tt, vv, end_s=end, name=name)
+
+
 def _read_inputs(
     doc: TomlDocument,
     table: CsvTable,
@@ -318,6 +491,7 @@ def _read_inputs(
     camera: dict,
     path: tuple,
     csv_name: str,
+    rules: dict,
 ):
     """(waveform in SI, text, source) from the run's `waveform` and/or logged columns."""
     desc = entry.get("waveform")
@@ -345,16 +519,34 @@ def _read_inputs(
             "waveform",
             extra,
         )
+    constants = rules["constant_inputs"]
     logged = {}
     for ch in inputs:
-        col = channel_column(table, ch, required=kind == "logged")
-        if col is not None:
-            unit = col[len(ch.name) + 1 :]
-            v = table.numbers(
-                col, nonneg=True, what=f"logged {ch.description or ch.name} in {unit}"
-            )
-            logged[ch.name] = (col, unit, ch.to_si(v, unit))
-    if desc is None and len(logged) < len(inputs):
+        if ch.name in constants:
+            continue
+        ref = find_column(
+            table,
+            ch,
+            required=kind == "logged" and len(inputs) == 1,
+            mapped=rules["columns"].get(ch.name),
+        )
+        if ref is not None:
+            what = f"logged {ch.description or ch.name} in {ref.unit}"
+            logged[ch.name] = (ref, channel_numbers(table, ch, ref, what=what))
+    lacking = [ch for ch in inputs if ch.name not in logged and ch.name not in constants]
+    if (desc is None or kind == "logged") and lacking and (logged or kind == "logged"):
+        names = ", ".join(ch.column_names()[0] for ch in lacking)
+        raise InputError(
+            f"missing input column(s) {names} "
+            f"({', '.join(c.description or c.name for c in lacking)}); log them, map them "
+            "in experiment.toml [columns], or declare an input that "
+            f"stayed constant: constant_inputs = {{ {lacking[0].name} = 0 }} (SI units, "
+            f"{lacking[0].si_unit}) in [data] or in the run",
+            file=table.file,
+            line=table.header_line,
+            field=lacking[0].column_names()[0],
+        )
+    if desc is None and lacking:
         names = " and ".join(ch.column_names()[0] for ch in inputs)
         raise doc.error(
             f'no input waveform: describe it (waveform = {{ type = "pulse_train", '
@@ -363,15 +555,26 @@ def _read_inputs(
             *path,
             "waveform",
         )
-    end = t[-1] + (float(np.median(np.diff(t))) if t.size > 1 else 0.0)
+    step = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    end = t[-1] + step
     if kind is None or kind == "logged":
-        waves = [
-            from_samples(t, logged[ch.name][2], end_s=end, name=logged[ch.name][0]) for ch in inputs
+        delay, before = rules["input_delay_s"], rules["input_applied"] == "before_reading"
+        waves = []
+        for ch in inputs:
+            if ch.name in constants:
+                waves.append(from_samples(t[:1], [constants[ch.name]], end_s=end + delay))
+            else:
+                ref, v = logged[ch.name]
+                waves.append(_logged_wave(t, v, end, ref.column, delay, before))
+        parts = [logged[c.name][0].column for c in inputs if c.name in logged]
+        parts += [
+            f"{c.name} = {constants[c.name]:g} {c.si_unit}" for c in inputs if c.name in constants
         ]
-        text = (
-            f"logged in {', '.join(logged[ch.name][0] for ch in inputs)} "
-            f"({t.size} samples, each held until the next)"
-        )
+        text = f"logged in {', '.join(parts)} ({t.size} samples, each held until the next)"
+        if before:
+            text += "; each level applied from the previous reading"
+        if delay:
+            text += f"; applied {delay:g} s late"
         wave = waves[0] if len(waves) == 1 else stack_channels(waves)
         return wave, text, "logged"
     if len(inputs) != 1:
@@ -387,15 +590,261 @@ def _read_inputs(
     wave, text = waveform_from_description(desc, ch, doc.error, (*path, "waveform"))
     if ch.name not in logged:
         return wave, text, "described"
-    col, unit, values = logged[ch.name]
+    ref, values = logged[ch.name]
     slack = max(
         1.0 / camera["fps"] if camera["fps"] else 0.0,
         camera["exposure_s"] or 0.0,
-        float(np.median(np.diff(t))) if t.size > 1 else 0.0,
+        step,
     )
-    ref = f"{doc.file}:{doc.where.line(*path, 'waveform')}"
-    check_log_against_description(table, col, values, t, wave, ch, unit, slack, ref)
+    where = f"{doc.file}:{doc.where.line(*path, 'waveform')}"
+    check_log_against_description(table, ref, values, t, wave, ch, slack, where)
     return wave, text, "described (log checked)"
+
+
+def _check_run_consistency(doc, table, path, t, y, refs, valid, wave, t_start) -> None:
+    """Frames against the waveform's extent and t_start_s; outputs that never vary."""
+    if t[-1] < 0:
+        raise InputError(
+            f"every frame ({t[0]:g} s to {t[-1]:g} s) is before the waveform starts at 0 s; "
+            "t_s counts from the start of the waveform",
+            file=table.file,
+            line=table.lines[0],
+            field="t_s",
+        )
+    if t_start > t[-1]:
+        raise doc.error(
+            f"{t_start:g} s is after the last frame ({t[-1]:g} s in {table.file}); "
+            "t_start_s is when the device starts from rest, within the recording",
+            *path,
+            "t_start_s",
+        )
+    end = float(wave.end_s)
+    step = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+    slack = max(3 * step, 0.1 * max(end, 0.0), 1e-9)
+    if t[-1] > end + slack or t[0] > end:
+        raise InputError(
+            f"frames run from {t[0]:g} s to {t[-1]:g} s but the run's waveform ends at "
+            f"{end:g} s (see {doc.file}:{doc.where.line(*path, 'waveform')}); describe the "
+            "whole recording (add tail_ms / end_s for the time after the last pulse, check "
+            "n_pulses and period_ms) or cut the CSV to the described part",
+            file=table.file,
+            line=table.lines[-1],
+            field="t_s",
+        )
+    for j, ref in enumerate(refs):
+        if ref is None:
+            continue
+        col = ref.column
+        v = y[:, j][np.isfinite(y[:, j])]
+        if v.size >= 2 and float(np.ptp(v)) == 0.0:
+            raise InputError(
+                f"every valid reading is {v[0]:g} ({v.size} frames): the output never "
+                "varies, so nothing in it can be fitted (check the tracker output, the "
+                "column and the laser)",
+                file=table.file,
+                line=table.lines[0],
+                field=col,
+            )
+
+
+def _check_ranges(doc: TomlDocument, ranges: dict, settings: dict, *path) -> None:
+    """Settings against the device's parameter table (sign and range)."""
+    for key, v in settings.items():
+        info = ranges.get(key)
+        if info is None:
+            continue
+        lo, hi = info.lower, info.upper
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise doc.error(
+                f"{v:g} {info.unit} is outside the physical range of {info.path} "
+                f"[{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}]"
+                f" {info.unit} ({info.description}); give a value in range, in SI units",
+                *path,
+                key,
+            )
+
+
+def check_problem_size(fs, max_bytes: float | None = None) -> None:
+    """Estimate a fit's working memory before anything is compiled; refuse one too large.
+
+    Runs are padded to the longest, and the Levenberg-Marquardt Jacobian carries one
+    column per raw parameter through every state of every frame:
+    ~ 8 B x runs x longest run x (states + outputs) x (raw parameters + 1) x 4.
+    """
+    import os
+
+    if max_bytes is None:
+        env = os.environ.get("GREYBOX_MAX_PROBLEM_GB")
+        try:
+            max_bytes = float(env) * 1e9 if env else MAX_PROBLEM_BYTES
+        except ValueError:
+            max_bytes = MAX_PROBLEM_BYTES
+    runs = list(fs.estimation) + list(fs.validation)
+    longest = max(e.n_frames for e in runs)
+    try:
+        n_states = int(fs.model.n_states)
+    except Exception:
+        n_states = 8
+    n_out = len(fs.spec.outputs)
+    n_raw = sum(len(fs.estimation) if p.per_experiment else 1 for p in fs.free)
+    need = 8.0 * len(runs) * longest * (n_states + n_out) * (n_raw + 1) * 4
+    if need > max_bytes:
+        longest_run = max(runs, key=lambda e: e.n_frames).name
+        raise InputError(
+            f"the fit would need about {need / 1e9:.1f} GB ({len(runs)} runs padded to the "
+            f"longest, {longest} frames in run {longest_run!r}, {n_states} states, "
+            f"{n_raw} fitted values); the limit is {max_bytes / 1e9:.1f} GB. Decimate the "
+            "long runs (keep every k-th frame), split them into shorter runs, or fit fewer "
+            "runs or per-run parameters (GREYBOX_MAX_PROBLEM_GB raises the limit)",
+            file=str(Path(fs.directory) / TOML_NAME),
+            field="runs",
+        )
+
+
+def _column_mapping(doc: TomlDocument, table, spec, *path) -> dict:
+    """{"time" | channel name: (column, unit or None, where)} from a ``columns`` table."""
+    if not isinstance(table, dict):
+        raise doc.error(
+            'must be a table of signal = column, e.g. { time = "Time", T1 = { column = '
+            '"T1", unit = "degC" } }, or (with header = false) a list of column names',
+            *path,
+        )
+    allowed = ["time", *(c.name for c in spec.inputs), *(c.name for c in spec.outputs)]
+    out = {}
+    for key, value in table.items():
+        where = (*path, key)
+        if key not in allowed:
+            raise doc.error(
+                f"{key!r} is not a signal of {spec.name}; map one of {', '.join(allowed)}",
+                *where,
+            )
+        if isinstance(value, str) and value.strip():
+            col, unit = value, None
+        elif isinstance(value, dict):
+            doc.check_keys(value, {"column", "unit"}, *where)
+            col = doc.string(value, "column", *where, required=True)
+            unit = doc.string(value, "unit", *where)
+        else:
+            raise doc.error(
+                f"{repr(value)[:40]}: give the file's column name, or "
+                '{ column = "...", unit = "..." }',
+                *where,
+            )
+        out[key] = (col, unit, f"{doc.file}:{doc.where.line(*where)}")
+    return out
+
+
+def _data_rules(doc: TomlDocument, table: dict, spec, base: dict | None, *path) -> dict:
+    """The data-reading rules of [data] (`base` None) or a run (over `base`)."""
+    rules = (
+        dict(base)
+        if base is not None
+        else {
+            "header": True,
+            "names": None,
+            "columns": {},
+            "time_origin": None,
+            "input_delay_s": 0.0,
+            "input_applied": "at_reading",
+            "constant_inputs": {},
+        }
+    )
+    if "header" in table:
+        if not isinstance(table["header"], bool):
+            raise doc.error(f"{table['header']!r} must be true or false", *path, "header")
+        rules["header"] = table["header"]
+    cols = table.get("columns")
+    if isinstance(cols, list):
+        if not cols or not all(isinstance(c, str) and c.strip() for c in cols):
+            raise doc.error(
+                "the columns of a header-less file: a list of quoted names in file order, "
+                'e.g. ["t_s", "T1_degC", "T2_degC", "H1_pct", "H2_pct"]',
+                *path,
+                "columns",
+            )
+        if len(set(cols)) != len(cols):
+            raise doc.error("a column name appears twice", *path, "columns")
+        rules["names"] = list(cols)
+        rules["columns"] = {}  # a run's own columns replace [columns]
+    elif cols is not None:
+        rules["columns"] = _column_mapping(doc, cols, spec, *path, "columns")
+    if rules["header"] and rules["names"] is not None and "columns" in table:
+        raise doc.error(
+            "a list of column names is for a header-less file: add header = false (or "
+            'map columns with a table: columns = { T1 = "..." })',
+            *path,
+            "columns",
+        )
+    if not rules["header"] and rules["names"] is None and base is not None:
+        raise doc.error(
+            'a header-less file needs its column names: columns = ["t_s", ...] in file order',
+            *path,
+            "header",
+        )
+    if "time_origin" in table:
+        v = table["time_origin"]
+        if isinstance(v, str) and v in TIME_ORIGINS:
+            rules["time_origin"] = v
+        elif isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+            rules["time_origin"] = float(v)
+        else:
+            raise doc.error(
+                f'{repr(v)[:40]}: use "first_row" (t = 0 at the first row), "file" '
+                "(the file's clock as is) or the file time [s] that is t = 0",
+                *path,
+                "time_origin",
+            )
+    if "input_delay_s" in table:
+        rules["input_delay_s"] = doc.number(table, "input_delay_s", *path, nonneg=True, unit="s")
+    if "input_applied" in table:
+        rules["input_applied"] = doc.string(table, "input_applied", *path, choices=INPUT_APPLIED)
+    if "constant_inputs" in table:
+        ci = table["constant_inputs"]
+        names = {c.name: c for c in spec.inputs}
+        if not isinstance(ci, dict):
+            raise doc.error(
+                "must be a table { input = level } (SI units), e.g. { H2 = 0 }",
+                *path,
+                "constant_inputs",
+            )
+        out = dict(rules["constant_inputs"])
+        for k in ci:
+            if k not in names:
+                raise doc.error(
+                    f"{k!r} is not an input of {spec.name} ({', '.join(names)})",
+                    *path,
+                    "constant_inputs",
+                    k,
+                )
+            v = doc.number(ci, k, *path, "constant_inputs")
+            problem = names[k].check_range(np.array([v]))
+            if problem:
+                raise doc.error(
+                    f"{problem}, outside the channel's range", *path, "constant_inputs", k
+                )
+            out[k] = v
+        rules["constant_inputs"] = out
+    return rules
+
+
+def _time_origin(table: CsvTable, t: np.ndarray, tref, rule, where: str) -> float:
+    """File time [s] of the run's t = 0; refuses a clock far from 0 without a declared rule."""
+    if rule == "first_row":
+        return float(t[0])
+    if isinstance(rule, float):
+        return rule
+    span = float(t[-1] - t[0])
+    if rule is None and t[0] > 1.0 and t[0] > 0.1 * span:
+        raise InputError(
+            f"the clock starts at {t[0]:g} s, far from 0 for a {span:g} s run: the model "
+            "would sit at rest from t = 0 with the inputs off before the first row. Declare "
+            f'time_origin = "first_row" (t = 0 at the first row) in [data] or in the run '
+            f'({where}), or time_origin = "file" to keep the clock as it is',
+            file=table.file,
+            line=table.lines[0],
+            field=tref.column,
+        )
+    return 0.0
 
 
 def _load_run(
@@ -407,6 +856,10 @@ def _load_run(
     model,
     camera: dict,
     names: set,
+    data_rules: dict,
+    options: dict,
+    fixed: dict,
+    free_paths: set,
 ):
     path = ("runs", i)
     if not isinstance(entry, dict):
@@ -423,17 +876,26 @@ def _load_run(
         )
     role = doc.string(entry, "role", *path, required=True, choices=ROLES)
     rel = doc.string(entry, "file", *path, required=True)
-    csv_path = (directory / rel).resolve()
+    try:
+        csv_path = (directory / rel).resolve()
+        csv_path.is_file()
+    except (OSError, ValueError) as err:  # a name too long, a NUL byte, a link loop
+        raise doc.error(
+            f"{repr(rel)[:60]} is not a usable file name ({type(err).__name__}); name the "
+            "run's CSV relative to the experiment folder",
+            *path,
+            "file",
+        ) from None
     if not csv_path.is_relative_to(directory.resolve()):
         raise doc.error(
-            f"{rel!r} lies outside the experiment folder; copy the run's CSV into the "
+            f"{repr(rel)[:60]} lies outside the experiment folder; copy the run's CSV into the "
             "folder and name it relative to it (links that leave the folder are refused too)",
             *path,
             "file",
         )
     if not csv_path.is_file():
         raise doc.error(
-            f"{rel} does not exist; put the run's CSV there or fix the "
+            f"{repr(rel)[:60]} does not exist; put the run's CSV there or fix the "
             "file name (relative to the experiment folder)",
             *path,
             "file",
@@ -441,16 +903,25 @@ def _load_run(
     t_start = doc.number(entry, "t_start_s", *path, default=0.0)
     settings = _settings(doc, entry.get("settings", {}), model, *path, "settings")
     y_choice = doc.string(entry, "y_column", *path)
+    rules = _data_rules(doc, entry, spec, data_rules, *path)
 
-    table = read_csv(csv_path)
-    t = time_column(table)
+    table = read_csv(csv_path, names=None if rules["header"] else rules["names"])
+    t, tref = time_column(table, rules["columns"].get("time"))
     check_increasing(table, t)
-    y, y_cols = _read_outputs(doc, table, spec.outputs, camera, y_choice, name)
-    valid = np.all(np.isfinite(y), axis=1)
+    shift = _time_origin(
+        table, t, tref, rules["time_origin"], f"{doc.file}:{doc.where.line(*path)}"
+    )
+    t = t - shift
+    y, refs = _read_outputs(doc, table, spec.outputs, camera, y_choice, name, rules["columns"])
+    valid = np.any(np.isfinite(y), axis=1)
     _check_frame_rate(doc, table, t, valid, camera["fps"])
     wave, text, source = _read_inputs(
-        doc, table, entry, t, tuple(spec.inputs), camera, path, csv_path.name
+        doc, table, entry, t, tuple(spec.inputs), camera, path, csv_path.name, rules
     )
+    _check_run_consistency(doc, table, path, t, y, refs, valid, wave, t_start)
+    noise = _read_noise(table, spec.outputs, refs, camera)
+    if noise is not None:  # a frame without a noise figure is left out, like a dropped frame
+        y = np.where(np.isfinite(noise) & (noise > 0), y, np.nan)
     try:
         exp = Experiment(
             name,
@@ -460,18 +931,77 @@ def _load_run(
             t_start_s=t_start,
             role=role,
             settings=settings,
+            sigma=noise,
         )
     except ValueError as err:
         raise InputError(str(err), file=table.file) from None
+    defaults = {}
+    if spec.run_settings is not None:
+        try:
+            proposed = dict(spec.run_settings(model, exp, options) or {})
+        except ValueError as err:
+            raise doc.error(f"{spec.name}: {err}", *path) from None
+        defaults = {
+            k: float(v)
+            for k, v in proposed.items()
+            if k not in settings and k not in fixed and k not in free_paths
+        }
+        if defaults:
+            exp = dataclasses.replace(exp, settings={**defaults, **settings})
     info = RunInfo(
-        name, role, str(csv_path), ",".join(y_cols), t.size, int(valid.sum()), text, source
+        name,
+        role,
+        str(csv_path),
+        ",".join(r.column for r in refs if r is not None),
+        t.size,
+        int(np.all(np.isfinite(y), axis=1).sum()),
+        text,
+        source,
+        output_columns=tuple(None if r is None else (r.column, r.unit) for r in refs),
+        time_shift_s=shift,
+        defaults=tuple(defaults.items()),
     )
     return exp, info
 
 
-def load_experiment_set(directory) -> ExperimentSet:
+def _candidate(doc: TomlDocument, data: dict, index: int) -> tuple[dict, object]:
+    """([model] options, free list or None) of ``[[candidates]]`` entry `index`, checked."""
+    entries = data.get("candidates")
+    if not isinstance(entries, list) or not entries:
+        raise doc.error(
+            "no [[candidates]] tables; add one per structure to compare "
+            '(name = "...", model = { ... }, optional free = [...])',
+            "candidates",
+        )
+    entry = entries[index]
+    if not isinstance(entry, dict):
+        raise doc.error("each candidate is a [[candidates]] table", "candidates", index)
+    doc.check_keys(entry, _CANDIDATE_KEYS, "candidates", index)
+    doc.string(entry, "name", "candidates", index, required=True)
+    model = doc.table(entry, "model", "candidates", index, required=False)
+    return model, entry.get("free")
+
+
+def candidate_names(directory) -> list[str]:
+    """Names of the ``[[candidates]]`` structures of an experiment folder (loader-checked)."""
+    doc = TomlDocument(Path(directory) / TOML_NAME)
+    entries = doc.data.get("candidates")
+    if not isinstance(entries, list) or not entries:
+        _candidate(doc, doc.data, 0)  # raises the located "no candidates" error
+    names = []
+    for i in range(len(entries)):
+        _candidate(doc, doc.data, i)  # checks the entry, name included
+        names.append(entries[i]["name"])
+    if len(set(names)) != len(names):
+        raise doc.error(f"candidate names repeat ({names}); name each once", "candidates")
+    return names
+
+
+def load_experiment_set(directory, *, candidate: int | None = None) -> ExperimentSet:
     """Load and check an experiment folder (``experiment.toml`` + run CSVs).
 
+    With `candidate` (an index into ``[[candidates]]``), that candidate's ``model`` options
+    are applied over [model] and its ``free`` list (if given) replaces [fit] free.
     Raises `InputError` (``file:line: field: problem and fix``) for the first problem.
     """
     from greybox._fit import LOSSES
@@ -495,6 +1025,10 @@ def load_experiment_set(directory) -> ExperimentSet:
         raise doc.error(str(err), "experiment", "device") from None
     spec = device.spec
     model_table = doc.table(data, "model", required=False)
+    free_entries = None
+    if candidate is not None:
+        cand_model, free_entries = _candidate(doc, data, candidate)
+        model_table = {**model_table, **cand_model}
     try:
         options = spec.resolve_options(model_table)
     except ValueError as err:
@@ -523,23 +1057,84 @@ def load_experiment_set(directory) -> ExperimentSet:
     fit_options = {
         "method": method,
         "loss": doc.string(fitopt, "loss", "fit", default="huber", choices=LOSSES),
-        "n_starts": doc.integer(fitopt, "n_starts", "fit", default=1),
+        # None: the fit's own rule (several starts when more than two shared values are free)
+        "n_starts": doc.integer(fitopt, "n_starts", "fit", default=None),
         "seed": doc.integer(fitopt, "seed", "fit", default=0, minimum=0),
         "max_steps": doc.integer(fitopt, "max_steps", "fit", default=200),
     }
-    free = _free_parameters(doc, fitopt.get("free"), spec, options, model, fixed)
+    solver_steps = doc.integer(fitopt, "solver_max_steps", "fit", default=None, minimum=16)
+    if solver_steps is not None:  # the adaptive ODE solver's step budget (stiff devices)
+        fit_options["solver_max_steps"] = solver_steps
+    for key, cap, fix in (
+        ("n_starts", MAX_STARTS, "a few starts (3-20) are enough; more only cost time"),
+        ("max_steps", MAX_FIT_STEPS, "the optimiser's step budget; 200-2000 is usual"),
+        ("solver_max_steps", 10_000_000, "the ODE solver's step budget per run"),
+    ):
+        if (fit_options.get(key) or 0) > cap:
+            raise doc.error(f"{fit_options[key]} is more than {cap}; {fix}", "fit", key)
+    if free_entries is None:
+        free_entries = fitopt.get("free")
+    free = _free_parameters(doc, free_entries, spec, options, model, fixed)
+    ranges = {p.path: p for p in spec.parameter_table(options)}
+    _check_ranges(doc, ranges, fixed, "experiment", "settings")
 
     runs = data.get("runs")
     if not isinstance(runs, list) or not runs:
         raise doc.error(
             "no runs; add one [[runs]] table per CSV (name, file, role, waveform)", "runs"
         )
-    experiments, infos, names = [], [], set()
+    if len(runs) > MAX_RUNS:
+        raise doc.error(
+            f"{len(runs)} runs; at most {MAX_RUNS} per experiment folder (split the "
+            "folder, or merge short runs)",
+            "runs",
+        )
+    data_table = doc.table(data, "data", required=False)
+    doc.check_keys(data_table, _DATA_KEYS, "data")
+    data_rules = _data_rules(doc, data_table, spec, None, "data")
+    if "columns" in data and "columns" in data_table:
+        raise doc.error(
+            "give the column mapping once: [columns] or [data] columns", "data", "columns"
+        )
+    if "columns" in data:
+        data_rules["columns"] = _column_mapping(doc, data["columns"], spec, "columns")
+    if not data_rules["header"] and data_rules["names"] is None:
+        raise doc.error(
+            'a header-less file needs its column names: columns = ["t_s", ...] in file order',
+            "data",
+            "header",
+        )
+    free_paths = {p.path for p in free}
+    experiments, infos, names, errors = [], [], set(), []
     for i, entry in enumerate(runs):
-        e, info = _load_run(doc, i, entry, directory, spec, model, camera, names)
+        try:
+            e, info = _load_run(
+                doc,
+                i,
+                entry,
+                directory,
+                spec,
+                model,
+                camera,
+                names,
+                data_rules,
+                options,
+                fixed,
+                free_paths,
+            )
+            _check_ranges(doc, ranges, dict(e.settings), "runs", i, "settings")
+        except InputError as err:  # every run is checked; the problems are listed together
+            errors.append(err)
+            if isinstance(entry, dict) and isinstance(entry.get("name"), str):
+                names.add(entry["name"])
+            continue
         names.add(e.name)
         experiments.append(e)
         infos.append(info)
+    if len(errors) == 1:
+        raise errors[0]
+    if errors:
+        raise InputErrors(errors)
     estimation = tuple(e for e in experiments if e.role == "estimation")
     validation = tuple(e for e in experiments if e.role == "validation")
     if not estimation or sum(int(e.mask.all(axis=1).sum()) for e in estimation) == 0:
@@ -551,6 +1146,7 @@ def load_experiment_set(directory) -> ExperimentSet:
             0,
             "role",
         )
+    _known_noise(doc, spec, camera, fit_options, experiments)
     if spec.start_values is not None:
         free = tuple(spec.start_values(model, free, estimation))
     return ExperimentSet(

@@ -88,6 +88,59 @@ def params_document(fitset, result, validation=None) -> dict:
                 "outliers_flagged": int(validation.n_outliers[e.name]),
             }
     ident = result.identifiability
+    outputs = [c.name for c in fitset.spec.outputs]
+
+    def per_output(field: str, frames: str) -> dict:
+        """{run: [figure per output channel]} per role (simulation fit % or noise ceiling)."""
+        val = getattr(validation, field) if validation is not None else {}
+        return {
+            "horizon": "simulation",
+            "frames": frames,
+            "outputs": outputs,
+            "estimation": {k: _nums(v) for k, v in getattr(result, field).items()},
+            "validation": {k: _nums(v) for k, v in val.items()},
+        }
+
+    def residual_tests(res) -> dict | None:
+        if res is None:
+            return None
+        a = res.residuals
+        return {
+            "verdict": a.verdict,
+            "white": bool(a.all_white),
+            "test": "Ljung-Box over lags 1..test_lag_frames, pooled over runs, chi-square "
+            "with test_lag_frames dof; whiteness rejected at p < 0.01 / n_outputs",
+            "test_lag_frames": a.test_lag,
+            "max_lag_frames": a.max_lag,
+            "frame_interval_s": _num(a.frame_interval_s),
+            "outputs": [
+                {
+                    "name": outputs[j] if j < len(outputs) else f"output {j + 1}",
+                    "q": _num(a.q[j]),
+                    "dof": a.dof,
+                    "p_value": _num(a.p_value[j]),
+                    "white": bool(a.white[j]),
+                    "lags_outside_band": list(a.lags_outside[j]),
+                }
+                for j in range(len(a.q))
+            ],
+            "runs": {r.name: {"q": _nums(r.q), "p_value": _nums(r.p_value)} for r in a.runs},
+            "cross_correlation": a.cross_lines(),
+            "notes": list(a.notes),
+        }
+
+    def gof(res) -> dict | None:
+        g = getattr(res, "goodness_of_fit", None) if res is not None else None
+        if g is None:
+            return None
+        return {
+            "chi2": _num(g.chi2),
+            "dof": int(g.dof),
+            "p_value": _num(g.p_value),
+            "ratio": _nums(g.ratio),
+            "robust_ratio": _nums(g.robust_ratio),
+        }
+
     return {
         "schema": SCHEMA,
         "greybox_version": greybox.__version__,
@@ -118,6 +171,10 @@ def params_document(fitset, result, validation=None) -> dict:
                 "se": _num(p.se),
                 "ci95": [_num(p.ci95[0]), _num(p.ci95[1])],
                 "verdict": p.verdict,
+                "bound": p.bound,
+                "se_gauss_newton": _num(p.se_gauss_newton),
+                "se_hac": _num(p.se_hac),
+                "se_method": p.se_method,
                 "experiment": p.experiment,
                 "prior": None if p.prior is None else {"median": p.prior[0], "log_sd": p.prior[1]},
             }
@@ -127,6 +184,14 @@ def params_document(fitset, result, validation=None) -> dict:
         "raw": _nums(result.raw),
         "raw_labels": list(ident.raw_labels),
         "covariance_raw": _nums(result.covariance_raw),
+        "covariance_gauss_newton_raw": _nums(result.covariance_gauss_newton_raw),
+        "covariance_hac_raw": _nums(result.covariance_hac_raw),
+        "standard_errors": {
+            "headline": result.se_method,
+            "why": "residuals not white" if result.se_method == "hac" else "residuals white",
+            "hac": "Newey-West, Bartlett kernel, Andrews (1991) AR(1) plug-in bandwidth",
+            "hac_bandwidth_frames": int(result.hac_bandwidth),
+        },
         "null_directions_raw": _nums(
             np.reshape(
                 getattr(ident, "null_directions", np.zeros((0, result.raw.size))),
@@ -136,16 +201,28 @@ def params_document(fitset, result, validation=None) -> dict:
         "sigma": {
             "value": _nums(result.sigma),
             "unit": [c.si_unit for c in fitset.spec.outputs],
-            "estimated": True,
-            "how": "robust (MAD) scale of the residuals",
+            "estimated": result.sigma_source == "estimated",
+            "source": result.sigma_source,
+            "how": {
+                "estimated": "robust (MAD) scale of the residuals",
+                "declared": "declared by the user; not re-estimated",
+                "per-frame": "RMS of the known per-frame noise (Experiment.sigma)",
+            }[result.sigma_source],
+            "goodness_of_fit": gof(result),
+            "goodness_of_fit_validation": gof(validation),
         },
-        "fit_percent": _fit_scores("fit_percent", "all valid frames", result, validation),
-        "fit_percent_robust": _fit_scores(
-            "fit_percent_robust", "valid frames not flagged as outliers", result, validation
+        "fit_percent": per_output("fit_percent", "all valid frames"),
+        "fit_percent_robust": per_output(
+            "fit_percent_robust", "valid frames not flagged as outliers"
         ),
+        "noise_ceiling": per_output("noise_ceiling", "all valid frames"),
+        "residuals": residual_tests(result),
+        "residuals_validation": residual_tests(validation),
         "runs": runs,
         "n_data": int(result.n_data),
         "convergence": {
+            "status": result.status,
+            "valid": bool(result.valid),
             "converged": bool(result.converged),
             "message": result.message,
             "steps": int(result.n_steps),
@@ -154,6 +231,8 @@ def params_document(fitset, result, validation=None) -> dict:
             "multistart": [
                 {"cost": _num(c), "converged": bool(ok)} for c, ok in result.multistart_costs
             ],
+            "best_start": int(result.best_start),
+            "starts_at_best": int(result.n_starts_at_best),
         },
         "identifiability": {
             "singular_values": _nums(ident.singular_values),
@@ -199,8 +278,74 @@ class FittedModel:
         return self.device.spec
 
     @property
+    def posterior(self):
+        """The fit's `greybox.Posterior`, rebuilt from the file."""
+        from greybox._posterior import Posterior
+
+        return Posterior(
+            self.model,
+            self.free,
+            self.raw,
+            self.covariance_raw,
+            self.null_directions,
+            self.sigma,
+            self.method,
+        )
+
+    @property
     def device_name(self) -> str:
         return self.device.spec.name
+
+
+_MAX_PARAMS_BYTES = 64 * 2**20
+
+
+def _finite_vector(values, field: str, file: str) -> np.ndarray:
+    try:
+        out = np.asarray(values, dtype=float)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError("must be a list of numbers", file=file, field=field) from None
+    if out.ndim != 1 or not np.all(np.isfinite(out)):
+        raise InputError(
+            "must be a flat list of finite numbers (regenerate it with `greybox fit`)",
+            file=file,
+            field=field,
+        )
+    return out
+
+
+def _check_covariance(cov: np.ndarray, file: str) -> None:
+    """covariance_raw must be finite, symmetric and positive semi-definite."""
+    if cov.size == 0:
+        return
+    if not np.all(np.isfinite(cov)):
+        i, j = np.argwhere(~np.isfinite(cov))[0]
+        raise InputError(
+            f"entry [{i}][{j}] is not a finite number; a band cannot be computed from it "
+            "(regenerate the file with `greybox fit`)",
+            file=file,
+            field="covariance_raw",
+        )
+    scale = max(float(np.max(np.abs(cov))), 1e-300)
+    if np.max(np.abs(cov - cov.T)) > 1e-8 * scale:
+        raise InputError("is not symmetric", file=file, field="covariance_raw")
+    d = np.diag(cov)
+    if np.any(d < 0):
+        i = int(np.flatnonzero(d < 0)[0])
+        raise InputError(
+            f"variance [{i}][{i}] = {d[i]:g} is negative; a covariance is positive "
+            "semi-definite (regenerate the file with `greybox fit`)",
+            file=file,
+            field="covariance_raw",
+        )
+    eig = np.linalg.eigvalsh(0.5 * (cov + cov.T))
+    if eig[0] < -1e-8 * max(eig[-1], 1e-300):
+        raise InputError(
+            f"is not positive semi-definite (smallest eigenvalue {eig[0]:g}); regenerate "
+            "the file with `greybox fit`",
+            file=file,
+            field="covariance_raw",
+        )
 
 
 def load_params(path) -> FittedModel:
@@ -219,15 +364,31 @@ def load_params(path) -> FittedModel:
             field="--params",
         )
     try:
+        if path.stat().st_size > _MAX_PARAMS_BYTES:
+            raise InputError(
+                f"{path.stat().st_size / 2**20:.0f} MB; a params.json is a few kB to MB",
+                file=file,
+                field="--params",
+            )
         doc = json.loads(path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError, ValueError, OSError) as err:
+        if isinstance(err, InputError):
+            raise
         line = getattr(err, "lineno", None)
+        what = str(err) if isinstance(err, json.JSONDecodeError) else type(err).__name__
         raise InputError(
-            f"not valid JSON ({err}); use the file `greybox fit` wrote",
+            f"not valid JSON ({what[:100]}); use the file `greybox fit` wrote",
             file=file,
             line=line,
             field="--params",
         ) from None
+
+    if not isinstance(doc, dict):
+        raise InputError(
+            f"holds a JSON {type(doc).__name__}, not the object `greybox fit` writes",
+            file=file,
+            field="--params",
+        )
 
     def need(obj, key, kind, where):
         if not isinstance(obj, dict) or key not in obj or not isinstance(obj[key], kind):
@@ -240,7 +401,7 @@ def load_params(path) -> FittedModel:
 
     schema = need(doc, "schema", str, "")
     if schema != SCHEMA:
-        raise InputError(f"{schema!r}: this greybox reads {SCHEMA}", file=file, field="schema")
+        raise InputError(f"{schema[:40]!r}: this greybox reads {SCHEMA}", file=file, field="schema")
     dev = need(doc, "device", dict, "")
     ref = need(dev, "ref", str, "device.")
     location = need(dev, "location", str, "device.")
@@ -285,18 +446,44 @@ def load_params(path) -> FittedModel:
     fitted = need(spec, "fitted", dict, "model.")
     method = need(spec, "method", str, "model.")
     free_docs = need(doc, "free", list, "")
-    raw = np.asarray(need(doc, "raw", list, ""), dtype=float)
-    cov_list = need(doc, "covariance_raw", list, "")
-    sigma = np.asarray(need(need(doc, "sigma", dict, ""), "value", list, "sigma."), dtype=float)
     try:
+        raw = _finite_vector(need(doc, "raw", list, ""), "raw", file)
+        cov_list = need(doc, "covariance_raw", list, "")
+        sigma = _finite_vector(
+            need(need(doc, "sigma", dict, ""), "value", list, "sigma."), "sigma.value", file
+        )
+        if np.any(sigma < 0):
+            raise InputError("noise sigma cannot be negative", file=file, field="sigma.value")
+        for k, v in list(fitted.items()) + list(fixed.items()):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise InputError(
+                    f"{str(v)[:40]} is not a finite number", file=file, field=f"model.{k[:60]}"
+                )
+        for k in ("m_per_px", "exposure_s"):
+            v = camera.get(k)
+            if v is not None and (
+                isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)
+            ):
+                raise InputError(
+                    f"{str(v)[:40]} is not a finite number", file=file, field=f"model.camera.{k}"
+                )
+        if not all(isinstance(f, dict) for f in free_docs):
+            raise InputError("each entry must be an object", file=file, field="free")
         free = tuple(FreeParameter(**{k: f[k] for k in _FREE_FIELDS if k in f}) for f in free_docs)
         cov = np.array([[np.nan if v is None else v for v in row] for row in cov_list], dtype=float)
         nulls = np.array(doc.get("null_directions_raw") or [], dtype=float).reshape(-1, raw.size)
         model = configure_model(device.spec, options, camera, fixed)
         model = set_values(model, list(fitted), [float(v) for v in fitted.values()])
-    except (TypeError, ValueError, KeyError) as err:
+        from greybox._parameters import check_scalar_path
+
+        for fp in free:  # every free path must name a value of this device
+            check_scalar_path(model, fp.path)
+    except InputError:
+        raise
+    except (TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError) as err:
         raise InputError(
-            f"cannot rebuild the fitted model ({err}); regenerate it with `greybox fit`",
+            f"cannot rebuild the fitted model ({str(err)[:120]}); is it a params.json of "
+            f"device {device.spec.name!r}? Regenerate it with `greybox fit`",
             file=file,
             field="model",
         ) from None
@@ -306,4 +493,15 @@ def load_params(path) -> FittedModel:
             file=file,
             field="covariance_raw",
         )
+    n_shared = sum(not f.per_experiment for f in free)
+    n_per = len(free) - n_shared
+    extra = raw.size - n_shared
+    if extra < 0 or (extra % n_per if n_per else extra) != 0:
+        raise InputError(
+            f"{len(free)} free parameters ({n_per} per run) do not match the {raw.size} "
+            "entries of raw",
+            file=file,
+            field="free",
+        )
+    _check_covariance(cov, file)
     return FittedModel(device, options, model, free, raw, cov, nulls, sigma, method, doc)

@@ -13,7 +13,16 @@ from pathlib import Path
 
 from greybox._errors import InputError
 
+
+def excerpt(value, limit: int = 40) -> str:
+    """A short, escaped quotation of file content for an error message (never the whole)."""
+    text = value if isinstance(value, str) else repr(value)
+    out = repr(text[:limit]) if isinstance(value, str) else text[:limit]
+    return out + (f"... ({len(text)} characters)" if len(text) > limit else "")
+
+
 TOML_NAME = "experiment.toml"
+MAX_TOML_BYTES = 4 * 2**20  # an experiment description is a few kB
 
 
 # --------------------------------------------------------------------------------------
@@ -107,6 +116,8 @@ class TomlLines:
 def _field_name(path) -> str:
     out = ""
     for p in path:
+        if isinstance(p, str) and (len(p) > 60 or not p.isprintable()):
+            p = excerpt(p, 40)  # a key from the file: quote it short and escaped
         out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
     return out
 
@@ -125,6 +136,14 @@ class TomlDocument:
                 field=TOML_NAME,
             )
         try:
+            size = path.stat().st_size
+            if size > MAX_TOML_BYTES:
+                raise InputError(
+                    f"{size / 2**20:.1f} MB; an experiment description is a few kB "
+                    "(the data belong in the run CSVs)",
+                    file=self.file,
+                    field=TOML_NAME,
+                )
             text = path.read_text(encoding="utf-8")
         except (OSError, UnicodeDecodeError) as err:
             raise InputError(
@@ -136,6 +155,13 @@ class TomlDocument:
         self.where = TomlLines(text)
         try:
             self.data = tomllib.loads(text)
+        except RecursionError:
+            raise InputError(
+                "nested too deeply (arrays or inline tables inside each other); an "
+                "experiment description nests a few levels at most",
+                file=self.file,
+                field="TOML syntax",
+            ) from None
         except tomllib.TOMLDecodeError as err:
             msg = str(err)
             m = re.search(r"\(at line (\d+), column \d+\)", msg)
@@ -149,7 +175,7 @@ class TomlDocument:
                 )
                 if key and re.fullmatch(r"[A-Za-z0-9_.\-\"']+", key):
                     field = key.strip("\"'")
-            what = re.sub(r"\s*\(at line \d+, column \d+\)", "", msg)
+            what = excerpt(re.sub(r"\s*\(at line \d+, column \d+\)", "", msg), 100)
             raise InputError(
                 f"not valid TOML ({what}); strings need quotes, numbers none, "
                 "tables are [name] and runs [[runs]]",
@@ -200,8 +226,10 @@ class TomlDocument:
             return default
         value = table[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.error(f"{value!r} is not a number; write it without quotes", *path, key)
-        value = float(value)
+            raise self.error(
+                f"{excerpt(value)} is not a number; write it without quotes", *path, key
+            )
+        value = float(value) if abs(value) < 1e300 else math.inf
         if not math.isfinite(value):
             raise self.error(f"{value} is not finite; give a finite number", *path, key)
         if positive and not value > 0:
@@ -215,7 +243,7 @@ class TomlDocument:
             return default
         value = table[key]
         if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-            raise self.error(f"{value!r} must be a whole number >= {minimum}", *path, key)
+            raise self.error(f"{excerpt(value)} must be a whole number >= {minimum}", *path, key)
         return value
 
     def string(
@@ -227,7 +255,9 @@ class TomlDocument:
             return default
         value = table[key]
         if not isinstance(value, str) or not value.strip():
-            raise self.error(f"{value!r} must be a non-empty quoted string", *path, key)
+            raise self.error(f"{excerpt(value)} must be a non-empty quoted string", *path, key)
         if choices is not None and value not in choices:
-            raise self.error(f"{value!r} is not one of {', '.join(map(repr, choices))}", *path, key)
+            raise self.error(
+                f"{excerpt(value)} is not one of {', '.join(map(repr, choices))}", *path, key
+            )
         return value

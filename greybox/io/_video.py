@@ -48,13 +48,34 @@ STACK_SUFFIXES = (".tif", ".tiff")  # a single file that can hold many pages
 class VideoInfo:
     """What a source is: ``kind`` ("video" or "stack"), ``shape`` (H, W), ``dtype``,
     ``fps`` (container frame rate or None), ``timestamps_s`` (container per-frame times
-    relative to the first frame, or None)."""
+    relative to the first frame, or None), ``n_frames_expected`` (frames the container
+    declares: its duration x frame rate, or None when it does not say)."""
 
     kind: str
     shape: tuple[int, int]
     dtype: np.dtype
     fps: float | None
     timestamps_s: np.ndarray | None
+    n_frames_expected: int | None = None
+
+
+def frame_shortfall(info: VideoInfo, n_decoded: int) -> str | None:
+    """Why `n_decoded` frames are fewer than the container declares, or None if they are not.
+
+    Compared with the container's duration x frame rate (a truncated file keeps its header)
+    and with its packet count (frames present but not decodable)."""
+    expected = info.n_frames_expected
+    if expected is not None and n_decoded < expected - max(1, round(0.02 * expected)):
+        return (
+            f"decoded {n_decoded} frames but the container declares {expected} "
+            "(duration x frame rate): the file looks truncated or damaged"
+        )
+    if info.timestamps_s is not None and n_decoded < len(info.timestamps_s) - 1:
+        return (
+            f"decoded {n_decoded} of the {len(info.timestamps_s)} frames the container "
+            "holds: some frames could not be decoded"
+        )
+    return None
 
 
 def _grey(img: np.ndarray) -> np.ndarray:
@@ -66,7 +87,10 @@ def _grey(img: np.ndarray) -> np.ndarray:
         return np.rint(y).astype(img.dtype) if np.issubdtype(img.dtype, np.integer) else y
     if img.ndim == 3 and img.shape[2] == 1:
         return img[..., 0]
-    raise ValueError(f"unsupported image shape {img.shape}")
+    raise InputError(
+        f"unsupported image shape {img.shape}; frames must be grey, RGB or RGBA images",
+        field="VIDEO",
+    )
 
 
 def _natural_key(p: Path):
@@ -150,9 +174,15 @@ def probe(path: str | os.PathLike) -> VideoInfo:
     deep = re.search(r"(gray|yuv\w*|rgb\w*|bgr\w*)(1[0-6])(le|be)", meta.get("pix_fmt", ""))
     dtype = np.dtype(np.uint16 if deep else np.uint8)
     fps = float(meta["fps"]) if meta.get("fps") and np.isfinite(meta["fps"]) else None
-    return VideoInfo(
-        "video", (h, w), dtype, fps if fps and fps > 0 else None, container_timestamps(path)
-    )
+    fps = fps if fps and fps > 0 else None
+    expected = None
+    duration = meta.get("duration")
+    nframes = meta.get("nframes")
+    if isinstance(nframes, (int, float)) and np.isfinite(nframes) and nframes > 0:
+        expected = int(nframes)
+    elif fps and isinstance(duration, (int, float)) and np.isfinite(duration) and duration > 0:
+        expected = int(round(duration * fps))
+    return VideoInfo("video", (h, w), dtype, fps, container_timestamps(path), expected)
 
 
 def _first_line(err: BaseException) -> str:

@@ -1,0 +1,94 @@
+"""Comparing model structures fitted to the same estimation runs.
+
+Each candidate (a set of structural options and a free list) is fitted to the same runs; this
+module scores the fits. The information criteria use the Gaussian log-likelihood of the
+free-run simulation residuals of every valid reading, with each output's noise variance at its
+maximum-likelihood value (the mean squared residual of that output):
+
+    log L = sum_j -n_j / 2 (log(2 pi SSE_j / n_j) + 1),
+    AIC = -2 log L + 2 k,   BIC = -2 log L + k log n,
+
+k = every fitted value (shared and per-run) plus one noise variance per output, n = the number
+of valid readings. The rule that names the preferred structure uses estimation data only
+(AIC by default); validation fit % is shown beside it and never used to choose.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import numpy as np
+
+RULES = ("aic", "bic")
+
+
+@dataclasses.dataclass(frozen=True)
+class CandidateScore:
+    """How one structure did: its name, options and free list as fitted, the criteria, fit %
+    per run and output (estimation and validation, simulation), the residual verdict and the
+    fit's status (converged / at bound / local optimum ...)."""
+
+    name: str
+    options: dict
+    free: tuple
+    n_params: int
+    n_data: int
+    loglik: float
+    aic: float
+    bic: float
+    fit_estimation: dict
+    fit_validation: dict
+    residual_verdict: str
+    status: str
+    valid: bool
+    message: str
+
+
+def gaussian_loglik(experiments: Sequence, predictions: Sequence) -> tuple[float, int, int]:
+    """(log-likelihood, readings, outputs) of simulation residuals at the ML noise per output."""
+    n_y = experiments[0].y.shape[1]
+    sse, n = np.zeros(n_y), np.zeros(n_y)
+    for e, z in zip(experiments, predictions):
+        r = e.y - np.asarray(z).reshape(e.y.shape)
+        ok = np.isfinite(r)
+        sse += np.where(ok, r, 0.0).__pow__(2).sum(axis=0)
+        n += ok.sum(axis=0)
+    used = n > 0
+    if np.any(sse[used] <= 0):
+        return float("inf"), int(n.sum()), int(used.sum())
+    ll = -0.5 * n[used] * (np.log(2 * np.pi * sse[used] / n[used]) + 1.0)
+    return float(ll.sum()), int(n.sum()), int(used.sum())
+
+
+def score(name: str, options: dict, result, validation=None) -> CandidateScore:
+    """A `CandidateScore` for a `FitResult` (and its `ValidationResult`, if any)."""
+    preds = [result.predict(i) for i in range(len(result.experiments))]
+    ll, n, n_out = gaussian_loglik(result.experiments, preds)
+    k = int(result.raw.size) + n_out
+    return CandidateScore(
+        name=name,
+        options=dict(options),
+        free=tuple(p.path for p in result.free),
+        n_params=k,
+        n_data=n,
+        loglik=ll,
+        aic=-2 * ll + 2 * k,
+        bic=-2 * ll + k * np.log(max(n, 1)),
+        fit_estimation={r: np.atleast_1d(v) for r, v in result.fit_percent.items()},
+        fit_validation=(
+            {r: np.atleast_1d(v) for r, v in validation.fit_percent.items()} if validation else {}
+        ),
+        residual_verdict=result.residuals.verdict,
+        status=result.status,
+        valid=bool(result.valid),
+        message=result.message,
+    )
+
+
+def preferred(scores: Sequence[CandidateScore], rule: str = "aic") -> CandidateScore | None:
+    """The candidate with the lowest criterion among those whose fit is valid (None if none)."""
+    if rule not in RULES:
+        raise ValueError(f"rule: {rule!r} is unknown; use one of {RULES}")
+    ok = [s for s in scores if s.valid and np.isfinite(getattr(s, rule))]
+    return min(ok, key=lambda s: getattr(s, rule)) if ok else None

@@ -1,0 +1,706 @@
+"""Residual analysis of a fit: is what the model leaves over white noise? (pure numpy)
+
+For every run and output, as MATLAB `resid` does for a simulation-error model:
+
+- the autocorrelation r(k) of the residuals e = y - y_model for lags k = 0..M frames, with
+  the 99 % band of white noise;
+- the cross-correlation of the residuals with each input u(t - k), k = -M..M (positive k:
+  the input leads), with the same band (valid when the residuals are white);
+- a portmanteau (Ljung-Box) statistic Q with its chi-square p-value, per run and pooled over
+  the runs, and a one-line verdict: "residuals consistent with white noise" or "residuals
+  not white: structure the model misses at lags ...".
+
+A model that captures the dynamics leaves measurement noise; a model that misses a time
+constant leaves a slow, autocorrelated misfit however small the noise estimate makes it look.
+
+**Frame times, dropped frames and outliers.** Camera frames are near-uniform (jitter of a
+few ms at tens of ms per frame), so lags are counted in frames: each run's frames are placed
+on a uniform grid at its median frame interval dt (each interval between consecutive frames
+counts as max(1, round(interval / dt)) slots, so timing jitter does not accumulate). A
+dropped frame (NaN reading) or a missing timestamp leaves its slot empty, and every
+correlation uses only the pairs of slots that both hold a valid reading (the
+amplitude-modulated estimator of Parzen 1963): r(k) = [sum over pairs e_t e_(t+k) / n_k] /
+[sum e_t^2 / n]. Jitter within half an interval is ignored; a run whose intervals spread (10th
+to 90th percentile) by more than half the median, where a frame may land one slot off, gets a
+note. Readings further than `OUTLIER_SCALES` robust scales (1.4826 MAD of that run's
+residuals, not the fitted sigma) from the median residual are treated as missing too: a
+burst of corrupted frames is not a dynamic the model misses, while a misfit that is large
+against a known noise level stays in (it moves the MAD with it).
+
+**The test.** Each r(k) is corrected for the mean removal (white noise with its sample mean
+taken out has E r(k) = -1/(n - 1), a bias that pooling runs would not average away) and
+weighted by the inverse of its null variance 1 / (n_k (1 + 2/n)): without gaps this is the
+Ljung-Box statistic N (N + 2) sum_k r_b(k)^2 / (N - k) of the usual (biased) autocorrelation
+r_b, bias-corrected. Pooled over runs, r(k) is the pair-weighted mean of the runs' r(k) with
+its null variance, so a structure shared by the runs adds up. Q sums lags 1..h with
+h = min(`TEST_LAG`, n / 5) (the usual Ljung-Box rule; correlations are still shown up to
+`MAX_LAG`). Its p-value comes from `PERMUTATIONS` shuffles of each run's residuals among its
+occupied slots (the gaps stay put; seeded, so reproducible): exact for exchangeable noise,
+whatever the gaps, the run lengths and the pooling. The chi-square reference with h degrees
+of freedom is liberal at these sizes (fitted one-node chevron residuals, two runs of ~120
+frames, 2000 replicates: 1.6 % of rejections at the 1 % level, 5.6 % at 5 %; with the
+shuffles 1.15 % and 5.15 %), so it is used only beyond the shuffles' resolution (a Q larger
+than every shuffled one: p < 1 / (B + 1)), where it orders the evidence. The verdict rejects
+whiteness of an output when p < `ALPHA` / n_y (Bonferroni over outputs); the degrees of
+freedom are not reduced by the fitted parameters (an output-error fit of a few physical
+parameters barely whitens its residuals). `benchmarks/whiteness.py` measures the false-alarm
+rate on fitted residuals.
+
+Also here: the goodness-of-fit test against a known noise level (chi-square of the residuals
+in units of the known sigma) and the Newey-West (HAC) "meat" of the sandwich covariance.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from statistics import NormalDist
+
+import numpy as np
+
+CONFIDENCE = 0.99  # bands and test level (as MATLAB `resid`)
+ALPHA = 1.0 - CONFIDENCE
+MAX_LAG = 25  # lags shown, in frames (MATLAB `resid` default), fewer for short runs
+TEST_LAG = 10  # lags the portmanteau test uses: min(10, n / 5), the usual Ljung-Box rule
+PERMUTATIONS = 999  # within-run shuffles of the residuals that give the test's null
+OUTLIER_SCALES = 5.0
+IRREGULAR_SPREAD = 0.5  # 10-90 % spread of frame intervals (x median) that earns a note
+
+
+def chi2_sf(q, dof):
+    """Upper tail P(X > q) of a chi-square with `dof` degrees of freedom (array-friendly)."""
+    from scipy.special import chdtrc  # scipy is a core dependency; imported where needed
+
+    return chdtrc(np.asarray(dof, dtype=float), np.asarray(q, dtype=float))
+
+
+# ------------------------------------------------------------------------------- frame grid
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameGrid:
+    """Frames of one run on a uniform grid: frame i sits in slot `slots[i]`; `dt_s` is the
+    median frame interval. Each interval between consecutive frames counts as
+    max(1, round(interval / dt_s)) slots, so jitter never accumulates and a gap of missing
+    timestamps leaves empty slots."""
+
+    slots: np.ndarray
+    n_slots: int
+    dt_s: float
+    spread: float  # (90th - 10th percentile of the intervals) / median
+
+    @staticmethod
+    def build(t_s) -> FrameGrid:
+        t = np.asarray(t_s, dtype=float).reshape(-1)
+        if t.size < 2:
+            return FrameGrid(np.zeros(t.size, dtype=int), t.size, float("nan"), 0.0)
+        dts = np.diff(t)
+        dt = float(np.median(dts))
+        spread = float((np.percentile(dts, 90) - np.percentile(dts, 10)) / dt)
+        steps = np.maximum(1, np.rint(dts / dt)).astype(int)
+        slots = np.concatenate([[0], np.cumsum(steps)])
+        return FrameGrid(slots, int(slots[-1]) + 1, dt, spread)
+
+    def place(self, values: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(grid values (n_slots, k) zero where empty, occupancy (n_slots, k))."""
+        values = np.asarray(values, dtype=float).reshape(self.slots.size, -1)
+        valid = np.asarray(valid, dtype=bool).reshape(values.shape)
+        grid = np.zeros((self.n_slots, values.shape[1]))
+        occ = np.zeros((self.n_slots, values.shape[1]), dtype=bool)
+        ok = valid & np.isfinite(values)
+        grid[self.slots] = np.where(ok, values, 0.0)
+        occ[self.slots] = ok
+        return grid, occ
+
+
+def _lagged_sums(a, occ_a, b, occ_b, lags) -> tuple[np.ndarray, np.ndarray]:
+    """For each lag k: (sum over slots t with both occupied of a[t] b[t - k], pair count).
+
+    `a`, `b`: (S,) zero where unoccupied; negative lags pair a[t] with b[t + |k|]."""
+    s = a.size
+    oa, ob = occ_a.astype(float), occ_b.astype(float)
+    sums, pairs = [], []
+    for k in np.asarray(lags, dtype=int):
+        if abs(k) >= s:
+            sums.append(0.0)
+            pairs.append(0.0)
+        elif k >= 0:
+            sums.append(float(a[k:] @ b[: s - k]))
+            pairs.append(float(oa[k:] @ ob[: s - k]))
+        else:
+            sums.append(float(a[: s + k] @ b[-k:]))
+            pairs.append(float(oa[: s + k] @ ob[-k:]))
+    return np.asarray(sums), np.asarray(pairs)
+
+
+# ------------------------------------------------------------------------------ one run
+
+
+@dataclasses.dataclass(frozen=True)
+class RunResiduals:
+    """Residual correlations of one run (arrays per output j and input l).
+
+    - `lags` (M+1,) frames 0..M; `autocorrelation` (n_y, M+1) with r(0) = 1; `pairs` (n_y,
+      M+1) valid pairs per lag; `null_var` (n_y, M+1) variance of r(k) for white residuals.
+    - `cross_lags` (2M+1,) -M..M; `cross_correlation` (n_y, n_u, 2M+1) of e(t) with
+      u(t - k); `cross_pairs` (n_y, 2M+1).
+    - `q` (n_y,) Ljung-Box statistic over lags 1..`test_lag` and `p_value` (n_y,) from the
+      shuffled residuals (the chi-square tail beyond their resolution).
+    - `n_used` (n_y,) readings used, `n_excluded` (n_y,) gross outliers left out.
+    - `grid`: the frame grid (median interval, spread); `permuted_autocorrelation` (n_y,
+      B + 1, test_lag): r(1..test_lag) observed (row 0) and for each shuffle (for pooling).
+    """
+
+    name: str
+    lags: np.ndarray
+    autocorrelation: np.ndarray
+    pairs: np.ndarray
+    null_var: np.ndarray
+    cross_lags: np.ndarray
+    cross_correlation: np.ndarray
+    cross_pairs: np.ndarray
+    q: np.ndarray
+    p_value: np.ndarray
+    n_used: np.ndarray
+    n_excluded: np.ndarray
+    grid: FrameGrid
+    test_lag: int
+    permuted_autocorrelation: np.ndarray = dataclasses.field(repr=False, default=None)
+
+    @property
+    def max_lag(self) -> int:
+        return int(self.lags[-1])
+
+    def band(self, confidence: float = CONFIDENCE) -> np.ndarray:
+        """(n_y, M+1) half-width of the white-noise band of the autocorrelation."""
+        z = NormalDist().inv_cdf(0.5 + confidence / 2)
+        return z * np.sqrt(self.null_var)
+
+    def cross_band(self, confidence: float = CONFIDENCE) -> np.ndarray:
+        """(n_y, 2M+1) half-width of the band of the cross-correlation (white residuals)."""
+        z = NormalDist().inv_cdf(0.5 + confidence / 2)
+        with np.errstate(divide="ignore"):
+            return z / np.sqrt(self.cross_pairs)
+
+
+def _robust_keep(e: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """`valid` without readings further than OUTLIER_SCALES robust scales from the median."""
+    vals = e[valid]
+    if vals.size < 3:
+        return valid
+    med = np.median(vals)
+    scale = 1.4826 * np.median(np.abs(vals - med))
+    if not scale > 0:
+        return valid
+    return valid & (np.abs(e - med) <= OUTLIER_SCALES * scale)
+
+
+def _permuted_autocorrelation(g, occ, npairs, n, permutations, rng) -> np.ndarray:
+    """(B + 1, h) bias-corrected r(1..h): row 0 of the residuals `g` as placed on the grid
+    (`occ` occupied, zero elsewhere), rows 1.. of B shuffles of the values among the occupied
+    slots (the gaps stay where they are). Computed in chunks to bound memory."""
+    h = npairs.size
+    vals = g[occ]
+    c0 = float(vals @ vals) / n
+    out = np.empty((int(permutations) + 1, h))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for start in range(0, int(permutations) + 1, 128):
+            rows = min(128, int(permutations) + 1 - start)
+            grid = np.zeros((rows, g.size))
+            if start == 0:
+                grid[0] = g
+                shuffled = rows - 1
+            else:
+                shuffled = rows
+            if shuffled:
+                order = rng.random((shuffled, vals.size)).argsort(axis=1)
+                grid[rows - shuffled :, occ] = vals[order]
+            for k in range(1, h + 1):
+                sums = np.einsum("bt,bt->b", grid[:, k:], grid[:, :-k])
+                out[start : start + rows, k - 1] = sums / np.maximum(
+                    npairs[k - 1], 1
+                ) / c0 + 1.0 / (n - 1)
+    out[:, npairs == 0] = np.nan
+    return out
+
+
+def _p_values(perm_r: np.ndarray, null_var: np.ndarray, dof: int) -> np.ndarray:
+    """(n_y,) p-values of Q = sum_k r(k)^2 / null_var(k) from `perm_r` (n_y, B + 1, h), row
+    0 observed: the share of shuffles with Q at least as large; when none is, the observed Q
+    is beyond what B shuffles resolve and its chi-square tail (dof degrees) is given."""
+    out = np.full(perm_r.shape[0], np.nan)
+    for j in range(perm_r.shape[0]):
+        r, v = perm_r[j], null_var[j]
+        use = np.isfinite(r[0]) & (v > 0)
+        if not use.any():
+            continue
+        q = np.sum(r[:, use] ** 2 / v[use], axis=1)
+        b = q.size - 1
+        if b == 0:
+            out[j] = float(chi2_sf(q[0], dof))
+            continue
+        beyond = int(np.sum(q[1:] >= q[0]))
+        out[j] = (1 + beyond) / (b + 1) if beyond else min(float(chi2_sf(q[0], dof)), 1 / (b + 1))
+    return out
+
+
+def analyse_run(
+    name,
+    t_s,
+    residuals,
+    valid,
+    inputs,
+    max_lag: int,
+    test_lag: int | None = None,
+    *,
+    permutations: int = PERMUTATIONS,
+    seed=0,
+) -> RunResiduals:
+    """Correlations and Ljung-Box test of one run (see the module docstring).
+
+    `residuals` (N, n_y) measured - model in any consistent unit, `valid` (N, n_y) readings to
+    use, `inputs` (N, n_u) input levels at the frame times (or None), `max_lag` M in frames
+    (correlations shown), `test_lag` the lags of the Ljung-Box test (default M),
+    `permutations` the shuffles behind its p-value (0: chi-square only), `seed` their seed.
+    """
+    e_all = np.asarray(residuals, dtype=float)
+    e_all = e_all.reshape(e_all.shape[0], -1)
+    valid = np.asarray(valid, dtype=bool).reshape(e_all.shape) & np.isfinite(e_all)
+    grid = FrameGrid.build(t_s)
+    n_y = e_all.shape[1]
+    m = int(max_lag)
+    h = m if test_lag is None else int(min(test_lag, m))
+    lags = np.arange(m + 1)
+    cross_lags = np.arange(-m, m + 1)
+    u = None if inputs is None else np.asarray(inputs, dtype=float).reshape(e_all.shape[0], -1)
+    n_u = 0 if u is None else u.shape[1]
+    auto = np.full((n_y, m + 1), np.nan)
+    pairs = np.zeros((n_y, m + 1))
+    null_var = np.full((n_y, m + 1), np.nan)
+    cross = np.full((n_y, n_u, 2 * m + 1), np.nan)
+    cross_pairs = np.zeros((n_y, 2 * m + 1))
+    q = np.full(n_y, np.nan)
+    n_used = np.zeros(n_y, dtype=int)
+    n_excl = np.zeros(n_y, dtype=int)
+    perm_r = np.full((n_y, int(permutations) + 1, h), np.nan)
+    for j in range(n_y):
+        keep = _robust_keep(e_all[:, j], valid[:, j])
+        n_excl[j] = int(valid[:, j].sum() - keep.sum())
+        n = int(keep.sum())
+        n_used[j] = n
+        if n < 3:
+            continue
+        e = np.where(keep, e_all[:, j] - e_all[keep, j].mean(), 0.0)
+        g, occ = grid.place(e, keep)
+        g, occ = g[:, 0], occ[:, 0]
+        n = int(occ.sum())
+        c0 = float(g @ g) / n
+        if not c0 > 0:
+            continue
+        sums, npairs = _lagged_sums(g, occ, g, occ, lags)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            auto[j] = np.where(
+                npairs > 0, sums / np.maximum(npairs, 1) / c0 + 1.0 / (n - 1), np.nan
+            )
+            null_var[j] = np.where(npairs > 0, 1.0 / (npairs * (1.0 + 2.0 / n)), np.nan)
+        auto[j, 0] = 1.0
+        pairs[j] = npairs
+        use = np.isfinite(auto[j, 1 : h + 1])
+        q[j] = float(np.sum(auto[j, 1 : h + 1][use] ** 2 / null_var[j, 1 : h + 1][use]))
+        seeds = [int(x) for x in np.atleast_1d(seed)]
+        rng = np.random.default_rng([*seeds, j])
+        perm_r[j] = _permuted_autocorrelation(g, occ, npairs[1 : h + 1], n, permutations, rng)
+        for l in range(n_u):
+            ul = u[:, l]
+            ok_u = np.isfinite(ul)
+            ug, uocc = grid.place(np.where(ok_u, ul - ul[ok_u].mean(), 0.0), ok_u)
+            ug, uocc = ug[:, 0], uocc[:, 0]
+            cu = float(ug @ ug) / max(int(uocc.sum()), 1)
+            if not cu > 0:
+                continue
+            s, npair = _lagged_sums(g, occ, ug, uocc, cross_lags)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                cross[j, l] = np.where(npair > 0, s / np.maximum(npair, 1), np.nan) / np.sqrt(
+                    c0 * cu
+                )
+            cross_pairs[j] = npair
+    p = _p_values(perm_r, null_var[:, 1 : h + 1], h)
+    return RunResiduals(
+        str(name),
+        lags,
+        auto,
+        pairs,
+        null_var,
+        cross_lags,
+        cross,
+        cross_pairs,
+        q,
+        p,
+        n_used,
+        n_excl,
+        grid,
+        h,
+        perm_r,
+    )
+
+
+# --------------------------------------------------------------------------- all runs
+
+
+def _ranges(values) -> str:
+    """[1, 2, 3, 7, 9, 10] -> "1-3, 7, 9-10"."""
+    out, values = [], sorted(int(v) for v in values)
+    i = 0
+    while i < len(values):
+        j = i
+        while j + 1 < len(values) and values[j + 1] == values[j] + 1:
+            j += 1
+        sep = ".." if values[i] < 0 else "-"
+        out.append(f"{values[i]}" if i == j else f"{values[i]}{sep}{values[j]}")
+        i = j + 1
+    return ", ".join(out)
+
+
+@dataclasses.dataclass(frozen=True)
+class ResidualAnalysis:
+    """Residual tests of every run of a fit or a validation, pooled per output.
+
+    - `runs`: one `RunResiduals` per run; `output_names`: labels of the outputs.
+    - `autocorrelation` (n_y, M+1), `null_var` (n_y, M+1): pooled over runs.
+    - `cross_correlation` (n_y, n_u, 2M+1), `cross_pairs` (n_y, 2M+1): pooled.
+    - `q`, `p_value` (n_y,): pooled Ljung-Box statistic over lags 1..`test_lag` and its
+      p-value (shuffles pooled the same way; the chi-square tail with `test_lag` dof beyond
+      their resolution).
+    - `white` (n_y,): p >= ALPHA / n_y; `lags_outside` per output: lags 1..M whose pooled
+      r(k) is outside the 99 % band; `cross_outside` per output and input: lags outside.
+    - `frame_interval_s`: median frame interval over the runs (converts lags to seconds).
+    - `notes`: how irregular frames and outliers were handled in these data.
+    """
+
+    runs: tuple
+    output_names: tuple
+    lags: np.ndarray
+    autocorrelation: np.ndarray
+    null_var: np.ndarray
+    cross_lags: np.ndarray
+    cross_correlation: np.ndarray
+    cross_pairs: np.ndarray
+    q: np.ndarray
+    p_value: np.ndarray
+    white: np.ndarray
+    lags_outside: tuple
+    cross_outside: tuple
+    frame_interval_s: float
+    notes: tuple
+    test_lag: int
+    confidence: float = CONFIDENCE
+
+    @property
+    def max_lag(self) -> int:
+        return int(self.lags[-1])
+
+    @property
+    def dof(self) -> int:
+        return int(self.test_lag)
+
+    @property
+    def all_white(self) -> bool:
+        return bool(np.all(self.white | ~np.isfinite(self.q)))
+
+    def band(self) -> np.ndarray:
+        z = NormalDist().inv_cdf(0.5 + self.confidence / 2)
+        return z * np.sqrt(self.null_var)
+
+    def _label(self, j: int) -> str:
+        return f" in {self.output_names[j]}" if len(self.output_names) > 1 else ""
+
+    def _lag_text(self, lags) -> str:
+        dt = self.frame_interval_s
+        span = ""
+        if lags and np.isfinite(dt):
+            lo, hi = min(lags) * dt, max(lags) * dt
+            span = f", {_seconds(lo)}" + (f" to {_seconds(hi)}" if hi > lo else "")
+        return f"lags {_ranges(lags)} frames{span}"
+
+    @property
+    def verdict(self) -> str:
+        """One line: white, or where the structure the model misses sits."""
+        how = (
+            f"Ljung-Box, {self.test_lag} lags, pooled over {len(self.runs)} run"
+            f"{'s' if len(self.runs) != 1 else ''}"
+        )
+        if not np.any(np.isfinite(self.q)):
+            return "residual test not possible (too few valid readings)"
+        if self.all_white:
+            p = np.nanmin(self.p_value)
+            return f"residuals consistent with white noise ({how}: p = {_p_text(p)})"
+        parts = []
+        for j in np.flatnonzero(~self.white & np.isfinite(self.q)):
+            lags = list(self.lags_outside[j]) or [
+                int(np.nanargmax(np.abs(self.autocorrelation[j, 1:]))) + 1
+            ]
+            parts.append(
+                f"{self._lag_text(lags)}{self._label(j)} (Q = {self.q[j]:.4g} on "
+                f"{self.dof} dof, p = {_p_text(self.p_value[j])})"
+            )
+        return (
+            "residuals not white: structure the model misses dynamics at "
+            + "; ".join(parts)
+            + f" ({how})"
+        )
+
+    def cross_lines(self) -> list[str]:
+        """Inputs whose cross-correlation with the residuals leaves the band, per output."""
+        out = []
+        for j, per_input in enumerate(self.cross_outside):
+            for l, lags in enumerate(per_input):
+                if lags:
+                    out.append(
+                        f"input {l + 1}{self._label(j)}: cross-correlation outside the "
+                        f"{self.confidence * 100:g} % band at lags {_ranges(lags)} frames "
+                        "(positive: the input leads the residual)"
+                    )
+        return out
+
+
+def _seconds(x: float) -> str:
+    return f"{x * 1e3:.3g} ms" if abs(x) < 1 else f"{x:.3g} s"
+
+
+def _p_text(p: float) -> str:
+    if not np.isfinite(p):
+        return "n/a"
+    return "< 1e-300" if p < 1e-300 else f"{p:.2g}"
+
+
+def analyse(
+    runs,
+    *,
+    output_names=None,
+    max_lag: int | None = None,
+    test_lag: int | None = None,
+    permutations: int = PERMUTATIONS,
+    seed: int = 0,
+) -> ResidualAnalysis:
+    """Residual analysis of several runs.
+
+    `runs`: sequence of (name, t_s (N,), residuals (N, n_y), valid (N, n_y), inputs (N, n_u)
+    or None). `max_lag`: lags shown, in frames (default `MAX_LAG`, at most a quarter of the
+    shortest run's valid readings, at least 1). `test_lag`: lags of the Ljung-Box test
+    (default `TEST_LAG`, at most a fifth of the shortest run, at least 1; never above
+    `max_lag`): with many lags against few frames the chi-square reference is liberal.
+    `permutations`, `seed`: the within-run shuffles behind the p-values (reproducible).
+    """
+    runs = list(runs)
+    if not runs:
+        raise ValueError("runs: nothing to analyse")
+    n_y = np.asarray(runs[0][2]).reshape(len(np.asarray(runs[0][1]).reshape(-1)), -1).shape[1]
+    if max_lag is None:
+        shortest = min(int(np.asarray(r[3]).sum(axis=0).min()) for r in runs)
+        max_lag = int(max(1, min(MAX_LAG, shortest // 4)))
+    if test_lag is None:
+        shortest = min(int(np.asarray(r[3]).sum(axis=0).min()) for r in runs)
+        test_lag = int(max(1, min(TEST_LAG, shortest // 5)))
+    m = int(max_lag)
+    h = int(min(test_lag, m))
+    per_run = tuple(
+        analyse_run(*r, max_lag=m, test_lag=h, permutations=permutations, seed=(seed, i))
+        for i, r in enumerate(runs)
+    )
+    lags, cross_lags = per_run[0].lags, per_run[0].cross_lags
+    n_u = per_run[0].cross_correlation.shape[1]
+    auto = np.full((n_y, m + 1), np.nan)
+    null_var = np.full((n_y, m + 1), np.nan)
+    cross = np.full((n_y, n_u, 2 * m + 1), np.nan)
+    cross_pairs = np.zeros((n_y, 2 * m + 1))
+    q = np.full(n_y, np.nan)
+    pooled_perm = np.full((n_y, int(permutations) + 1, h), np.nan)
+    for j in range(n_y):
+        w = np.stack(
+            [np.where(np.isfinite(r.autocorrelation[j]), r.pairs[j], 0.0) for r in per_run]
+        )
+        rr = np.stack([np.nan_to_num(r.autocorrelation[j]) for r in per_run])
+        vv = np.stack([np.nan_to_num(r.null_var[j]) for r in per_run])
+        tot = w.sum(axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            auto[j] = np.where(tot > 0, (w * rr).sum(axis=0) / tot, np.nan)
+            null_var[j] = np.where(tot > 0, (w**2 * vv).sum(axis=0) / tot**2, np.nan)
+        a_h, v_h = auto[j, 1 : h + 1], null_var[j, 1 : h + 1]
+        use = np.isfinite(a_h) & (v_h > 0)
+        if use.any():
+            q[j] = float(np.sum(a_h[use] ** 2 / v_h[use]))
+        wk = w[:, 1 : h + 1]  # (R, h): the same pair weights for every shuffle
+        rk = np.stack([np.nan_to_num(r.permuted_autocorrelation[j]) for r in per_run])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            pooled_perm[j] = np.einsum("rk,rbk->bk", wk, rk) / wk.sum(axis=0)
+        cw = np.stack([r.cross_pairs[j] for r in per_run])  # (R, 2M+1)
+        ctot = cw.sum(axis=0)
+        cross_pairs[j] = ctot
+        for l in range(n_u):
+            cr = np.stack([r.cross_correlation[j, l] for r in per_run])
+            wl = np.where(np.isfinite(cr), cw, 0.0)
+            tl = wl.sum(axis=0)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                cross[j, l] = np.where(tl > 0, (wl * np.nan_to_num(cr)).sum(axis=0) / tl, np.nan)
+    p = _p_values(pooled_perm, null_var[:, 1 : h + 1], h)
+    white = ~(p < ALPHA / n_y)
+    z = NormalDist().inv_cdf(0.5 + CONFIDENCE / 2)
+    band = z * np.sqrt(null_var)
+    outside = tuple(
+        tuple(int(k) for k in lags[1:][np.abs(auto[j, 1:]) > band[j, 1:]]) for j in range(n_y)
+    )
+    with np.errstate(divide="ignore"):
+        cband = z / np.sqrt(cross_pairs)
+    cross_out = tuple(
+        tuple(tuple(int(k) for k in cross_lags[np.abs(cross[j, l]) > cband[j]]) for l in range(n_u))
+        for j in range(n_y)
+    )
+    intervals = [r.grid.dt_s for r in per_run if np.isfinite(r.grid.dt_s)]
+    dt = float(np.median(intervals)) if intervals else float("nan")
+    notes = []
+    irregular = [r.name for r in per_run if r.grid.spread > IRREGULAR_SPREAD]
+    if irregular:
+        notes.append(
+            f"frame intervals spread by more than {IRREGULAR_SPREAD:.0%} of the median in "
+            f"{', '.join(irregular)}; lags are counted in frames of the median interval, so "
+            "some frames may sit one lag off"
+        )
+    excluded = int(sum(r.n_excluded.sum() for r in per_run))
+    if excluded:
+        notes.append(
+            f"{excluded} reading(s) more than {OUTLIER_SCALES:g} robust scales from the median "
+            "residual were left out as gross outliers"
+        )
+    names = (
+        tuple(output_names)
+        if output_names is not None
+        else tuple(f"output {j + 1}" for j in range(n_y))
+    )
+    return ResidualAnalysis(
+        per_run,
+        names,
+        lags,
+        auto,
+        null_var,
+        cross_lags,
+        cross,
+        cross_pairs,
+        q,
+        p,
+        white,
+        outside,
+        cross_out,
+        dt,
+        tuple(notes),
+        h,
+    )
+
+
+# ------------------------------------------------------------------- known noise
+
+
+@dataclasses.dataclass(frozen=True)
+class GoodnessOfFit:
+    """Residuals against a known noise level (readings in units of their known sigma).
+
+    - `chi2`, `dof`, `p_value`: sum of squared scaled residuals over every valid reading,
+      n_data - n_params degrees of freedom, upper-tail p-value (small: the residuals are
+      larger than the noise allows, i.e. the model misses something or sigma is too small).
+    - `ratio` (n_y,): RMS scaled residual per output, sqrt(chi2_j / dof_j): the estimated noise
+      over the known noise (1 when the model fits down to the noise).
+    - `robust_ratio` (n_y,): the same from 1.4826 MAD (insensitive to a few corrupted frames).
+    """
+
+    chi2: float
+    dof: int
+    p_value: float
+    ratio: np.ndarray
+    robust_ratio: np.ndarray
+
+    @property
+    def line(self) -> str:
+        ratios = ", ".join(f"{r:.3g}" for r in self.ratio)
+        robust = ", ".join(f"{r:.3g}" for r in self.robust_ratio)
+        return (
+            f"estimated / known noise = {ratios} (robust: {robust}); chi-square "
+            f"{self.chi2:.5g} on {self.dof} dof, p = {_p_text(self.p_value)}"
+        )
+
+
+def goodness_of_fit(scaled_residuals, valid, n_params: int) -> GoodnessOfFit:
+    """`scaled_residuals`: list of (N, n_y) (y - model) / known sigma per run; `valid` alike."""
+    r = np.concatenate(
+        [np.asarray(x, dtype=float).reshape(np.shape(x)[0], -1) for x in scaled_residuals]
+    )
+    ok = np.concatenate([np.asarray(v, dtype=bool).reshape(-1, r.shape[1]) for v in valid])
+    ok = ok & np.isfinite(r)
+    n = int(ok.sum())
+    chi2 = float(np.sum(np.where(ok, r, 0.0) ** 2))
+    dof = max(n - int(n_params), 1)
+    ratio, robust = [], []
+    for j in range(r.shape[1]):
+        rj = r[ok[:, j], j]
+        dof_j = max(rj.size - n_params * rj.size / max(n, 1), 1.0)
+        ratio.append(float(np.sqrt(np.sum(rj**2) / dof_j)) if rj.size else float("nan"))
+        robust.append(
+            float(1.4826 * np.median(np.abs(rj - np.median(rj)))) if rj.size else float("nan")
+        )
+    return GoodnessOfFit(
+        chi2, dof, float(chi2_sf(chi2, dof)), np.asarray(ratio), np.asarray(robust)
+    )
+
+
+# ------------------------------------------------------------------------ HAC meat
+
+
+@dataclasses.dataclass(frozen=True)
+class HACMeat:
+    """Newey-West long-run covariance of the score contributions, summed over runs.
+
+    `meat` (P, P) = sum over runs of Gamma_0 + sum_{l=1..L} (1 - l/(L+1)) (Gamma_l +
+    Gamma_l^T), Gamma_l = sum_t g_t g_(t-l)^T over the frame grid; `bandwidth` L in frames from
+    Andrews' (1991) AR(1) plug-in rule for the Bartlett kernel, L = floor(1.1447 (a T)^(1/3))
+    with T the mean run length in frames, capped at T / 2 (`rho` the pooled lag-1
+    autocorrelations of the standardised score components behind `a`).
+    """
+
+    meat: np.ndarray
+    bandwidth: int
+    rho: np.ndarray
+
+
+def hac_meat(runs, *, bandwidth: int | None = None) -> HACMeat:
+    """`runs`: sequence of (t_s (N,), scores (N, P)) with zero rows at unused frames."""
+    grids = []
+    for t_s, g in runs:
+        fg = FrameGrid.build(t_s)
+        g = np.asarray(g, dtype=float).reshape(np.size(t_s), -1)
+        gg, _ = fg.place(g, np.ones_like(g, dtype=bool))
+        grids.append(gg)
+    p = grids[0].shape[1]
+    # Andrews' AR(1) plug-in on each standardised score component, pooled over runs
+    num = np.zeros(p)
+    den = np.zeros(p)
+    var = np.zeros(p)
+    for gg in grids:
+        num += np.sum(gg[1:] * gg[:-1], axis=0)
+        den += np.sum(gg[:-1] ** 2, axis=0)
+        var += np.sum(gg**2, axis=0)
+    active = var > 0
+    rho = np.clip(np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0), -0.97, 0.97)
+    t_mean = float(np.mean([gg.shape[0] for gg in grids]))
+    if bandwidth is None:
+        r = rho[active]
+        s4 = (1.0 - r**2) ** 2  # innovation variance^2 of a unit-variance AR(1)
+        a_num = np.sum(4 * r**2 * s4 / ((1 - r) ** 6 * (1 + r) ** 2))
+        a_den = np.sum(s4 / (1 - r) ** 4)
+        alpha = a_num / a_den if a_den > 0 else 0.0
+        bandwidth = int(np.floor(1.1447 * (alpha * t_mean) ** (1.0 / 3.0)))
+    bandwidth = int(max(0, min(bandwidth, int(t_mean // 2))))
+    meat = np.zeros((p, p))
+    for gg in grids:
+        meat += gg.T @ gg
+        for lag in range(1, min(bandwidth, gg.shape[0] - 1) + 1):
+            w = 1.0 - lag / (bandwidth + 1.0)
+            gam = gg[lag:].T @ gg[:-lag]
+            meat += w * (gam + gam.T)
+    return HACMeat(meat, bandwidth, rho)

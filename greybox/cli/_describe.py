@@ -1,0 +1,90 @@
+"""`greybox describe DEVICE`: a device's channels, options and parameters (or the list)."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = """\
+Print what a device is: its input and output channels with the file units they accept, its
+structural options ([model] in experiment.toml) with allowed values and defaults, its
+parameters with unit, nominal value, bounds and what the data can identify, the standard fit's
+free parameters, and the simulation path its capability allows.
+
+DEVICE is a built-in or installed name, or a file `path/to/device.py[:SPEC]` (relative to the
+current folder). Without DEVICE, lists the built-in and installed devices.
+"""
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "describe",
+        help="show a device's channels, options and parameters (or list devices)",
+        description=HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("device", metavar="DEVICE", nargs="?", help="device name or file.py:SPEC")
+    p.set_defaults(func=run)
+    return p
+
+
+def _bound(x) -> str:
+    return "-" if x is None else f"{x:g}"
+
+
+def describe_lines(spec, options: dict | None = None) -> list[str]:
+    """The text `greybox describe` prints for `spec` (with `options`, defaults otherwise)."""
+    from greybox._device import simulation_methods
+
+    model = spec.model(options)
+    lines = [f"device {spec.name}: {type(model).__name__}"]
+    if spec.description:
+        lines += ["", " ".join(spec.description.split())]
+    lines += ["", "inputs (CSV column <name>_<unit>):"]
+    for c in spec.inputs:
+        rng = (
+            ""
+            if c.minimum is None and c.maximum is None
+            else (f", range {_bound(c.minimum)}..{_bound(c.maximum)} {c.si_unit}")
+        )
+        lines.append(f"  {c.name}: {c.description} [SI {c.si_unit}; files: "
+                     f"{', '.join(c.column_names())}{rng}]")  # fmt: skip
+    lines.append("outputs:")
+    for c in spec.outputs:
+        lines.append(f"  {c.name}: {c.description} [SI {c.si_unit}; files: "
+                     f"{', '.join(c.column_names())}]")  # fmt: skip
+    lines.append("structural options ([model] in experiment.toml):")
+    lines += [f"  {o.describe()}" for o in spec.options] or ["  none"]
+    free = {p.path: p for p in spec.free_parameters(options)}
+    lines.append("parameters (* = freed by the standard fit; SI units):")
+    width = max(len(p.path) for p in spec.parameter_table(options))
+    for p in spec.parameter_table(options):
+        star = "*" if p.path in free else " "
+        per_run = " per run" if p.path in free and free[p.path].per_experiment else ""
+        lines.append(
+            f" {star}{p.path:<{width}}  {p.nominal:<11.4g} [{p.unit}]  bounds "
+            f"{_bound(p.lower)}..{_bound(p.upper)}{per_run}  {p.description}; data: "
+            f"{p.identifiability or 'not stated'}"
+        )
+    lines.append(f"simulation: {', '.join(simulation_methods(model))} (first = default)")
+    return lines
+
+
+def run(args) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from greybox._errors import InputError
+    from greybox._registry import DeviceNotFound, available, resolve
+    from greybox._spec import DeviceSpecError
+
+    if args.device is None:
+        for name in available():
+            print(f"{name}: {' '.join(resolve(name).spec.description.split())[:100]}")
+        return 0
+    try:
+        device = resolve(args.device)
+    except (DeviceNotFound, DeviceSpecError) as err:
+        raise InputError(str(err), field="DEVICE") from None
+    print("\n".join(describe_lines(device.spec)))
+    print(f"source: {device.source} ({device.location})")
+    return 0

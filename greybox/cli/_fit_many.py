@@ -1,0 +1,364 @@
+"""`greybox fit-many`: many experiment folders (one per device) -> one result folder per device
+plus a batch table and figures across devices, fitted with one compiled solver (issue 19)."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import math
+from pathlib import Path
+
+HELP = """\
+Fit every device (one experiment folder each, the format of `greybox fit`) with one
+compiled, vmapped solver (`greybox._batch.fit_batch`): each device is fitted exactly as
+`greybox fit` would fit it (same loss, noise estimate, starts and verdicts), but the
+solver is compiled once for all devices of the same structure instead of once per device.
+
+Written under --out (atomically, as a whole):
+  devices/<FOLDER NAME>/   params.json and report.md of that device (what `greybox fit`
+                           writes; figures/ too unless --no-device-figures)
+  batch.csv, batch.md      one row per device: status, noise, every fitted value with its
+                           standard error and verdict, simulation fit % per output
+  figures/                 histograms of each shared parameter across devices and their
+                           pairwise scatter
+  population.md/.json      with --random/--shared: the population model (median, spread,
+                           devices that do not belong, prediction for a new device)
+
+--scheduler local starts a Dask LocalCluster of --workers processes; --scheduler ADDRESS
+uses a running Dask cluster (needs: pip install "dask[distributed]"). Without --scheduler
+everything runs in this process. Exit status: 0 every device valid; 1 written but some
+device's fit is not valid (see batch.md); 2 bad input; 3 a bug in greybox.
+"""
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "fit-many",
+        help="fit many devices (one experiment folder each) with one compiled solver",
+        description=HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "folders", metavar="FOLDER", nargs="+", help="experiment folders, one per device"
+    )
+    p.add_argument("--out", metavar="DIR", required=True, help="result folder (replaced whole)")
+    p.add_argument("--force", action="store_true", help="replace --out even if not a result")
+    p.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        default=None,
+        help='"local" (a Dask LocalCluster) or a Dask scheduler address; default: this process',
+    )
+    p.add_argument("--workers", type=int, default=2, help="workers of a local cluster (2)")
+    p.add_argument(
+        "--memory-budget-mb",
+        type=float,
+        default=None,
+        help="memory one compiled call may use (chooses the chunk size; default 2048 in "
+        "process, 1024 per Dask worker)",
+    )
+    p.add_argument(
+        "--random",
+        action="append",
+        default=[],
+        metavar="PATH",
+        help="population model: PATH varies across devices (log-normal)",
+    )
+    p.add_argument(
+        "--shared",
+        action="append",
+        default=[],
+        metavar="PATH",
+        help="population model: PATH is the same for every device (tested)",
+    )
+    p.add_argument(
+        "--no-device-figures",
+        action="store_true",
+        help="skip the per-device figures (faster for hundreds of devices)",
+    )
+    p.add_argument(
+        "--no-validate",
+        action="store_true",
+        help="skip the validation runs (each re-fits per-run offsets per device)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.set_defaults(func=run)
+    return p
+
+
+def _device_name(folder, seen) -> str:
+    name = Path(folder).resolve().name
+    base, k = name, 2
+    while name in seen:
+        name, k = f"{base}_{k}", k + 1
+    seen.add(name)
+    return name
+
+
+def load_devices(folders, say):
+    """[(name, ExperimentSet)] per folder, and the fit options they share (one `fit_batch`
+    per distinct set of options)."""
+    from greybox.io._experiment_set import check_problem_size, load_experiment_set
+
+    out, seen = [], set()
+    for folder in folders:
+        fs = load_experiment_set(folder)
+        check_problem_size(fs)
+        out.append((_device_name(folder, seen), fs))
+    say(f"loaded {len(out)} device folders")
+    return out
+
+
+def _option_key(fs) -> str:
+    return json.dumps({k: repr(v) for k, v in sorted(fs.fit_options.items())})
+
+
+def fit_devices(loaded, args, say):
+    """{name: FitResult} for every device, batched per distinct fit options."""
+    from greybox._batch import Device, fit_batch
+
+    by_options: dict = {}
+    for name, fs in loaded:
+        by_options.setdefault(_option_key(fs), []).append((name, fs))
+    results = {}
+    budget = None if args.memory_budget_mb is None else args.memory_budget_mb * 1e6
+    for members in by_options.values():
+        opts = dict(members[0][1].fit_options)
+        opts.pop("progress", None)
+        devices = [Device(n, fs.model, fs.estimation, free=fs.free) for n, fs in members]
+        free = members[0][1].free
+        if args.scheduler:
+            from greybox._distributed import fit_distributed
+
+            out = fit_distributed(
+                devices,
+                free,
+                scheduler=args.scheduler,
+                n_workers=args.workers,
+                memory_budget_bytes=budget,
+                progress=say,
+                **opts,
+            )
+        else:
+            extra = {} if budget is None else {"memory_budget_bytes": budget}
+            out = fit_batch(devices, free, progress=say, **opts, **extra)
+        results.update(out.results)
+    return results
+
+
+def write_device(folder: Path, fs, result, validation, figures: bool) -> None:
+    from greybox.cli._fit import render_report, write_figures
+    from greybox.io._params_file import params_document, write_params
+
+    folder.mkdir(parents=True)
+    names = write_figures(folder, fs, result, validation) if figures else []
+    write_params(folder / "params.json", params_document(fs, result, validation))
+    (folder / "report.md").write_text(render_report(fs, result, validation, names))
+
+
+def batch_csv(rows) -> str:
+    cols = []
+    for r in rows:
+        cols += [k for k in r if k not in cols]
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=cols, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: ("" if v is None else v) for k, v in r.items()})
+    return buf.getvalue()
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return "—" if not math.isfinite(v) else f"{v:.5g}"
+    return str(v)
+
+
+def batch_markdown(results, population=None) -> str:
+    shared = [p for p in next(iter(results.values())).parameters if p.experiment is None]
+    head = ["device", "status", *[f"{p.name} [{p.unit}]" for p in shared], "fit % (mean, min)"]
+    lines = [
+        "# Batch fit",
+        "",
+        f"{len(results)} devices, each fitted as `greybox fit` fits one (free-run simulation "
+        "error; one compiled solver for the batch). Values ± standard error; fit % is "
+        "simulation fit % per output, mean and worst run.",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * len(head),
+    ]
+    for name, r in results.items():
+        cells = [name, r.status]
+        for p in shared:
+            q = r.estimate(p.name)
+            cells.append(
+                f"{_fmt(q.value)} ± {_fmt(q.se)}"
+                + ("" if q.verdict == "identifiable" else f" ({q.verdict})")
+            )
+        fits = [
+            list(map(float, v if hasattr(v, "__len__") else [v])) for v in r.fit_percent.values()
+        ]
+        per_out = list(zip(*fits))
+        cells.append("; ".join(f"{sum(c) / len(c):.1f}, {min(c):.1f}" for c in per_out))
+        lines.append("| " + " | ".join(cells) + " |")
+    if population is not None:
+        lines += ["", population_markdown(population)]
+    return "\n".join(lines) + "\n"
+
+
+def population_markdown(pop) -> str:
+    lines = [
+        "## Population model",
+        "",
+        f"Method: {pop.method}.",
+        "",
+        "| parameter | kind | population median (SE) | spread omega (SE) | CV | raw log-sd | "
+        "new device: median [95 % band] | Cochran Q p |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, p in pop.parameters.items():
+        if p.kind == "fixed":
+            lines.append(f"| {name} | fixed | — | — | — | — | — | — |")
+            continue
+        nd = p.new_device
+        lines.append(
+            f"| {name} | {p.kind} | {_fmt(p.median)} ({_fmt(p.median_se)}) | "
+            f"{_fmt(p.omega)} ({_fmt(p.omega_se)}) | {_fmt(p.cv)} | {_fmt(p.raw_log_sd)} | "
+            f"{_fmt(nd[0])} [{_fmt(nd[1])}, {_fmt(nd[2])}] | {_fmt(p.q_p)} |"
+        )
+    flagged = pop.outliers
+    lines += [
+        "",
+        f"Devices that do not belong ({len(flagged)}):" if flagged else "No device flagged.",
+    ]
+    for d in flagged:
+        lines.append(f"- {d}: {'; '.join(pop.flags[d])}")
+    return "\n".join(lines)
+
+
+def write_figures(folder: Path, results) -> list[str]:
+    """Histograms of each shared parameter across devices and their pairwise scatter."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    first = next(iter(results.values()))
+    shared = [p.name for p in first.parameters if p.experiment is None]
+    vals = {k: np.array([r.estimate(k).value for r in results.values()]) for k in shared}
+    ses = {k: np.array([r.estimate(k).se for r in results.values()]) for k in shared}
+    (folder / "figures").mkdir()
+    names = []
+    fig, axes = plt.subplots(1, len(shared), figsize=(4 * len(shared), 3.2), squeeze=False)
+    for ax, k in zip(axes[0], shared):
+        ax.hist(vals[k], bins=max(5, min(40, len(vals[k]) // 3)), color="C0", alpha=0.8)
+        ax.set_xlabel(k)
+        ax.set_ylabel("devices")
+    fig.tight_layout()
+    fig.savefig(folder / "figures/histograms.png", dpi=110)
+    plt.close(fig)
+    names.append("figures/histograms.png")
+    if len(shared) > 1:
+        n = len(shared)
+        fig, axes = plt.subplots(
+            n - 1, n - 1, figsize=(3.6 * (n - 1), 3.4 * (n - 1)), squeeze=False
+        )
+        for i in range(1, n):
+            for j in range(n - 1):
+                ax = axes[i - 1][j]
+                if j >= i:
+                    ax.axis("off")
+                    continue
+                a, b = shared[j], shared[i]
+                ax.errorbar(vals[a], vals[b], xerr=ses[a], yerr=ses[b], fmt=".", ms=3, alpha=0.6)
+                ax.set_xlabel(a)
+                ax.set_ylabel(b)
+        fig.tight_layout()
+        fig.savefig(folder / "figures/scatter.png", dpi=110)
+        plt.close(fig)
+        names.append("figures/scatter.png")
+    return names
+
+
+def run(args) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from greybox._errors import InputError
+    from greybox.cli._fit import Progress, usual_permissions
+    from greybox.io._atomic import atomic_output_dir, check_output_dir
+
+    say = Progress(args.quiet)
+    out = check_output_dir(args.out, force=args.force, inputs=list(args.folders))
+    loaded = load_devices(args.folders, say)
+    kinds = {**{p: "random" for p in args.random}, **{p: "shared" for p in args.shared}}
+    for path in kinds:
+        for name, fs in loaded:
+            if path not in {p.path for p in fs.free if not p.per_experiment}:
+                raise InputError(f"--random/--shared {path}: not a shared free parameter of {name}")
+    say(f"fitting {len(loaded)} devices")
+    results = fit_devices(loaded, args, say)
+    population = None
+    if kinds:
+        from greybox._population import population_from_batch
+
+        population = population_from_batch(results, kinds)
+    from greybox._batch import batch_table
+
+    sets = dict(loaded)
+    say(f"writing {out}")
+    with atomic_output_dir(out, kind="fit-many", force=args.force) as tmp:
+        usual_permissions(tmp)
+        for name, r in results.items():
+            fs = sets[name]
+            validation = None
+            if fs.validation and not args.no_validate:
+                from greybox._fit import validate
+
+                validation = validate(r, fs.validation)
+            write_device(tmp / "devices" / name, fs, r, validation, not args.no_device_figures)
+        (tmp / "batch.csv").write_text(batch_csv(batch_table(results)))
+        write_figures(tmp, results)
+        (tmp / "batch.md").write_text(
+            batch_markdown(results, population)
+            + "\n![histograms](figures/histograms.png)\n"
+            + (
+                "\n![scatter](figures/scatter.png)\n"
+                if (tmp / "figures/scatter.png").exists()
+                else ""
+            )
+        )
+        if population is not None:
+            (tmp / "population.md").write_text(population_markdown(population) + "\n")
+            (tmp / "population.json").write_text(
+                json.dumps(_population_document(population), indent=2, allow_nan=False) + "\n"
+            )
+    n_bad = sum(not r.valid for r in results.values())
+    print(f"wrote {out}/ ({len(results)} devices; {n_bad} not valid) in {say.elapsed:.1f} s")
+    return 1 if n_bad else 0
+
+
+def _population_document(pop) -> dict:
+    def num(x):
+        x = float(x)
+        return x if math.isfinite(x) else None
+
+    return {
+        "method": pop.method,
+        "parameters": {
+            k: {
+                "kind": p.kind,
+                "median": num(p.median),
+                "median_se": num(p.median_se),
+                "omega": num(p.omega),
+                "omega_se": num(p.omega_se),
+                "new_device": [num(v) for v in p.new_device],
+                "z": {d: num(z) for d, z in zip(p.devices, p.z)},
+            }
+            for k, p in pop.parameters.items()
+        },
+        "flags": pop.flags,
+    }

@@ -1,0 +1,305 @@
+"""Data as users have it, results as users need them (issue 16).
+
+Raw TCLab-style logs written here (``Time,T1,T2,Q1,Q2`` mapped with [columns], a header-less
+MATLAB csvwrite file with declared columns, a single-sensor log, a log whose clock starts at
+1000 s with ``Time (sec)`` / ``(degC)`` headers) are fitted by `greybox fit` on a small linear
+TCLab (ZOH, three free parameters); the SAE in metrics.csv is recomputed by hand from the
+predictions CSV and from an independent simulation of the fitted model. Loader problems of a
+whole folder are reported together; `greybox simulate` drives both heaters and writes every
+channel; the python-control export matches the fitted model's steady state.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+import greybox
+from greybox.cli import main
+from greybox.cli._fit import fit_experiment_dir
+
+tclab = greybox.device_module("tclab")
+
+DT = 3.0
+N = 60
+TRUE = {"U_W_per_m2K": 7.0, "alpha1_W_per_pct": 0.011, "alpha2_W_per_pct": 0.0075}
+AMBIENT_C = 21.0
+
+
+def _steps(t, edges):
+    """Levels (N,) [%] from [(t_on, level), ...] held until the next edge."""
+    u = np.zeros_like(t)
+    for t_on, level in edges:
+        u[t >= t_on] = level
+    return u
+
+
+def _record(h1, h2, seed):
+    """(t, T1 degC, T2 degC, H1 %, H2 %) of the true linear board starting at rest."""
+    t = np.arange(N) * DT
+    u = np.column_stack([_steps(t, h1), _steps(t, h2)])
+    amb = 273.15 + AMBIENT_C
+    model = tclab.SPEC.model(
+        radiation=False,
+        ambient_K=amb,
+        initial_T1_K=amb,
+        initial_T2_K=amb,
+        **TRUE,
+    )
+    y = np.asarray(greybox.simulate(model, greybox.from_samples(t, u), t)).reshape(N, 2)
+    y = y + np.random.default_rng(seed).normal(0.0, 0.05, y.shape)
+    return t, y[:, 0] - 273.15, y[:, 1] - 273.15, u[:, 0], u[:, 1]
+
+
+def _rows(*cols):
+    return "".join(",".join(f"{v:.6g}" for v in row) + "\n" for row in zip(*cols))
+
+
+TOML = """\
+[experiment]
+device = "tclab"
+
+[model]
+radiation = false
+
+[experiment.settings]
+ambient_K = {ambient_K}
+
+[fit]
+loss = "l2"
+free = ["U_W_per_m2K", "alpha1_W_per_pct", "alpha2_W_per_pct"]
+
+[columns]   # the TCLab logger's own names, for every run that does not say otherwise
+time = {{ column = "Time", unit = "s" }}
+T1 = {{ column = "T1", unit = "degC" }}
+T2 = {{ column = "T2", unit = "degC" }}
+H1 = {{ column = "Q1", unit = "%" }}
+H2 = {{ column = "Q2", unit = "%" }}
+
+[[runs]]
+name = "logger"
+file = "logger.csv"
+role = "estimation"
+
+[[runs]]
+name = "matlab"
+file = "matlab.csv"
+role = "estimation"
+header = false
+columns = ["t_s", "T1_degC", "T2_degF", "H1_pct", "H2_pct"]
+
+[[runs]]
+name = "one_sensor"
+file = "one_sensor.csv"
+role = "estimation"
+columns = {{ time = "Time (sec)", T1 = "Temperature 1 (degC)", H1 = "Heater 1 (%)" }}
+constant_inputs = {{ H2 = 0 }}
+
+[[runs]]
+name = "late_clock"
+file = "late_clock.csv"
+role = "validation"
+time_origin = "first_row"
+columns = {{ time = "Time (sec)", T1 = "T1 [K]", T2 = "T2 [K]", H1 = "Q1", H2 = "Q2" }}
+"""
+
+
+def _write_folder(folder):
+    folder.mkdir()
+    (folder / "experiment.toml").write_text(TOML.format(ambient_K=273.15 + AMBIENT_C))
+    t, y1, y2, h1, h2 = _record([(10, 60)], [(80, 40)], seed=1)
+    (folder / "logger.csv").write_text("Time,T1,T2,Q1,Q2\n" + _rows(t, y1, y2, h1, h2))
+    t, y1, y2, h1, h2 = _record([(0, 20), (100, 70)], [(40, 80)], seed=2)
+    (folder / "matlab.csv").write_text(_rows(t, y1, y2 * 9 / 5 + 32, h1, h2))
+    t, y1, _, h1, _ = _record([(20, 90), (140, 10)], [], seed=3)
+    (folder / "one_sensor.csv").write_text(
+        "Time (sec),Temperature 1 (degC),Heater 1 (%)\n" + _rows(t, y1, h1)
+    )
+    t, y1, y2, h1, h2 = _record([(30, 40)], [(10, 70), (120, 20)], seed=4)
+    (folder / "late_clock.csv").write_text(
+        "Time (sec),Q1,Q2,T1 [K],T2 [K]\n" + _rows(t + 1000.0, h1, h2, y1 + 273.15, y2 + 273.15)
+    )
+    return {"late_clock": (t, y1, y2)}
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    root = tmp_path_factory.mktemp("userdata")
+    truth = _write_folder(root / "exp")
+    outcome = fit_experiment_dir(root / "exp", root / "result", lambda m: None)
+    return root, outcome, truth
+
+
+def _read_csv(path):
+    lines = path.read_text().splitlines()
+    header = lines[0].split(",")
+    data = np.array([[float(c) if c else np.nan for c in line.split(",")] for line in lines[1:]])
+    return header, data
+
+
+def test_raw_logs_fit_and_recover_the_board(fitted):
+    _, outcome, _ = fitted
+    r = outcome.result
+    for path, value in TRUE.items():
+        assert r.estimate(path).value == pytest.approx(value, rel=0.03)
+    fs = outcome.fitset
+    one = fs.run_info("one_sensor")
+    assert one.output_columns[1] is None  # no T2 in the single-sensor log
+    e = next(e for e in fs.estimation if e.name == "one_sensor")
+    assert np.all(np.isnan(e.y[:, 1]))
+    # initial temperatures from each sensor's first reading (T2 missing: T1's)
+    assert dict(one.defaults)["initial_T2_K"] == pytest.approx(e.y[0, 0])
+    assert fs.run_info("late_clock").time_shift_s == pytest.approx(1000.0)
+
+
+def test_predictions_reproduce_hand_computed_sae(fitted):
+    root, outcome, truth = fitted
+    out = root / "result"
+    header, d = _read_csv(out / "predictions" / "late_clock.csv")
+    assert header[:3] == ["t_s", "T1_K", "T1_sim_K"]
+    assert "T2_lo95_K" in header and "T2_residual_K" in header
+    t, y1, y2 = truth["late_clock"]
+    np.testing.assert_allclose(d[:, 0], t, atol=1e-6)  # clock shifted to the first row
+    np.testing.assert_allclose(d[:, header.index("T1_K")], y1 + 273.15, atol=1e-3)
+    col = {h: d[:, k] for k, h in enumerate(header)}
+    hand = {
+        ch: float(np.nansum(np.abs(col[f"{ch}_K"] - col[f"{ch}_sim_K"]))) for ch in ("T1", "T2")
+    }
+    lo, hi = col["T1_lo95_K"], col["T1_hi95_K"]
+    assert np.all(lo <= col["T1_sim_K"] + 1e-9) and np.all(col["T1_sim_K"] <= hi + 1e-9)
+    # metrics.csv agrees with the hand computation
+    rows = [line.split(",") for line in (out / "metrics.csv").read_text().splitlines()]
+    assert rows[0] == ["run", "role", "output", "unit", "n", "fit_percent", "rmse", "mae", "sae"]
+    got = {r[2]: float(r[8]) for r in rows[1:] if r[0] == "late_clock"}
+    for ch in ("T1", "T2"):
+        assert got[ch] == pytest.approx(hand[ch], rel=1e-6)
+    # and an independent simulation of the fitted model from the first readings
+    v = next(e for e in outcome.fitset.validation if e.name == "late_clock")
+    model = outcome.result.model
+    measured = np.column_stack([col["T1_K"], col["T2_K"]])  # as written: 6 digits
+    model = greybox.set_values(model, ["initial_T1_K", "initial_T2_K"], list(measured[0]))
+    z = np.asarray(greybox.simulate(model, v.inputs, v.t_s)).reshape(-1, 2)
+    independent = float(np.sum(np.abs(measured - z)))
+    assert got["T1"] + got["T2"] == pytest.approx(independent, rel=1e-4)
+    # single-sensor run: T2 has no reading, no metric
+    one = {r[2]: r for r in rows[1:] if r[0] == "one_sensor"}
+    assert one["T2"][4] == "0" and one["T2"][8] == ""
+    assert outcome.metrics["runs"]["late_clock"]["outputs"]["T1"]["unit"] == "K"
+    units = {r[0]: r[3] for r in rows[1:] if r[2] == "T2"}
+    assert units == {"logger": "degC", "matlab": "degF", "one_sensor": "degC", "late_clock": "K"}
+    total = outcome.metrics["sae_total"]["validation"]["T1"]
+    assert total["unit"] == "degC" and total["sae"] == pytest.approx(got["T1"], rel=1e-9)
+    val = json.loads((out / "validation_runs.json").read_text())
+    assert val["runs"]["late_clock"]["time_shift_s"] == pytest.approx(1000.0)
+    assert "initial_T1_K" in val["runs"]["late_clock"]["settings_from_data"]
+
+
+def test_loader_problems_are_reported_together(tmp_path, capsys):
+    folder = tmp_path / "bad"
+    _write_folder(folder)
+    t, y1, y2, h1, h2 = _record([(10, 60)], [], seed=5)
+    # three problems in three runs: a heater at 150 %, a clock far from 0, no H2 column
+    (folder / "logger.csv").write_text("Time,T1,T2,Q1,Q2\n" + _rows(t, y1, y2, h1 * 2.5, h2))
+    (folder / "one_sensor.csv").write_text(
+        "Time (sec),Temperature 1 (degC),Heater 1 (%)\n" + _rows(t, y1, h1)
+    )
+    toml = (folder / "experiment.toml").read_text()
+    toml = toml.replace('time_origin = "first_row"\n', "").replace(
+        "constant_inputs = { H2 = 0 }\n", ""
+    )
+    (folder / "experiment.toml").write_text(toml)
+    rc = main(["fit", str(folder), "--out", str(tmp_path / "out"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2
+    assert "3 problems" in err[0]
+    assert any("logger.csv" in e and "150 % is above 100 %" in e for e in err)
+    assert any("late_clock.csv:2" in e and "time_origin" in e for e in err)
+    assert any("one_sensor.csv" in e and "constant_inputs" in e for e in err)
+    assert not (tmp_path / "out").exists()
+
+
+def test_unit_spellings_convert_through_pint():
+    from greybox.io._units import channel_conversion, conversion
+
+    t1 = tclab.OUTPUTS[0]
+    assert channel_conversion(t1, "C") == (1.0, 273.15)  # the historic T1_C
+    scale, offset = channel_conversion(t1, "degF")
+    assert scale * 212 + offset == pytest.approx(373.15)
+    assert channel_conversion(tclab.INPUTS[0], "pct") == (1.0, 0.0)
+    assert conversion("mW", "W") == pytest.approx((1e-3, 0.0))
+    assert conversion("ms", "s") == pytest.approx((1e-3, 0.0))
+    with pytest.raises(ValueError, match="not a unit of K"):
+        channel_conversion(t1, "mW")
+
+
+def test_simulate_drives_both_heaters_and_writes_every_channel(fitted, tmp_path):
+    root, _, _ = fitted
+    params = root / "result" / "params.json"
+    out = tmp_path / "sim"
+    rc = main(
+        [
+            "simulate",
+            "--params",
+            str(params),
+            "--waveform",
+            "H1=pulse:H1_pct=50,period_s=100,duty=0.5,n=2",
+            "--waveform",
+            "H2=const:30",
+            "--dt-ms",
+            "2000",
+            "--out",
+            str(out),
+        ]
+    )
+    assert rc == 0
+    header, d = _read_csv(out / "simulation.csv")
+    assert header == [  # outputs in the unit of the fit's files (params.json file_units)
+        "t_s",
+        "T1_degC",
+        "T1_lo95_degC",
+        "T1_hi95_degC",
+        "T2_degC",
+        "T2_lo95_degC",
+        "T2_hi95_degC",
+        "H1_pct",
+        "H2_pct",
+    ]
+    assert set(d[:, 8]) == {30.0} and set(d[:, 7]) == {0.0, 50.0}
+    assert np.all(d[1:, 4] > d[0, 4])  # heater 2 warms sensor 2
+    # a CSV with every input column drives the same response
+    trace = tmp_path / "trace.csv"
+    trace.write_text("t_s,H1_pct,H2_pct\n" + _rows(d[:-1, 0], d[:-1, 7], d[:-1, 8]))
+    rc = main(
+        ["simulate", "--params", str(params), "--waveform", str(trace), "--dt-ms", "2000",
+         "--out", str(tmp_path / "sim2")]
+    )  # fmt: skip
+    assert rc == 0
+    _, d2 = _read_csv(tmp_path / "sim2" / "simulation.csv")
+    np.testing.assert_allclose(d2[:, 1:7], d[: len(d2), 1:7], rtol=1e-9)
+
+
+def test_state_space_export_matches_the_fitted_model(fitted):
+    import control
+
+    from greybox.io._export import to_state_space
+
+    _, outcome, _ = fitted
+    r = outcome.result
+    ex = to_state_space(r.model, fit=r)
+    assert not ex.linearised
+    # steady state of a constant 50 % on heater 1: python-control's DC gain vs a long
+    # simulation of the fitted model
+    t = np.array([0.0, 2e4, 4e4])
+    wave = greybox.from_samples(np.array([0.0]), np.array([[50.0, 0.0]]), end_s=4e4)
+    y = np.asarray(greybox.simulate(r.model, wave, t)).reshape(3, 2)
+    dc = np.asarray(control.dcgain(ex.system)).reshape(2, 2)
+    np.testing.assert_allclose(ex.y_op + dc[:, 0] * 50.0, y[-1], rtol=1e-6)
+    assert ex.parameter_paths == tuple(TRUE)
+    se = np.sqrt(np.diag(ex.covariance))
+    for k, path in enumerate(ex.parameter_paths):
+        assert se[k] == pytest.approx(r.estimate(path).se, rel=1e-6)
+    discrete = to_state_space(r.model, dt=2.0).system
+    assert discrete.dt == 2.0

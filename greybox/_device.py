@@ -14,22 +14,26 @@ physical outputs y (displacement [m], temperature [K]) observed through its `cam
 which simulation path a device may use.
 """
 
-from __future__ import annotations
-
 import abc
 
 import equinox as eqx
 import jax.numpy as jnp
 
-from greybox.blocks._camera import Camera
+from greybox.blocks._camera import AbstractReadout, Camera
 
 METHODS = ("zoh", "adaptive")
 
 
 class AbstractDevice(eqx.Module):
-    """Anything `simulate` and `fit` can drive: inputs in, camera readings out."""
+    """Anything `simulate` and `fit` can drive: inputs in, readings out.
 
-    camera: eqx.AbstractVar[Camera]
+    `readout` turns the physical outputs into the readings of the files: a `Camera` for a
+    filmed device (a `camera` field, with `readout` a property returning it) or a
+    `SensorReadout` for a sensor."""
+
+    # (no `from __future__ import annotations` in this module: equinox must see this
+    # annotation as an AbstractVar for a subclass's `readout` property to satisfy it)
+    readout: eqx.AbstractVar[AbstractReadout]
 
     @property
     @abc.abstractmethod
@@ -146,10 +150,16 @@ def with_camera(model, *, exposure_s: float | None = None, m_per_px: float | Non
     """`model` with its camera's exposure time [s] and/or image scale [m/px] replaced.
 
     The exposure is structural (it sets the quadrature nodes), so it cannot be changed as a
-    parameter value; this rebuilds the camera block with every other field kept."""
+    parameter value; this rebuilds the camera block with every other field kept. A device
+    read out by a sensor, not a camera, has neither: asking for them is an error."""
     if exposure_s is None and m_per_px is None:
         return model
-    cam = model.camera
+    cam = model.readout
+    if not isinstance(cam, Camera):
+        raise ValueError(
+            f"camera: {type(model).__name__} is read out by a {type(cam).__name__}, not a "
+            "camera; it has no exposure or image scale"
+        )
     new_cam = type(cam)(
         m_per_px=cam.m_per_px if m_per_px is None else float(m_per_px),
         exposure_s=cam.exposure_s if exposure_s is None else float(exposure_s),
@@ -157,4 +167,4 @@ def with_camera(model, *, exposure_s: float | None = None, m_per_px: float | Non
         drift_m_per_s=cam.drift_m_per_s,
         n_quadrature=cam.n_quadrature,
     )
-    return eqx.tree_at(lambda m: m.camera, model, new_cam)
+    return eqx.tree_at(lambda m: m.camera, model, new_cam)  # a camera device's field

@@ -321,12 +321,12 @@ def observe_schedule(
         raise ValueError(f"method: {method!r} is unknown; use one of {METHODS}")
     outputs = jax.vmap(model.output)(states)
     outputs = outputs.reshape(n_frames, -1, outputs.shape[-1])
-    z = model.camera.observe(outputs, sched["t_s"], sched["t_start"])
+    z = model.readout.observe(outputs, sched["t_s"], sched["t_start"])
     return z, ok
 
 
 def schedule_for(model: AbstractDevice, inputs, t_s, *, t_start_s: float = 0.0) -> Schedule:
-    offsets, _ = model.camera.quadrature()
+    offsets, _ = model.readout.quadrature()
     return Schedule.build(
         inputs.to_piecewise(), t_s, offsets, t_start_s=t_start_s, n_inputs=model.n_inputs
     )

@@ -21,6 +21,7 @@ import numpy as np
 from greybox import AbstractODEDevice, ParameterInfo
 from greybox.blocks import (
     AbstractThermal,
+    Camera,
     ChevronExact,
     ChevronLinear,
     QuasiStaticShuttle,
@@ -158,6 +159,12 @@ class AbstractThermalChevron(AbstractODEDevice):
     elongation: eqx.AbstractVar[ThermalElongation]
     kinematics: eqx.AbstractVar[ChevronExact | ChevronLinear]
     shuttle: eqx.AbstractVar[QuasiStaticShuttle]
+    camera: eqx.AbstractVar[Camera]
+
+    @property
+    def readout(self) -> Camera:
+        """The shuttle is filmed: the camera is the readout."""
+        return self.camera
 
     @abc.abstractmethod
     def heat_W(self, u, x):

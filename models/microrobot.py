@@ -121,6 +121,11 @@ class MicroRobot(AbstractSteppedDevice):
     substep_growth: float = eqx.field(static=True, default=2.0)
 
     @property
+    def readout(self) -> Camera:
+        """The two features are filmed: the camera is the readout."""
+        return self.camera
+
+    @property
     def n_states(self) -> int:
         return N_STATES
 
@@ -187,7 +192,7 @@ class MicroRobot(AbstractSteppedDevice):
         grid = self.grid_states(self.initial_state(), sched["dt"], sched["u_grid"][:, 0])
         outputs = jax.vmap(self.output)(grid[sched["eval_index"]])
         n_frames = sched["t_s"].shape[0]
-        z = self.camera.observe(outputs.reshape(n_frames, -1, 4), sched["t_s"], sched["t_start"])
+        z = self.readout.observe(outputs.reshape(n_frames, -1, 4), sched["t_s"], sched["t_start"])
         return z, jnp.all(jnp.isfinite(z))
 
 

@@ -41,7 +41,7 @@ from greybox import (
     Option,
     ParameterInfo,
 )
-from greybox.blocks import STEFAN_BOLTZMANN, Camera, ThermalNetwork
+from greybox.blocks import STEFAN_BOLTZMANN, SensorReadout, ThermalNetwork
 
 NAME = "tclab"
 _PCT = {"pct": (1.0, 0.0)}
@@ -97,7 +97,7 @@ class AbstractTCLab(AbstractODEDevice):
     alpha2_W_per_pct: float
     tau1_s: float
     tau2_s: float
-    camera: Camera
+    readout: SensorReadout
     initial_T1_K: float = AMBIENT_K
     initial_T2_K: float = AMBIENT_K
     ambient_K: float = AMBIENT_K
@@ -194,7 +194,7 @@ def build(
     cls = TCLab if radiation else LinearTCLab
     return cls(
         **PUBLISHED,
-        camera=Camera(m_per_px=1.0, exposure_s=0.0),
+        readout=SensorReadout(),
         radiation=radiation,
         shared_sensor_lag=shared_sensor_lag,
     )

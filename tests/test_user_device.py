@@ -64,7 +64,7 @@ def lab(tmp_path_factory):
         '[experiment]\ndevice = "../my_devices/msd.py:SPEC"\n\n[model]\nmass_kg = 2.0\n\n'
         "[fit]\nfree = [\n"
         '  "stiffness_N_per_m",\n  "damping_N_s_per_m",\n'
-        '  { path = "camera.offset_m", per_run = true, scale = 1e-3 },\n]\n\n' + "\n".join(runs)
+        '  { path = "readout.offset", per_run = true, scale = 1e-3 },\n]\n\n' + "\n".join(runs)
     )
     out = root / "result"
     assert main(["fit", str(exp), "--out", str(out), "--quiet"]) == 0

@@ -45,7 +45,7 @@ from greybox import (
     Option,
     ParameterInfo,
 )
-from greybox.blocks import Camera
+from greybox.blocks import SensorReadout
 
 # Controller constants stored in DATA_EMPS.mat / DATA_EMPS_PULSES.mat
 GTAU_N_PER_V = 35.15065188
@@ -84,7 +84,7 @@ class EMPS(AbstractSteppedDevice):
     Fv_N_s_per_m: float
     Fc_N: float
     offset_N: float
-    camera: Camera
+    readout: SensorReadout  # the encoder: position + offset, no blur
     gtau_N_per_V: float = GTAU_N_PER_V
     kp_per_s: float = KP_PER_S
     kv_V_s_per_m: float = KV_V_S_PER_M
@@ -160,7 +160,7 @@ class EMPS(AbstractSteppedDevice):
         grid = self.grid_states(self.initial_state(), sched["dt"], sched["u_grid"])
         outputs = jax.vmap(self.output)(grid[sched["eval_index"]])
         n_frames = sched["t_s"].shape[0]
-        z = self.camera.observe(outputs.reshape(n_frames, -1, 1), sched["t_s"], sched["t_start"])
+        z = self.readout.observe(outputs.reshape(n_frames, -1, 1), sched["t_s"], sched["t_start"])
         return z, jnp.all(jnp.isfinite(z))
 
 
@@ -168,7 +168,7 @@ def build(*, v_eps_m_per_s: float = 1e-3, substeps: int = 2) -> EMPS:
     """EMPS at the round starting guesses `NOMINAL`, read by an encoder (no camera blur)."""
     return EMPS(
         **NOMINAL,
-        camera=Camera(m_per_px=1.0, exposure_s=0.0),
+        readout=SensorReadout(),
         v_eps_m_per_s=v_eps_m_per_s,
         substeps=substeps,
     )

@@ -4,7 +4,9 @@ Each block is an Equinox module with SI fields whose names carry their unit; blo
 solve, fit or read files. Import them from here, not from the private modules.
 """
 
+from greybox.blocks._camera import AbstractReadout as AbstractReadout
 from greybox.blocks._camera import Camera as Camera
+from greybox.blocks._camera import SensorReadout as SensorReadout
 from greybox.blocks._contacts import FrictionContacts as FrictionContacts
 from greybox.blocks._contacts import FrictionLaw as FrictionLaw
 from greybox.blocks._contacts import PlayContacts as PlayContacts

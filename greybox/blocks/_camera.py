@@ -1,4 +1,8 @@
-"""Camera observation block (PHYSICS.md §10): exposure averaging, offset, drift, pixel scale.
+"""Readout blocks: how a device's physical output becomes the readings in its files.
+
+`Camera` (PHYSICS.md §10): exposure averaging, offset, drift, pixel scale; `SensorReadout`: an
+instantaneous sensor (a thermometer, an encoder) with an offset and a drift. Both give the
+readings at frame times from the outputs at their quadrature instants.
 
 z_k = (1/T_e) int_{t_k - T_e}^{t_k} y(t) dt + offset + drift (t_k - t_0), in m; `to_px` divides
 by the scale. The exposure integral uses Gauss-Legendre nodes inside the window, so both
@@ -7,12 +11,40 @@ simulation paths evaluate the state at the same instants.
 
 from __future__ import annotations
 
+import abc
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 
-class Camera(eqx.Module):
+class AbstractReadout(eqx.Module):
+    """Outputs y(t) at each frame's quadrature instants -> one reading per frame."""
+
+    @abc.abstractmethod
+    def quadrature(self) -> tuple[np.ndarray, np.ndarray]:
+        """(offsets [s] <= 0 relative to the frame time, weights summing to 1)."""
+
+    @abc.abstractmethod
+    def observe(self, y_quad, t_s, t_ref_s=0.0):
+        """Readings (N, n_y) [SI] from outputs (N, n_quadrature, n_y) at frame times (N,)."""
+
+
+class SensorReadout(AbstractReadout):
+    """An instantaneous sensor: reading = output + `offset` + `drift_per_s` (t - t0), in the
+    output's SI unit (K for a thermometer, m for an encoder)."""
+
+    offset: float = 0.0
+    drift_per_s: float = 0.0
+
+    def quadrature(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros(1), np.ones(1)
+
+    def observe(self, y_quad, t_s, t_ref_s=0.0):
+        return y_quad[:, 0, :] + self.offset + self.drift_per_s * (t_s - t_ref_s)[:, None]
+
+
+class Camera(AbstractReadout):
     """- `m_per_px`: image scale [m/px] (calibrated, e.g. with a stage micrometer).
     - `exposure_s`: exposure time [s] (a known setting; 0 = instantaneous sampling).
     - `offset_m`: position of the reference (zero) in the image [m]; usually per experiment.

@@ -294,6 +294,21 @@ def _unit_error(table, channel, col, unit, problem, mapped):
     )
 
 
+def _mapped_column(table: CsvTable, mapped: tuple, target: str) -> tuple:
+    """(column, unit or None) of an experiment.toml mapping to `target` (a channel or time),
+    the column checked against the header; the unit defaults to one in brackets in its name."""
+    col, unit, where = mapped
+    if col not in table.header:
+        raise InputError(
+            f"column {excerpt(col)} (mapped to {target} in {where}) is not in the header "
+            f"({_header_text(table.header)}); fix the mapping or the header",
+            file=table.file,
+            line=table.header_line,
+            field=target,
+        )
+    return col, unit if unit is not None else unit_in_name(col)
+
+
 def find_column(
     table: CsvTable,
     channel: Channel,
@@ -313,16 +328,8 @@ def find_column(
     from greybox.io._units import channel_conversion
 
     if mapped is not None:
-        col, unit, where = mapped
-        if col not in table.header:
-            raise InputError(
-                f"column {excerpt(col)} (mapped to {channel.name} in {where}) is not in the "
-                f"header ({_header_text(table.header)}); fix the mapping or the header",
-                file=table.file,
-                line=table.header_line,
-                field=channel.name,
-            )
-        unit = unit if unit is not None else unit_in_name(col)
+        col, unit = _mapped_column(table, mapped, channel.name)
+        where = mapped[2]
         if unit is None and col.startswith(channel.name + "_"):
             unit = col[len(channel.name) + 1 :]
         if unit is None and channel.si_unit in ("%", "1", ""):
@@ -387,16 +394,8 @@ def time_column(table: CsvTable, mapped: tuple | None = None) -> tuple:
 
     ref = None
     if mapped is not None:
-        col, unit, where = mapped
-        if col not in table.header:
-            raise InputError(
-                f"column {excerpt(col)} (mapped to time in {where}) is not in the header "
-                f"({_header_text(table.header)}); fix the mapping or the header",
-                file=table.file,
-                line=table.header_line,
-                field="time",
-            )
-        unit = unit if unit is not None else unit_in_name(col)
+        col, unit = _mapped_column(table, mapped, "time")
+        where = mapped[2]
         if unit is None and re.fullmatch(r"(t|time)_\w+", col):
             unit = col.split("_", 1)[1]
         if unit is None:

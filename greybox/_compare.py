@@ -27,7 +27,8 @@ RULES = ("aic", "bic")
 class CandidateScore:
     """How one structure did: its name, options and free list as fitted, the criteria, fit %
     per run and output (estimation and validation, simulation), the residual verdict and the
-    fit's status (converged / at bound / local optimum ...)."""
+    fit's status (converged / at bound / local optimum ...), and `note`: what `compare` did
+    beyond the fit (a re-start from a nested structure's estimate)."""
 
     name: str
     options: dict
@@ -43,6 +44,7 @@ class CandidateScore:
     status: str
     valid: bool
     message: str
+    note: str = ""  # how compare treated it beyond the fit (a nested-structure re-start)
 
 
 def gaussian_loglik(experiments: Sequence, predictions: Sequence) -> tuple[float, int, int]:
@@ -84,6 +86,24 @@ def score(name: str, options: dict, result, validation=None) -> CandidateScore:
         valid=bool(result.valid),
         message=result.message,
     )
+
+
+def nested_pairs(scores: Sequence[CandidateScore]) -> list[tuple[int, int]]:
+    """(larger, nested) index pairs where candidate `nested` has the same options and a free
+    set strictly inside `larger`'s, yet a higher log-likelihood on the same estimation data.
+
+    The larger structure contains the nested one (its extra parameters at their starting
+    values), so its maximum likelihood can only be at least as high: a lower value means its
+    fit stopped at a local optimum, and it should be re-started from the nested estimate."""
+    out = []
+    for i, big in enumerate(scores):
+        for j, small in enumerate(scores):
+            if i == j or big.options != small.options or not set(small.free) < set(big.free):
+                continue
+            tol = 1e-6 * max(1.0, abs(small.loglik))
+            if np.isfinite(small.loglik) and not big.loglik >= small.loglik - tol:
+                out.append((i, j))
+    return out
 
 
 def preferred(scores: Sequence[CandidateScore], rule: str = "aic") -> CandidateScore | None:

@@ -41,7 +41,13 @@ from greybox._identifiability import IdentifiabilityReport, analyse
 from greybox._metrics import fit_percent_per_output, noise_ceiling
 from greybox._parameters import get_value, set_values
 from greybox._posterior import Posterior
-from greybox._residuals import GoodnessOfFit, ResidualAnalysis, goodness_of_fit, hac_meat
+from greybox._residuals import (
+    GoodnessOfFit,
+    ResidualAnalysis,
+    goodness_of_fit,
+    hac_meat,
+    model_error_residuals,
+)
 from greybox._residuals import analyse as analyse_residuals
 from greybox._simulate import (
     as_arrays,
@@ -401,12 +407,24 @@ def _perturbed(problem: _Problem, raw0: np.ndarray, rng: np.random.Generator) ->
 
 
 def _robust_sigma(r_scaled: np.ndarray, w: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """Per-output noise scale from the median absolute residual (robust to outliers)."""
-    out = []
+    """Per-output noise scale from the median absolute residual (robust to outliers).
+
+    `r_scaled`: residuals divided by `sigma`; `w`: their weights (0 = no valid reading). An
+    output with no valid reading in any run (a single-sensor log of a two-sensor device)
+    carries no weight in the fit and has nothing to estimate its noise from: it keeps its
+    scale `sigma[j]` (the declared noise, or the fit's starting guess), never NaN."""
+    out = np.asarray(sigma, dtype=float).copy()
     for j in range(r_scaled.shape[-1]):
         vals = np.abs(r_scaled[..., j][w[..., j] > 0])
-        out.append(1.4826 * np.median(vals) * sigma[j])
-    return np.maximum(np.asarray(out), 1e-300)
+        if vals.size:
+            out[j] = 1.4826 * np.median(vals) * sigma[j]
+    return np.maximum(out, 1e-300)
+
+
+def _outputs_without_data(w: np.ndarray) -> list[int]:
+    """Indices of the outputs with no valid reading in any run (weight 0 everywhere)."""
+    w = np.asarray(w)
+    return [j for j in range(w.shape[-1]) if not np.any(w[..., j] > 0)]
 
 
 def _noise_source(experiments, sigma) -> str:
@@ -464,7 +482,8 @@ def fit(
     - `loss`: "huber" (default; threshold `huber_c` sigmas), "student_t" (`student_nu` dof) or "l2".
     - `sigma`: known measurement noise [SI] per output (declared): the readings are weighted
       by it, it is not re-estimated, and the residuals are tested against it. None estimates
-      it robustly from the residuals.
+      it robustly from the residuals; an output with no valid reading in any run is left out
+      of the fit and keeps the starting guess (or its declared value) as its `sigma`.
     - `n_starts`, `seed`: multi-start count and its random seed; None starts `AUTO_STARTS`
       times when more than two shared parameters are free, else once.
     - `max_steps`, `rtol`, `atol`: Levenberg-Marquardt budget and tolerances (raw space).
@@ -512,6 +531,13 @@ def fit(
             f"{problem.n_raw} parameters; add data or free fewer parameters"
         )
     raw0 = _initial_raw(problem, model)
+    empty = _outputs_without_data(np.asarray(problem.w))
+    if empty:
+        say(
+            f"output(s) {', '.join(str(j + 1) for j in empty)} have no valid reading in any "
+            "run: left out of the fit; their noise scale is not estimated (it stays at the "
+            "declared sigma, or the starting guess)"
+        )
 
     def solve(raw_start, sig):
         return _solve(problem, raw_start, sig, float(rtol), float(atol), int(max_steps))
@@ -599,13 +625,25 @@ def _residual_runs(experiments, predictions) -> list:
     return out
 
 
-def _scores(problem: _Problem, jac_data: np.ndarray, resid: np.ndarray, experiments) -> list:
-    """(t_s, per-frame score contributions (N, P)) per run: g_t = sum_outputs J_t^T r_t."""
+def _scores(
+    problem: _Problem, jac_data: np.ndarray, resid: np.ndarray, experiments, lags: int
+) -> tuple[list, int]:
+    """((t_s, per-frame score contributions (N, P)) per run, model-error coefficients fitted):
+    g_t = sum_outputs J_t^T r~_t, r~ the residuals less their FIR model-error model on the
+    run's input levels at frame lags 0..`lags`-1 on the frame grid (as the residual analysis
+    counts lags; `_residuals.model_error_residuals`)."""
     e_n, n_f, n_y = problem.y.shape
     j4 = jac_data.reshape(e_n, n_f, n_y, -1)
     r3 = resid.reshape(e_n, n_f, n_y)
-    g = np.einsum("efyp,efy->efp", j4, r3)
-    return [(e.t_s, g[i, : e.n_frames]) for i, e in enumerate(experiments)]
+    w3 = np.asarray(problem.w).reshape(e_n, n_f, n_y) > 0
+    out, fitted = [], 0
+    for i, e in enumerate(experiments):
+        n = e.n_frames
+        u = np.asarray(e.inputs(e.t_s), dtype=float).reshape(n, -1)  # levels at the frames
+        r, k = model_error_residuals(e.t_s, r3[i, :n], w3[i, :n], u, lags)
+        fitted += k
+        out.append((e.t_s, np.einsum("fyp,fy->fp", j4[i, :n], r)))
+    return out, fitted
 
 
 def _assemble(
@@ -627,12 +665,14 @@ def _assemble(
     n_y = problem.y.shape[-1]
     residuals = analyse_residuals(_residual_runs(experiments, preds))
 
-    # Gauss-Newton and Newey-West sandwich covariance (same determined subspace)
+    # Gauss-Newton and HAC sandwich covariance (same determined subspace); the meat leaves
+    # out what the inputs explain of the residuals (misfit, not noise: `_residuals`)
     cov_gn = report.covariance_raw
     hac = None
     if finite:
         resid = np.asarray(best["residuals"])[:n_rows_data]
-        hac = hac_meat(_scores(problem, jac[:n_rows_data], resid, experiments))
+        scores, n_error = _scores(problem, jac[:n_rows_data], resid, experiments, residuals.max_lag)
+        hac = hac_meat(scores, n_readings=problem.n_data, n_fitted=problem.n_raw + n_error)
         jp = jac[n_rows_data:]
         cov_hac = cov_gn @ (hac.meat + jp.T @ jp) @ cov_gn
     else:
@@ -893,7 +933,9 @@ class ValidationResult:
     simulation fit %, never one-step prediction. Per run name: `fit_percent`,
     `fit_percent_robust`, `noise_ceiling` ((n_y,) per output), `n_outliers`; `residuals`: the
     residual analysis of the validation runs; `goodness_of_fit`: against the known noise
-    (None when the fit estimated it).
+    (None when the fit estimated it); `parameters`: the per-run values re-fitted on the
+    validation runs (`ParameterEstimate`s with `experiment` set to the run; empty when the
+    fit has no per-run parameter).
     """
 
     experiments: tuple
@@ -905,6 +947,11 @@ class ValidationResult:
     residuals: ResidualAnalysis
     goodness_of_fit: GoodnessOfFit | None = None
     horizon: str = "simulation"
+    parameters: tuple = ()
+
+    def refitted(self, run: str) -> dict:
+        """{path: ParameterEstimate} re-fitted on validation run `run`."""
+        return {p.path: p for p in self.parameters if p.experiment == run}
 
 
 def validate(
@@ -938,7 +985,8 @@ def validate(
         fit_kwargs.setdefault("sigma", result.sigma)
     nuisance = fit(result.model, experiments, per_exp, **fit_kwargs)
     preds = [nuisance.predict(i) for i in range(len(experiments))]
-    return _validation_scores(experiments, preds, result.sigma, known, nuisance.n_params)
+    scores = _validation_scores(experiments, preds, result.sigma, known, nuisance.n_params)
+    return dataclasses.replace(scores, parameters=tuple(nuisance.parameters))
 
 
 def _validation_scores(experiments, preds, sigma, known: bool, n_params: int):

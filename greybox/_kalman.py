@@ -446,11 +446,31 @@ def _cholesky_solve(S, rhs):
     return jnp.log(jnp.stack([L[j][j] for j in range(q)])), jnp.stack(rows)
 
 
+def measurement_update(m_p, P_p, y_i, y_hat, H, R):
+    """Kalman update at one frame, NaN readings skipped: (mean, covariance, log-likelihood
+    term) after reading `y_i` predicted as `y_hat` with output Jacobian `H` and noise `R`."""
+    n = m_p.shape[0]
+    mask = jnp.isfinite(y_i)
+    v = jnp.where(mask, jnp.where(mask, y_i, 0.0) - y_hat, 0.0)
+    Hm = jnp.where(mask[:, None], H, 0.0)
+    both = mask[:, None] & mask[None, :]
+    Rm = jnp.where(both, R, 0.0) + jnp.diag(jnp.where(mask, 0.0, 1.0))
+    S = Hm @ P_p @ Hm.T + Rm
+    # one triangular solve gives W = L^{-1} H P and w = L^{-1} v: K v = W^T w, K S K^T = W^T W
+    log_diag_L, Ww = _cholesky_solve(S, jnp.concatenate([Hm @ P_p, v[:, None]], axis=1))
+    W, w = Ww[:, :n], Ww[:, n]
+    m_f = m_p + W.T @ w
+    P_f = P_p - W.T @ W
+    P_f = 0.5 * (P_f + P_f.T)
+    n_obs = jnp.sum(mask.astype(S.dtype))
+    ll_i = -0.5 * (w @ w) - jnp.sum(log_diag_L) - 0.5 * _LOG_2PI * n_obs
+    return m_f, P_f, ll_i
+
+
 def _run(model: LinearGaussianSDE, grid: FilterGrid, y, keep_path: bool):
     """Forward pass over the L grid steps; per-step moments when `keep_path`."""
     y = _as_rows(model, grid, y)
     dtype = jnp.result_type(model.A, y)
-    n = model.n_states
     Ad, Bd, Qd = discretise(model.A, model.B, model.Qc, jnp.asarray(grid.dt_s, dtype))
     is_frame = grid.frame >= 0
     idx = jnp.maximum(grid.frame, 0)
@@ -465,20 +485,7 @@ def _run(model: LinearGaussianSDE, grid: FilterGrid, y, keep_path: bool):
         P_p = 0.5 * (P_p + P_p.T)
         y_hat = model.observe(m_p, uo_i)
         H = jax.jacfwd(model.observe)(m_p, uo_i) if model.output is not None else model.C
-        mask = jnp.isfinite(y_i)
-        v = jnp.where(mask, jnp.where(mask, y_i, 0.0) - y_hat, 0.0)
-        Hm = jnp.where(mask[:, None], H, 0.0)
-        both = mask[:, None] & mask[None, :]
-        Rm = jnp.where(both, model.R, 0.0) + jnp.diag(jnp.where(mask, 0.0, 1.0))
-        S = Hm @ P_p @ Hm.T + Rm
-        # one triangular solve gives W = L^{-1} H P and w = L^{-1} v: K v = W^T w, K S K^T = W^T W
-        log_diag_L, Ww = _cholesky_solve(S, jnp.concatenate([Hm @ P_p, v[:, None]], axis=1))
-        W, w = Ww[:, :n], Ww[:, n]
-        m_f = m_p + W.T @ w
-        P_f = P_p - W.T @ W
-        P_f = 0.5 * (P_f + P_f.T)
-        n_obs = jnp.sum(mask.astype(dtype))
-        ll_i = -0.5 * (w @ w) - jnp.sum(log_diag_L) - 0.5 * _LOG_2PI * n_obs
+        m_f, P_f, ll_i = measurement_update(m_p, P_p, y_i, y_hat, H, model.R)
         out = None
         if keep_path:
             S_full = H @ P_p @ H.T + model.R

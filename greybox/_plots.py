@@ -192,39 +192,57 @@ def band_figure(
     inputs,
     *,
     title: str = "",
-    output_label: tuple = ("shuttle displacement", "m"),
-    input_label: tuple = ("laser power", "W"),
-) -> None:
-    """Simulated response with its band, and the input waveform beneath."""
-    fy, uy = display_unit(output_label[1])
-    fu, uu = display_unit(input_label[1])
+    output_labels: tuple = (("shuttle displacement", "m"),),
+    input_labels: tuple = (("laser power", "W"),),
+):
+    """Simulated response with its band, one panel per output channel (`output_labels`:
+    (description, SI unit) per output), and one panel per input channel beneath
+    (`input_labels`). Returns the matplotlib `Figure` (already saved to `path`)."""
     t = np.asarray(band.t_s)
-    fig = _figure(9.0, 5.2)
-    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[3, 1])
-    lo, hi = band.lower[:, 0] * fy, band.upper[:, 0] * fy
-    finite = np.isfinite(lo) & np.isfinite(hi)
-    top.fill_between(
-        t,
-        np.where(finite, lo, np.nan),
-        np.where(finite, hi, np.nan),
-        color="C0",
-        alpha=0.25,
-        lw=0,
-        label=f"{band.level * 100:g} % "
-        f"{'prediction interval' if band.includes_noise else 'confidence band'}",
-    )
-    top.plot(t, band.y[:, 0] * fy, "-", color="C0", lw=1.3, label="model (simulation)")
-    top.set_ylabel(f"{output_label[0]} [{uy}]\n(from rest)")
-    top.set_title(title or "Simulated response", fontsize=10)
-    top.legend(loc="upper right", fontsize=8)
-    top.grid(alpha=0.3)
+    y = _columns(band.y, t.size)
+    lower, upper = _columns(band.lower, t.size), _columns(band.upper, t.size)
+    n_y = y.shape[1]
     tt, vv = _steps(inputs, float(t.min()), float(t.max()))
-    bottom.step(tt, vv[:, 0] * fu, where="post", color="C1", lw=1.0)
-    bottom.set_ylabel(f"{input_label[0]}\n[{uu}]")
-    bottom.set_xlabel("time [s]")
-    bottom.set_xlim(float(t.min()), float(t.max()))
-    bottom.grid(alpha=0.3)
+    n_u = vv.shape[1]
+    output_labels = tuple(output_labels) + tuple(
+        (f"output {j + 1}", "") for j in range(len(output_labels), n_y)
+    )
+    input_labels = tuple(input_labels) + tuple(
+        (f"input {k + 1}", "") for k in range(len(input_labels), n_u)
+    )
+    fig = _figure(9.0, 1.0 + 2.2 * n_y + 1.1 * n_u)
+    axes = fig.subplots(n_y + n_u, 1, sharex=True, height_ratios=[3] * n_y + [1] * n_u)
+    axes = np.atleast_1d(axes)
+    kind = "prediction interval" if band.includes_noise else "confidence band"
+    for j in range(n_y):
+        ax = axes[j]
+        fy, uy = display_unit(output_labels[j][1])
+        lo, hi = lower[:, j] * fy, upper[:, j] * fy
+        finite = np.isfinite(lo) & np.isfinite(hi)
+        ax.fill_between(
+            t,
+            np.where(finite, lo, np.nan),
+            np.where(finite, hi, np.nan),
+            color=f"C{j}",
+            alpha=0.25,
+            lw=0,
+            label=f"{band.level * 100:g} % {kind}",
+        )
+        ax.plot(t, y[:, j] * fy, "-", color=f"C{j}", lw=1.3, label="model (simulation)")
+        ax.set_ylabel(f"{output_labels[j][0]}\n[{uy}]", fontsize=8)
+        ax.legend(loc="upper right", fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[0].set_title(title or "Simulated response", fontsize=10)
+    for k in range(n_u):
+        ax = axes[n_y + k]
+        fu, uu = display_unit(input_labels[k][1])
+        ax.step(tt, vv[:, k] * fu, where="post", color="0.3", lw=1.0)
+        ax.set_ylabel(f"{input_labels[k][0]}\n[{uu}]", fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("time [s]")
+    axes[-1].set_xlim(float(t.min()), float(t.max()))
     fig.savefig(Path(path), dpi=DPI)
+    return fig
 
 
 def residual_correlation_figure(path, analysis, *, outputs=None, input_labels=None) -> None:

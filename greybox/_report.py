@@ -10,6 +10,8 @@ are white (a model that misses dynamics leaves structure in them, however good i
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from greybox._fit import OUTLIER_SIGMAS
@@ -57,12 +59,20 @@ def display_unit(unit: str, value: float | None = None) -> tuple[float, str]:
         and value != 0
         and unit
         and unit[0] not in "K%1-"
+        and not _leading_power(unit)
         and not 1e-2 <= abs(value) < 1e4
     ):
         for factor, prefix in _PREFIXES:
             if abs(value) * factor >= 1.0 or factor == _PREFIXES[-1][0]:
                 return factor, prefix + unit
     return 1.0, unit
+
+
+def _leading_power(unit: str) -> bool:
+    """True when the unit's leading factor carries a power (m^2/s) or is not a plain symbol:
+    a prefix would then apply to the power (nm^2 is 1e-18 m^2, not 1e-9 m^2)."""
+    head = re.match(r"[A-Za-z]+(\^)?", unit)
+    return head is None or head.group(1) is not None
 
 
 def fmt(x, digits: int = 4) -> str:
@@ -256,8 +266,11 @@ def error_lines(result) -> list[str]:
             "ones; the Newey-West (HAC) sandwich ones are shown beside them and should agree"
         )
     return [
-        f"Standard errors: {why}. HAC: Bartlett kernel, bandwidth {result.hac_bandwidth} "
-        "frames from Andrews' (1991) AR(1) plug-in rule on the score contributions.",
+        f"Standard errors: {why}. HAC: the part of the residuals explained by the inputs "
+        "(an FIR model-error model, Ljung and Guo 1997) is removed first, the score "
+        "contributions are prewhitened by a VAR(1) (Andrews and Monahan 1992), then a "
+        f"Bartlett kernel with bandwidth {result.hac_bandwidth} frames (Andrews' 1991 AR(1) "
+        "plug-in rule) and an n/(n-k) degrees-of-freedom factor.",
     ]
 
 

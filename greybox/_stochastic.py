@@ -38,6 +38,7 @@ import scipy.stats
 
 from greybox._kalman import FilterGrid, LinearGaussianSDE, free_run, kalman_filter, log_likelihood
 from greybox._metrics import fit_percent
+from greybox._residuals import LjungBox, ljung_box  # the one portmanteau core
 from greybox._simulate import require_x64
 
 __all__ = [
@@ -49,38 +50,6 @@ __all__ = [
 ]
 
 _Z95 = float(scipy.stats.norm.ppf(0.975))
-
-
-@dataclasses.dataclass(frozen=True)
-class LjungBox:
-    """Ljung-Box portmanteau test: Q = n (n + 2) sum_{k=1}^{h} r_k^2 / (n - k) ~ chi2(h - dof).
-
-    `p_value` small (say < 0.01) means the series is autocorrelated, i.e. not white.
-    """
-
-    statistic: float
-    p_value: float
-    lags: int
-    n: int
-
-
-def ljung_box(x, lags: int = 20, dof: int = 0) -> LjungBox:
-    """Ljung-Box test of a 1-D series; NaN entries are dropped (the rest kept in order).
-
-    **Arguments:** `x` the series (N,); `lags` h, capped at n - 1; `dof` parameters already
-    fitted to the series itself (0 for Kalman innovations).
-    """
-    x = np.asarray(x, dtype=float).reshape(-1)
-    x = x[np.isfinite(x)]
-    n = x.size
-    h = min(int(lags), n - 1)
-    if h - dof < 1:
-        raise ValueError(f"ljung_box: {n} finite samples are too few for {lags} lags")
-    x = x - x.mean()
-    denom = x @ x
-    r = np.array([x[k:] @ x[:-k] for k in range(1, h + 1)]) / denom
-    q = float(n * (n + 2) * np.sum(r**2 / (n - np.arange(1, h + 1))))
-    return LjungBox(statistic=q, p_value=float(scipy.stats.chi2.sf(q, h - dof)), lags=h, n=n)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -10,19 +10,26 @@ Us As and radiation eps sigma As between the heaters, and a first-order lag per 
 
 Fixed constants are the paper's (Ta = 23 C, m = 4 g, cp = 500 J/(kg K), A = 10 cm^2,
 As = 2 cm^2, eps = 0.9). Inputs are heater levels in % of full scale; outputs are the two
-sensor temperatures in K. The initial heater and sensor temperatures are per-run known
-settings: unless a run gives them, each is the sensor's first valid reading (as in the
-paper; `run_settings`), the other sensor's when a sensor has no reading in the run. The
-ambient temperature is the paper's 23 C unless a run sets `ambient_K` (a per-run setting),
-frees it per run (`{ path = "ambient_K", per_run = true }` in [fit] free), or the option
-`ambient = "first_reading"` takes it from the run's first readings (the board at rest).
+sensor temperatures in K, as the sensors read them: each TMP36 reads its node's temperature
+plus its own offset (`readout.offset[0]`, `readout.offset[1]`; 0 unless fixed or fitted,
+shared by the runs of one board or per run).
+
+Initial state: `initial_T1_K`, `initial_T2_K` are each sensor's *reading* at the start of a
+run, per-run known settings: unless a run gives them, each is the sensor's first valid
+reading (as in the paper; `run_settings`), the other sensor's when a sensor has no reading in
+the run. The model starts heater and sensor i at that reading minus sensor i's offset, so a
+fitted offset moves the initial temperatures with it. The ambient temperature is the paper's
+23 C unless a run sets `ambient_K` (a per-run setting), frees it per run (`{ path =
+"ambient_K", per_run = true }` in [fit] free), or the option `ambient = "first_reading"`
+takes it, inside the model, as the mean of the two sensors' first readings minus their
+offsets (the board at rest at room temperature when the run starts).
 
 Two structures (static flag `shared_sensor_lag`):
 - default (False): one lag per sensor, tau1 and tau2 free (6 parameters: U, Us, alpha1,
   alpha2, tau1, tau2). The two TMP36 sensors are separate parts glued on separately, so their
   lags need not agree; on the paper's two-heater estimation run this structure is strongly
-  preferred by AIC and BIC (simulation residuals, estimation data only: AIC -3229.6 vs
-  -2971.6; experiments/tclab/results.md).
+  preferred by AIC and BIC (`greybox compare`, simulation residuals, estimation data only,
+  ambient 23 C: AIC 173.4 vs 388.0; experiments/tclab/results.md).
 - True: the paper's structure, one lag shared by both sensors (tau2 is tied to tau1 and is
   not a free parameter; 5 parameters).
 """
@@ -85,7 +92,11 @@ class AbstractTCLab(AbstractODEDevice):
     - `tau1_s`, `tau2_s`: sensor 1 and sensor 2 lag time constants [s].
     - `shared_sensor_lag` (static): True = the paper's structure, both sensors lag with
       `tau1_s` and `tau2_s` is ignored; False (default) = one lag per sensor.
-    - `initial_T1_K`, `initial_T2_K`: heater and sensor temperatures at t_start [K].
+    - `initial_T1_K`, `initial_T2_K`: sensor 1 and 2 readings at t_start [K]; heater and
+      sensor i start at `initial_Ti_K - readout.offset[i]`.
+    - `readout`: the two sensors' offsets (`offset = (o1, o2)` [K]: reading = temperature + o).
+    - `ambient_from_readings` (static): True = ambient is the mean of the true initial
+      temperatures (the board at rest when the run starts) and `ambient_K` is not used.
     - fixed: `ambient_K`, `mass_kg`, `cp_J_per_kgK`, `area_m2`, `area_between_m2`, `emissivity`.
     - `radiation`: include the T^4 terms (static); `TCLab` has them, `LinearTCLab` (a linear
       network, simulated exactly by ZOH) does not.
@@ -108,6 +119,24 @@ class AbstractTCLab(AbstractODEDevice):
     emissivity: float = EMISSIVITY
     radiation: bool = eqx.field(static=True, default=True)
     shared_sensor_lag: bool = eqx.field(static=True, default=False)
+    ambient_from_readings: bool = eqx.field(static=True, default=False)
+
+    def true_initial_K(self):
+        """Heater and sensor temperatures at t_start (2,) [K]: first readings minus offsets."""
+        first = jnp.stack(
+            [
+                jnp.asarray(self.initial_T1_K, dtype=float),
+                jnp.asarray(self.initial_T2_K, dtype=float),
+            ]
+        )
+        return first - self.readout.offsets(2)
+
+    def ambient_temperature_K(self):
+        """The ambient [K]: `ambient_K`, or the mean true initial temperature (the board at rest
+        when the run starts) with `ambient_from_readings`."""
+        if self.ambient_from_readings:
+            return jnp.mean(self.true_initial_K())
+        return jnp.asarray(self.ambient_K, dtype=float)
 
     def sensor_tau_s(self):
         """Sensor lag time constants (2,) [s]; tau2 is tau1 in the paper's shared structure."""
@@ -129,7 +158,7 @@ class AbstractTCLab(AbstractODEDevice):
             input_nodes=(0, 1),
             radiation_ground_W_per_K4=rad_ground,
             radiation_coupling_W_per_K4=rad_between,
-            ambient_K=self.ambient_K,
+            ambient_K=self.ambient_temperature_K(),
             sensor_nodes=(0, 1),
             sensor_tau_s=self.sensor_tau_s(),
         )
@@ -147,12 +176,7 @@ class AbstractTCLab(AbstractODEDevice):
         return 2
 
     def initial_state(self):
-        rise = jnp.stack(
-            [
-                jnp.asarray(self.initial_T1_K, dtype=float) - self.ambient_K,
-                jnp.asarray(self.initial_T2_K, dtype=float) - self.ambient_K,
-            ]
-        )
+        rise = self.true_initial_K() - self.ambient_temperature_K()
         return jnp.concatenate([rise, rise])  # heaters and sensors start at the same reading
 
     def heat_W(self, u_pct):
@@ -163,7 +187,8 @@ class AbstractTCLab(AbstractODEDevice):
         return self.network().derivative(x, self.heat_W(u))
 
     def output(self, x):
-        return self.ambient_K + x[2:]
+        """Sensor temperatures [K] (the readout adds each sensor's offset)."""
+        return self.ambient_temperature_K() + x[2:]
 
 
 class TCLab(AbstractTCLab):
@@ -188,17 +213,23 @@ class LinearTCLab(AbstractTCLab, AbstractLinearDevice):
 def build(
     *, radiation: bool = True, shared_sensor_lag: bool = False, ambient: str = "fixed"
 ) -> AbstractTCLab:
-    """TCLab at the paper's published estimates (both sensor lags at the paper's 20.68 s);
-    `shared_sensor_lag=True` is the paper's one-lag structure; without `radiation` the board
-    is linear. `ambient` is a per-run rule applied by `run_settings`, not a model field."""
+    """TCLab at the paper's published estimates (both sensor lags at the paper's 20.68 s,
+    both sensor offsets 0); `shared_sensor_lag=True` is the paper's one-lag structure; without
+    `radiation` the board is linear; `ambient = "first_reading"` computes each run's ambient
+    from its first readings and the sensor offsets inside the model."""
+    if ambient not in AMBIENT_RULES:
+        raise ValueError(f"ambient: {ambient!r} is not one of {AMBIENT_RULES}")
     cls = TCLab if radiation else LinearTCLab
     return cls(
         **PUBLISHED,
-        readout=SensorReadout(),
+        readout=SensorReadout(offset=(0.0, 0.0)),
         radiation=radiation,
         shared_sensor_lag=shared_sensor_lag,
+        ambient_from_readings=ambient == "first_reading",
     )
 
+
+AMBIENT_RULES = ("fixed", "first_reading")
 
 PARAMETERS = (
     ParameterInfo(
@@ -261,7 +292,8 @@ PARAMETERS = (
         AMBIENT_K,
         None,
         None,
-        "initial heater/sensor 1 temperature",
+        "sensor 1's reading at the start of the run (heater and sensor 1 start at it "
+        "minus sensor 1's offset)",
         "known per run (default: sensor 1's first valid reading)",
     ),
     ParameterInfo(
@@ -270,7 +302,8 @@ PARAMETERS = (
         AMBIENT_K,
         None,
         None,
-        "initial heater/sensor 2 temperature",
+        "sensor 2's reading at the start of the run (heater and sensor 2 start at it "
+        "minus sensor 2's offset)",
         "known per run (default: sensor 2's first valid reading)",
     ),
     ParameterInfo(
@@ -285,7 +318,47 @@ PARAMETERS = (
         '({ path = "ambient_K", per_run = true } in [fit] free)',
         "per run: known setting, or fitted per run from a rest segment",
     ),
+    ParameterInfo(
+        "readout.offset[0]",
+        "K",
+        0.0,
+        -5.0,
+        5.0,
+        "sensor 1 (TMP36) offset: reading = temperature + offset; free it shared (a property "
+        "of the board) or per run",
+        'identifiable against a known ambient; with ambient = "first_reading" only the '
+        "difference of the two offsets is (a common shift moves ambient, initial "
+        "temperatures and readings together; fix one offset at 0)",
+    ),
+    ParameterInfo(
+        "readout.offset[1]",
+        "K",
+        0.0,
+        -5.0,
+        5.0,
+        "sensor 2 (TMP36) offset: reading = temperature + offset; free it shared (a property "
+        "of the board) or per run",
+        "as readout.offset[0]: the difference of the offsets is identifiable, their common "
+        "part only against a known ambient",
+    ),
+    ParameterInfo(
+        "area_m2",
+        "m^2",
+        AREA_M2,
+        2e-4,
+        3e-3,
+        "convecting and radiating area per heater (the paper's 10 cm^2)",
+        "weak: trades off with U (convection sees only U A; radiation alone separates them)",
+    ),
 )
+
+
+def parameter_table(ambient: str = "fixed", **_options) -> tuple[ParameterInfo, ...]:
+    """The parameter table; with ``ambient = "first_reading"`` the model computes the ambient
+    from the first readings, so `ambient_K` is not a parameter (neither set nor fitted)."""
+    if ambient == "first_reading":
+        return tuple(p for p in PARAMETERS if p.path != "ambient_K")
+    return PARAMETERS
 
 
 def default_free_parameters(shared_sensor_lag: bool = False, **_options) -> list[FreeParameter]:
@@ -302,10 +375,11 @@ def run_settings(model, experiment, options) -> dict:
 
     - `initial_T1_K`, `initial_T2_K`: each sensor's first valid reading (heater and sensor
       start there); a sensor with no reading in the run starts at the other's first reading.
-    - `ambient_K` (only with the option ``ambient = "first_reading"``): the mean of those two
-      first readings: the board is taken to be at rest at room temperature when the run
-      starts (TCLab practice: wait until it has cooled). Otherwise the model's ambient (23 C
-      unless set in [experiment] settings) stays.
+
+    With ``ambient = "first_reading"`` the model itself takes each run's ambient as the mean
+    of these readings minus the sensor offsets (the board at rest at room temperature when
+    the run starts: TCLab practice is to wait until it has cooled), so a fitted offset moves
+    it; a run that also sets `ambient_K` is refused (two ambients for one run).
     """
     import numpy as np
 
@@ -318,10 +392,12 @@ def run_settings(model, experiment, options) -> dict:
     if not known:
         return {}
     first = [known[0] if v is None else v for v in first]
-    out = {"initial_T1_K": first[0], "initial_T2_K": first[1]}
-    if options.get("ambient") == "first_reading":
-        out["ambient_K"] = float(np.mean(known))
-    return out
+    if options.get("ambient") == "first_reading" and "ambient_K" in experiment.settings:
+        raise ValueError(
+            'ambient_K: the run sets the ambient, but [model] ambient = "first_reading" takes '
+            "it from the first readings; drop one of them"
+        )
+    return {"initial_T1_K": first[0], "initial_T2_K": first[1]}
 
 
 SPEC = DeviceSpec(
@@ -329,7 +405,7 @@ SPEC = DeviceSpec(
     inputs=INPUTS,
     outputs=OUTPUTS,
     build=build,
-    parameters=PARAMETERS,
+    parameters=parameter_table,
     default_free=default_free_parameters,
     options=(
         Option(
@@ -343,8 +419,9 @@ SPEC = DeviceSpec(
             "ambient",
             "fixed",
             "ambient per run: 'fixed' (ambient_K: 23 C, or [experiment]/run settings) or "
-            "'first_reading' (each run's mean first sensor reading: the board starts at rest)",
-            choices=("fixed", "first_reading"),
+            "'first_reading' (each run's mean first sensor reading minus the sensor offsets, "
+            "computed in the model: the board starts at rest)",
+            choices=AMBIENT_RULES,
         ),
     ),
     run_settings=run_settings,

@@ -297,3 +297,23 @@ def test_residual_test_flags_the_wrong_structure_and_compare_prefers_the_right_o
     aic = {c["name"]: c["aic"] for c in doc["candidates"]}
     assert aic["two nodes + lag"] < aic["one node"] - 100
     assert "Preferred: two nodes + lag" in (out / "compare.md").read_text()
+
+
+def test_a_structure_that_fits_worse_than_one_nested_in_it_is_flagged():
+    # the larger structure contains the nested one, so its maximum likelihood is at least as
+    # high: a lower value is a local optimum; different options are never nested
+    from greybox._compare import CandidateScore, nested_pairs
+
+    def cand(name, free, loglik, options=None):
+        return CandidateScore(
+            name, options or {"n": 1}, tuple(free), len(free), 100, loglik, 0.0, 0.0,
+            {}, {}, "", "converged", True, "",
+        )  # fmt: skip
+
+    scores = [
+        cand("a", ["x"], -10.0),
+        cand("a+y", ["x", "y"], -12.0),  # worse than its nested candidate
+        cand("a+z", ["x", "z"], -9.0),  # better: fine
+        cand("other", ["x", "y"], -50.0, {"n": 2}),  # other options: not nested
+    ]
+    assert nested_pairs(scores) == [(1, 0)]

@@ -270,3 +270,14 @@ def test_posterior_from_the_fit_equals_the_one_loaded_from_params_json(result, t
     a, b = live.band(wave, t), loaded.band(wave, t)
     np.testing.assert_allclose(b.y, a.y, rtol=1e-9, atol=1e-15)
     np.testing.assert_allclose(b.upper - b.y, a.upper - a.y, rtol=1e-6, atol=1e-15)
+
+
+def test_report_units_prefix_only_plain_leading_factors():
+    # 2.4e-7 J/K reads 240 nJ/K; a prefix on a squared unit would square too (1e-9 m^2/s is
+    # not 1 nm^2/s, which is 1e-18 m^2/s), so such units keep their SI form
+    from greybox._report import display_unit
+
+    f, unit = display_unit("J/K", 2.4e-7)
+    assert unit == "nJ/K" and f * 2.4e-7 == pytest.approx(240.0)
+    assert display_unit("m^2/s", 1e-9) == (1.0, "m^2/s")
+    assert display_unit("K^2/s", 1e-4) == (1.0, "K^2/s")

@@ -69,13 +69,14 @@ def test_paper_structure_fit_recovers_published_parameters(fits):
 
 
 def test_aic_selects_per_sensor_lag_and_it_beats_the_paper_on_validation(runs, fits):
+    from greybox._compare import preferred, score
+
     est, val = runs["estimation"], runs["validation"]
-    # selection uses the estimation run only (AIC from simulation residuals)
-    candidates = {
-        shared: (aic, None, r.converged, all(p.verdict == "identifiable" for p in r.parameters))
-        for shared, (r, _, aic) in fits.items()
-    }
-    assert study.select_by_aic(candidates) is False
+    # selection uses the estimation run only (AIC from simulation residuals), by the rule
+    # `greybox compare` applies; the pooled AIC of study.py orders the two the same way
+    scores = [score(str(shared), {}, r) for shared, (r, _, _) in fits.items()]
+    assert preferred(scores).name == "False"
+    assert fits[False][2] < fits[True][2]
     res, z_est, _ = fits[False]
     assert study.scores(est.y, z_est) <= PAPER_EST_SAE  # measured 247.5 vs the paper's 270.26
     sae_val = study.scores(val.y, study.simulate_run(res.model, val))
@@ -105,3 +106,33 @@ def test_arx_sign_convention_reproduces_published_gain():
     np.testing.assert_allclose(
         gain, [[1.00052295, 0.04530986], [0.05142098, 0.51990829]], rtol=1e-3
     )
+
+
+def test_first_reading_ambient_and_initial_state_follow_the_sensor_offsets():
+    """With ambient = "first_reading" the model computes the initial temperatures (reading -
+    offset) and the ambient (their mean) itself, so a changed offset moves both."""
+    r1, r2, o1, o2 = 295.0, 296.2, 0.3, -0.5  # first readings and offsets [K]
+    model = tclab.SPEC.model(radiation=False, ambient="first_reading")
+    model = greybox.set_values(
+        model,
+        ["initial_T1_K", "initial_T2_K", "readout.offset[0]", "readout.offset[1]"],
+        [r1, r2, o1, o2],
+    )
+    ambient = ((r1 - o1) + (r2 - o2)) / 2  # 295.2 K
+    assert float(model.ambient_temperature_K()) == pytest.approx(ambient, abs=1e-12)
+    np.testing.assert_allclose(model.initial_state()[:2], [r1 - o1 - ambient, r2 - o2 - ambient])
+    # heaters off: the readings start at the first readings and settle at ambient + offset
+    t = np.array([0.0, 2e4])
+    off = greybox.from_samples(np.array([0.0]), np.zeros((1, 2)), end_s=2e4)
+    z = np.asarray(greybox.simulate(model, off, t)).reshape(2, 2)
+    np.testing.assert_allclose(z[0], [r1, r2], atol=1e-9)
+    np.testing.assert_allclose(z[1], [ambient + o1, ambient + o2], atol=1e-6)
+    # the fixed rule ignores the readings for the ambient (23 C)
+    fixed = greybox.set_values(
+        tclab.SPEC.model(radiation=False), ["initial_T1_K", "readout.offset[0]"], [r1, o1]
+    )
+    assert float(fixed.ambient_temperature_K()) == tclab.AMBIENT_K
+    assert float(fixed.true_initial_K()[0]) == pytest.approx(r1 - o1)
+    # ambient_K is not a parameter under the rule; offsets are
+    paths = [p.path for p in tclab.SPEC.parameter_table({"ambient": "first_reading"})]
+    assert "ambient_K" not in paths and "readout.offset[1]" in paths

@@ -221,6 +221,51 @@ def test_loader_problems_are_reported_together(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_toml_and_csv_problems_are_reported_together(tmp_path, capsys):
+    """Problems of the TOML file itself (a misspelt key, a bad option value, an unknown loss,
+    a free path that is no parameter, an out-of-range setting) and of the run files (a heater
+    at 250 %, a missing H2 column, a clock far from 0) are listed in one report."""
+    folder = tmp_path / "bad"
+    _write_folder(folder)
+    t, y1, y2, h1, h2 = _record([(10, 60)], [], seed=5)
+    (folder / "logger.csv").write_text("Time,T1,T2,Q1,Q2\n" + _rows(t, y1, y2, h1 * 2.5, h2))
+    (folder / "one_sensor.csv").write_text(
+        "Time (sec),Temperature 1 (degC),Heater 1 (%)\n" + _rows(t, y1, h1)
+    )
+    toml = (folder / "experiment.toml").read_text()
+    edits = {
+        'device = "tclab"\n': 'device = "tclab"\ndescripton = "typo"\n',
+        "radiation = false\n": 'radiation = "no"\n',
+        'loss = "l2"\n': 'loss = "l3"\n',
+        'free = ["U_W_per_m2K",': 'free = ["U_W_per_m2", ',
+        "ambient_K = 294.15": "ambient_K = 400.0",
+        'time_origin = "first_row"\n': "",
+        "constant_inputs = { H2 = 0 }\n": "",
+    }
+    for old, new in edits.items():
+        assert old in toml, old
+        toml = toml.replace(old, new)
+    (folder / "experiment.toml").write_text(toml)
+    rc = main(["fit", str(folder), "--out", str(tmp_path / "out"), "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2
+    assert "8 problems" in err[0], err
+    expected = [  # (file, field, words of the message)
+        ("experiment.toml:3", "experiment.descripton", "unknown key"),
+        ("experiment.toml:6", "model.radiation", "must be a bool"),
+        ("experiment.toml:12", "fit.loss", "l3"),
+        ("experiment.toml", "fit.free[0]", "not a parameter of tclab"),
+        ("experiment.toml", "experiment.settings.ambient_K", "outside the physical range"),
+        ("logger.csv", "Q1", "is above 100 %"),
+        ("late_clock.csv:2", "Time (sec)", "time_origin"),
+        ("one_sensor.csv", "H2", "constant_inputs"),
+    ]
+    for where, field, words in expected:
+        assert any(where in e and field in e and words in e for e in err[1:]), (where, err)
+    assert len(err) == 1 + len(expected)
+    assert not (tmp_path / "out").exists()
+
+
 def test_unit_spellings_convert_through_pint():
     from greybox.io._units import channel_conversion, conversion
 
@@ -303,3 +348,152 @@ def test_state_space_export_matches_the_fitted_model(fitted):
         assert se[k] == pytest.approx(r.estimate(path).se, rel=1e-6)
     discrete = to_state_space(r.model, dt=2.0).system
     assert discrete.dt == 2.0
+
+
+def test_simulate_figure_has_a_panel_per_output_and_input(tmp_path):
+    """`greybox simulate`'s figure: one panel per output (line + band) and per input (step)."""
+    from greybox import _plots as plots
+    from greybox._prediction import Band
+
+    t = np.linspace(0.0, 10.0, 11)
+    y = np.column_stack([t, 2 * t, 3 * t])
+    band = Band(t, y, y - 1.0, y + 1.0, np.ones_like(y), np.ones_like(y), 0.95, False)
+    wave = greybox.from_samples(np.array([0.0, 5.0]), np.array([[1.0, 0.0], [0.0, 2.0]]), end_s=10)
+    outputs = (("sensor 1", "K"), ("sensor 2", "K"), ("position", "m"))
+    inputs = (("heater 1", "%"), ("heater 2", "%"))
+    fig = plots.band_figure(
+        tmp_path / "f.png", band, wave, output_labels=outputs, input_labels=inputs
+    )
+    assert (tmp_path / "f.png").stat().st_size > 0
+    axes = fig.axes
+    assert len(axes) == 5
+    for j, ax in enumerate(axes[:3]):
+        assert len(ax.lines) == 1 and len(ax.collections) == 1  # model line and its band
+        assert outputs[j][0] in ax.get_ylabel()
+        np.testing.assert_allclose(ax.lines[0].get_ydata(), y[:, j] * (1.0 if j < 2 else 1e6))
+    for k, ax in enumerate(axes[3:]):
+        assert len(ax.lines) == 1 and inputs[k][0] in ax.get_ylabel()
+        assert max(ax.lines[0].get_ydata()) == [1.0, 2.0][k]  # each input's own level
+
+
+def test_robust_sigma_keeps_an_output_without_readings():
+    from greybox._fit import _robust_sigma
+
+    r = np.array([[1.0, np.nan], [-2.0, np.nan], [3.0, np.nan]])  # residuals / sigma
+    w = np.array([[1.0, 0.0], [1.0, 0.0], [1.0, 0.0]])  # output 2: no valid reading
+    got = _robust_sigma(r, w, np.array([2.0, 5.0]))
+    # output 1: 1.4826 x median(|1|, |-2|, |3|) = 2 scaled units x sigma 2; output 2 kept
+    np.testing.assert_allclose(got, [1.4826 * 2.0 * 2.0, 5.0])
+
+
+def test_single_sensor_runs_only_fit_without_nan():
+    """Every estimation run lacks T2 (single-sensor logs): the fit uses T1 alone, estimates
+    T1's noise and leaves T2 out; no NaN reaches the estimate or its noise."""
+    runs = []
+    for i, h1 in enumerate(([(10, 60)], [(20, 90), (140, 10)])):
+        t, y1, _, u1, _ = _record(h1, [], seed=10 + i)
+        y = np.column_stack([y1 + 273.15, np.full(N, np.nan)])
+        wave = greybox.from_samples(t, np.column_stack([u1, np.zeros(N)]))
+        runs.append(greybox.Experiment(f"r{i}", t, y, wave))
+    amb = 273.15 + AMBIENT_C
+    model = tclab.SPEC.model(
+        radiation=False, ambient_K=amb, initial_T1_K=amb, initial_T2_K=amb, **TRUE
+    )
+    free = [
+        greybox.FreeParameter(p, unit="", lower=lo, upper=hi)
+        for p, lo, hi in (("U_W_per_m2K", 1.0, 20.0), ("alpha1_W_per_pct", 0.003, 0.03))
+    ]
+    model = greybox.set_values(model, ["U_W_per_m2K", "alpha1_W_per_pct"], [5.0, 0.009])
+    res = greybox.fit(model, runs, free, loss="l2", n_starts=1)
+    assert res.valid and np.all(np.isfinite(res.sigma))
+    assert res.sigma[0] == pytest.approx(0.05, rel=0.3)  # the noise written by _record
+    for p in ("U_W_per_m2K", "alpha1_W_per_pct"):
+        assert res.estimate(p).value == pytest.approx(TRUE[p], rel=0.03)
+        assert np.isfinite(res.estimate(p).se)
+
+
+OFFSETS = {"est": (0.3, -0.5), "val": (-0.6, 0.4)}  # true sensor offsets per run [K]
+
+
+def _offset_record(h1, h2, offsets, seed):
+    """(t, readings T1, T2 degC, H1, H2) of the board at rest at ambient, read by sensors with
+    `offsets` [K] (reading = temperature + offset), every 10 s for 600 s (two thermal time
+    constants: an offset shows as where the readings settle against the known ambient)."""
+    t = np.arange(N) * 10.0
+    u = np.column_stack([_steps(t, h1), _steps(t, h2)])
+    amb = 273.15 + AMBIENT_C
+    model = tclab.SPEC.model(radiation=False, ambient_K=amb, **TRUE)
+    # the readings at the start are ambient + offset, so the board starts at ambient
+    model = greybox.set_values(
+        model,
+        ["readout.offset[0]", "readout.offset[1]", "initial_T1_K", "initial_T2_K"],
+        [offsets[0], offsets[1], amb + offsets[0], amb + offsets[1]],
+    )
+    y = np.asarray(greybox.simulate(model, greybox.from_samples(t, u), t)).reshape(N, 2)
+    y = y + np.random.default_rng(seed).normal(0.0, 0.05, y.shape)
+    return t, y[:, 0] - 273.15, y[:, 1] - 273.15, u[:, 0], u[:, 1]
+
+
+def test_validation_refits_per_run_offsets(tmp_path):
+    """Per-run sensor offsets re-fitted on a validation run (physics fixed) are written to
+    validation_runs.json and match the offsets put into that run's data."""
+    folder = tmp_path / "exp"
+    folder.mkdir()
+    for name, h1, h2, seed in (
+        ("est", [(30, 60), (300, 0)], [(240, 40)], 21),
+        ("val", [(90, 40), (400, 0)], [(30, 70), (360, 20)], 22),
+    ):
+        t, y1, y2, q1, q2 = _offset_record(h1, h2, OFFSETS[name], seed)
+        (folder / f"{name}.csv").write_text(
+            "t_s,T1_degC,T2_degC,H1_pct,H2_pct\n" + _rows(t, y1, y2, q1, q2)
+        )
+    # the readings at the start without their noise (known settings: the first reading's own
+    # noise would otherwise persist through the slow thermal response and bias the offsets)
+    amb = 273.15 + AMBIENT_C
+    start = {
+        k: f"{{ initial_T1_K = {amb + o[0]!r}, initial_T2_K = {amb + o[1]!r} }}"
+        for k, o in OFFSETS.items()
+    }
+    (folder / "experiment.toml").write_text(
+        f"""[experiment]
+device = "tclab"
+settings = {{ ambient_K = {273.15 + AMBIENT_C} }}
+
+[model]
+radiation = false
+
+[fit]
+loss = "l2"
+n_starts = 1
+free = ["U_W_per_m2K", "alpha1_W_per_pct", "alpha2_W_per_pct",
+  {{ path = "readout.offset[0]", per_run = true }},
+  {{ path = "readout.offset[1]", per_run = true }}]
+
+[[runs]]
+name = "est"
+file = "est.csv"
+role = "estimation"
+waveform = {{ type = "logged" }}
+settings = {start["est"]}
+
+[[runs]]
+name = "val"
+file = "val.csv"
+role = "validation"
+waveform = {{ type = "logged" }}
+settings = {start["val"]}
+"""
+    )
+    outcome = fit_experiment_dir(folder, tmp_path / "result", lambda m: None)
+    doc = json.loads((tmp_path / "result" / "validation_runs.json").read_text())
+    assert doc["per_run_parameters"] == ["readout.offset[0]", "readout.offset[1]"]
+    refitted = doc["runs"]["val"]["refitted"]
+    for j in (0, 1):
+        p = refitted[f"readout.offset[{j}]"]
+        assert p["unit"] == "K" and 0 < p["se"] < 0.1
+        assert abs(p["value"] - OFFSETS["val"][j]) < 3 * p["se"], (j, p)
+    # the estimation run's own offsets, fitted with the physics
+    for j in (0, 1):
+        e = next(q for q in outcome.result.parameters if q.name == f"readout.offset[{j}][est]")
+        assert abs(e.value - OFFSETS["est"][j]) < 3 * e.se
+    assert set(outcome.validation.refitted("val")) == set(refitted)

@@ -12,7 +12,7 @@ import dataclasses
 import numpy as np
 
 import greybox
-from greybox import Experiment, FitResult, FreeParameter, fit, sae, simulate
+from greybox import Experiment, FitResult, fit, sae, simulate
 from greybox import blackbox as bb
 
 tclab = greybox.device_module("tclab")
@@ -45,10 +45,9 @@ PAPER_ARX = {
 }
 
 
-# The two grey-box structures compared: {label: shared_sensor_lag}
+# The two grey-box structures of the benchmark and the tests: {label: shared_sensor_lag}. The
+# experiment's structure selection is `greybox compare` on the folders' [[candidates]].
 STRUCTURES = {"per-sensor lag (tau1, tau2)": False, "paper: shared lag tau": True}
-# Also tried as a candidate: the radiating/convecting area A free (the paper fixes 10 cm^2)
-AREA_FREE = FreeParameter("area_m2", unit="m^2", lower=2e-4, upper=3e-3)
 
 
 def free_parameters(one_heater: bool = False, shared_sensor_lag: bool = False):
@@ -89,15 +88,6 @@ def information_criteria(y, y_hat, k: int) -> tuple[float, float]:
     n = r.size
     base = n * np.log(np.sum(r**2) / n)
     return float(base + 2 * k), float(base + k * np.log(n))
-
-
-def select_by_aic(candidates: dict) -> str:
-    """The key of the lowest-AIC candidate among {name: (aic, bic, converged, all identifiable)};
-    a fit that did not converge or left a parameter unidentifiable is not eligible."""
-    ok = {k: v for k, v in candidates.items() if v[2] and v[3]}
-    if not ok:
-        raise ValueError("no candidate structure converged with every parameter identifiable")
-    return min(ok, key=lambda k: ok[k][0])
 
 
 def simulate_run(model, exp: Experiment) -> np.ndarray:

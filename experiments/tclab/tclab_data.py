@@ -7,7 +7,6 @@ first reading (the device's rule), heater levels held from each logged sample.
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -22,23 +21,17 @@ tclab = greybox.device_module("tclab")
 HERE = Path(__file__).resolve().parent
 
 
-def load_folder(folder: str | Path, *, ambient: str = "paper") -> dict[str, Experiment]:
+def load_folder(folder: str | Path) -> dict[str, Experiment]:
     """{run name: Experiment} for an experiment folder (device must be "tclab").
 
-    `ambient`: "paper" keeps the paper's fixed 23 C room for every run (the paper's model,
-    used by the comparison table), dropping a per-run ambient the folder's rule read off the
-    data; "folder" keeps what the folder says (as `greybox fit` does)."""
+    Each run carries its known settings (the initial readings, by the device's rule). The
+    ambient is not a run setting: it belongs to the model (the paper's fixed 23 C in
+    `tclab.SPEC.model()`, as the comparison table uses; `[model] ambient = "first_reading"`
+    computes it inside the model from these readings and the sensor offsets)."""
     fs = load_experiment_set(folder)
     if fs.device_name != tclab.NAME:
         raise ValueError(f"{folder}/experiment.toml: device is not {tclab.NAME!r}")
-    runs = {}
-    for e in fs.estimation + fs.validation:
-        ruled = {k for k, _ in fs.run_info(e.name).defaults}
-        if ambient == "paper" and "ambient_K" in ruled:
-            settings = {k: v for k, v in e.settings.items() if k != "ambient_K"}
-            e = dataclasses.replace(e, settings=settings)
-        runs[e.name] = e
-    return runs
+    return {e.name: e for e in fs.estimation + fs.validation}
 
 
 def uniform(exp: Experiment, dt_s: float = 1.0) -> UniformData:

@@ -14,6 +14,7 @@ from statistics import NormalDist
 import numpy as np
 
 from .._metrics import fit_percent
+from .._residuals import lagged_sums, portmanteau
 from ._data import UniformData
 from ._poly import _ar_recursion, lfilter
 
@@ -210,19 +211,20 @@ def residual_test(
     ny, nu = e.shape[1], u.shape[1]
     auto = np.zeros((ny, M + 1))
     cross = np.zeros((ny, nu, 2 * M + 1))
+    every = np.ones(N, dtype=bool)
     for i in range(ny):
         ei = e[:, i] - e[:, i].mean()
         r0 = ei @ ei / N
-        full = np.correlate(ei, ei, "full")[N - 1 : N + M] / N
-        auto[i] = full / r0
+        auto[i] = lagged_sums(ei, every, ei, every, lags)[0] / N / r0
         for l in range(nu):
             ul = u[:, l]
             # r_ue(tau) = (1/N) sum_t e(t) u(t - tau)
-            c = np.correlate(ei, ul, "full") / N  # index N-1 is tau = 0
-            cross[i, l] = c[N - 1 - M : N + M] / np.sqrt(r0 * (ul @ ul / N))
+            c = lagged_sums(ei, every, ul, every, cross_lags)[0] / N
+            cross[i, l] = c / np.sqrt(r0 * (ul @ ul / N))
     z = NormalDist().inv_cdf(0.5 + confidence / 2)
-    q_auto = N * np.sum(auto[:, 1:] ** 2, axis=1)
-    q_cross = N * np.sum(cross**2, axis=2)
+    # Box-Pierce (MATLAB `resid`): the biased r with null variance 1 / N
+    q_auto = portmanteau(auto[:, 1:], 1.0 / N)
+    q_cross = portmanteau(cross, 1.0 / N)
     qa_lim = _chi2_quantile(confidence, M)
     qc_lim = _chi2_quantile(confidence, 2 * M + 1)
     return ResidualTest(

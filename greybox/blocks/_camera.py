@@ -1,7 +1,8 @@
 """Readout blocks: how a device's physical output becomes the readings in its files.
 
 `Camera` (PHYSICS.md §10): exposure averaging, offset, drift, pixel scale; `SensorReadout`: an
-instantaneous sensor (a thermometer, an encoder) with an offset and a drift. Both give the
+instantaneous sensor (a thermometer, an encoder) with an offset (one, or one per output) and a
+drift. Both give the
 readings at frame times from the outputs at their quadrature instants.
 
 z_k = (1/T_e) int_{t_k - T_e}^{t_k} y(t) dt + offset + drift (t_k - t_0), in m; `to_px` divides
@@ -32,16 +33,31 @@ class AbstractReadout(eqx.Module):
 
 class SensorReadout(AbstractReadout):
     """An instantaneous sensor: reading = output + `offset` + `drift_per_s` (t - t0), in the
-    output's SI unit (K for a thermometer, m for an encoder)."""
+    output's SI unit (K for a thermometer, m for an encoder).
 
-    offset: float = 0.0
+    `offset` is one value for every output (path ``readout.offset``) or a tuple with one per
+    output (paths ``readout.offset[0]``, ``readout.offset[1]``, ...: separate sensors, each
+    with its own zero error)."""
+
+    offset: float | tuple = 0.0
     drift_per_s: float = 0.0
+
+    def offsets(self, n_outputs: int):
+        """The offset of each output (n_outputs,) [SI]."""
+        off = jnp.asarray(self.offset, dtype=float)
+        if off.ndim and off.shape != (n_outputs,):
+            raise ValueError(
+                f"offset: {off.shape[0]} values for {n_outputs} outputs; give one per output "
+                "or a single value"
+            )
+        return jnp.broadcast_to(off, (n_outputs,))
 
     def quadrature(self) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros(1), np.ones(1)
 
     def observe(self, y_quad, t_s, t_ref_s=0.0):
-        return y_quad[:, 0, :] + self.offset + self.drift_per_s * (t_s - t_ref_s)[:, None]
+        off = self.offsets(y_quad.shape[-1])
+        return y_quad[:, 0, :] + off + self.drift_per_s * (t_s - t_ref_s)[:, None]
 
 
 class Camera(AbstractReadout):

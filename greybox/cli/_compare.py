@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -54,22 +55,72 @@ def _pct(values) -> str:
 
 def compare_experiment_dir(experiment_dir, say, *, rule: str = "aic"):
     """(scores, preferred) for every candidate of the folder (see the module help)."""
-    from greybox._compare import preferred, score
+    from greybox._compare import nested_pairs, preferred, score
     from greybox._fit import fit, validate
     from greybox.io._experiment_set import candidate_names, load_experiment_set
 
     names = candidate_names(experiment_dir)
-    scores = []
+
+    def run_candidate(i, start=None):
+        fs = load_experiment_set(experiment_dir, candidate=i)
+        free = fs.free if start is None else _warm_started(fs.free, start)
+        result = fit(fs.model, fs.estimation, free, progress=say, **fs.fit_options)
+        solver = {k: v for k, v in fs.fit_options.items() if k.startswith("solver_")}
+        validation = validate(result, fs.validation, **solver) if fs.validation else None
+        s = score(names[i], fs.options, result, validation)
+        say(f"candidate {names[i]!r}: AIC {s.aic:.6g}, BIC {s.bic:.6g}, {s.status}")
+        return s, result
+
+    scores, results = [], []
     for i, name in enumerate(names):
         fs = load_experiment_set(experiment_dir, candidate=i)
         say(f"candidate {i + 1}/{len(names)} {name!r}: {fs.options}")
-        result = fit(fs.model, fs.estimation, fs.free, progress=say, **fs.fit_options)
-        solver = {k: v for k, v in fs.fit_options.items() if k.startswith("solver_")}
-        validation = validate(result, fs.validation, **solver) if fs.validation else None
-        scores.append(score(name, fs.options, result, validation))
-        s = scores[-1]
-        say(f"candidate {name!r}: AIC {s.aic:.6g}, BIC {s.bic:.6g}, {s.status}")
+        s, result = run_candidate(i)
+        scores.append(s)
+        results.append(result)
+    # a structure that fits worse than one nested in it may have stopped at a local optimum:
+    # re-start it once from the nested estimate (which it contains) and say what happened
+    for big, small in nested_pairs(scores):
+        if not scores[big].loglik < scores[small].loglik:
+            continue  # already repaired through another nested candidate
+        say(
+            f"candidate {names[big]!r} fits worse than {names[small]!r}, which is nested in "
+            f"it (log L {scores[big].loglik:.6g} < {scores[small].loglik:.6g}); re-starting "
+            "it from that estimate"
+        )
+        s, result = run_candidate(big, start=results[small])
+        if s.loglik > scores[big].loglik:
+            note = (
+                f"Re-started from the estimate of the nested candidate {names[small]!r}: the "
+                f"first fit stopped at a local optimum (log L {scores[big].loglik:.6g})."
+            )
+            scores[big] = dataclasses.replace(s, note=note)
+            results[big] = result
+        else:
+            note = (
+                f"Fits worse than the nested candidate {names[small]!r} by the criterion's "
+                "likelihood, and a re-start from its estimate did not improve that: the fit "
+                "minimises least squares weighted by each output's noise scale from the "
+                "residuals, the criterion uses each output's ML noise variance, and the two "
+                "can rank the outputs' errors differently."
+            )
+            scores[big] = dataclasses.replace(scores[big], note=note)
     return scores, preferred(scores, rule)
+
+
+def _warm_started(free, result):
+    """`free` with each shared parameter that `result` also fitted starting at its estimate
+    (strictly inside the bounds; a value on a bound keeps the usual start)."""
+    fitted = {p.path: p.value for p in result.parameters if p.experiment is None}
+    out = []
+    for p in free:
+        v = fitted.get(p.path)
+        inside = v is not None and (p.lower is None or v > p.lower)
+        inside = inside and (p.upper is None or v < p.upper)
+        out.append(
+            dataclasses.replace(p, initial=float(v)) if inside and not p.per_experiment else p
+        )
+    return out
 
 
 def report_lines(experiment_dir, scores, best, rule: str) -> list[str]:
@@ -100,6 +151,10 @@ def report_lines(experiment_dir, scores, best, rule: str) -> list[str]:
             f"| {s.name} | {opts} | {s.n_params} | {s.aic:.6g} | {s.bic:.6g} | {_pct(est)} | "
             f"{_pct(val) if s.fit_validation else '-'} | {s.residual_verdict} | {s.status} |"
         )
+    nested = [s for s in scores if s.note]
+    if nested:
+        lines += ["", "Nested structures (each must fit at least as well as one nested in it):", ""]
+        lines += [f"- {s.name}: {s.note}" for s in nested]
     lines += ["", "Free parameters per candidate:", ""]
     lines += [f"- {s.name}: {', '.join(s.free)}" for s in scores]
     return lines + [""]
@@ -157,6 +212,7 @@ def run(args) -> int:
                 "status": s.status,
                 "valid": s.valid,
                 "message": s.message,
+                "note": s.note,
             }
             for s in scores
         ],

@@ -31,7 +31,10 @@ EXPERIMENT_DIR holds experiment.toml and one CSV per run (format: experiments/RE
 
 Units in the output: params.json holds SI values (m, s, W, K/W) with each unit named;
 report.md and the figures show um, ms and mW. Every fit % is free-run simulation (the
-model driven by the laser alone), never one-step prediction.
+model driven by the laser alone), never one-step prediction. With [fit] noise_model =
+"process" and a [noise] table (experiments/README.md) the fit is maximum likelihood through
+a Kalman filter instead, and the report gives fit % in simulation, one-step and k-step
+prediction, each labelled.
 
 The result folder is written atomically: it appears complete or not at all (an error, a
 bad input, Ctrl-C or SIGTERM leaves no partial result, and an earlier result stays as it
@@ -337,7 +340,7 @@ def write_validation_runs(path: Path, fs, result, validation) -> None:
     from greybox.io._params_file import _num
 
     runs = {}
-    refitted = getattr(validation, "parameters", None) if validation is not None else None
+    refitted = validation.parameters if validation is not None else None
     for e in () if validation is None else validation.experiments:
         info = fs.run_info(e.name)
         runs[e.name] = {
@@ -354,8 +357,8 @@ def write_validation_runs(path: Path, fs, result, validation) -> None:
         }
     doc = {
         "per_run_parameters": sorted({p.path for p in result.free if p.per_experiment}),
-        "note": "per-run values re-fitted on each validation run (physics fixed); null "
-        "when this greybox version does not report them",
+        "note": "per-run values re-fitted on each validation run (physics fixed), with "
+        "their standard errors; {} when the fit has no per-run parameter",
         "runs": runs,
     }
     path.write_text(json.dumps(doc, indent=2) + "\n")
@@ -518,6 +521,10 @@ def run(args) -> int:
     jax.config.update("jax_enable_x64", True)
     say = Progress(args.quiet)
     out = Path(args.out) if args.out else default_out(args.experiment_dir)
+    from greybox.cli import _fit_process
+
+    if _fit_process.requested(args.experiment_dir):  # [fit] noise_model = "process"
+        return _fit_process.run(args, say, out)
     from greybox.io._experiment_set import InputErrors
 
     try:

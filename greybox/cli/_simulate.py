@@ -116,58 +116,49 @@ def _column_unit(unit: str) -> str:
     return {"%": "pct"}.get(unit, unit)
 
 
-def run(args) -> int:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
-    from greybox import _plots as plots
+def read_waveform(specs, inputs):
+    """(waveform, description, specs) from --waveform: channel specs or one CSV."""
     from greybox._errors import InputError
-    from greybox._report import display_unit
-    from greybox.io._atomic import atomic_output_dir, check_output_dir
-    from greybox.io._params_file import load_params
     from greybox.io._waveform_spec import parse_channel_specs, waveform_from_csv
 
-    if args.dt_ms is not None and not (math.isfinite(args.dt_ms) and args.dt_ms > 0):
-        raise InputError(f"must be a positive number of ms, got {args.dt_ms}", field="--dt-ms")
-    check_output_dir(args.out, force=args.force, inputs=[args.params])
-    fitted = load_params(args.params)
-    inputs, outputs = tuple(fitted.spec.inputs), tuple(fitted.spec.outputs)
-    specs = list(args.waveform)
+    specs = list(specs)
     csvs = [x for x in specs if x.lower().endswith(".csv") and "=" not in x]
-    if csvs:
-        if len(specs) > 1:
-            raise InputError("a CSV waveform holds every input; give it alone", field="--waveform")
-        if not Path(csvs[0]).is_file():
-            raise InputError(
-                "no such file; give pulse:... (NAME=pulse:... per input) or the path of a "
-                f"CSV with t_s,{','.join(c.column_names()[0] for c in inputs)} columns",
-                file=csvs[0],
-                field="--waveform",
-            )
-        wave, text = waveform_from_csv(csvs[0], inputs)
-    else:
-        wave, text = parse_channel_specs(specs, inputs)
+    if not csvs:
+        return (*parse_channel_specs(specs, inputs), specs)
+    if len(specs) > 1:
+        raise InputError("a CSV waveform holds every input; give it alone", field="--waveform")
+    if not Path(csvs[0]).is_file():
+        raise InputError(
+            "no such file; give pulse:... (NAME=pulse:... per input) or the path of a "
+            f"CSV with t_s,{','.join(c.column_names()[0] for c in inputs)} columns",
+            file=csvs[0],
+            field="--waveform",
+        )
+    return (*waveform_from_csv(csvs[0], inputs), specs)
+
+
+def sample_times(wave, dt_ms, *, n_default: int, n_max: int) -> np.ndarray:
+    """Output times [s] from 0 to the waveform's end: every `dt_ms`, by default 1 ms or the
+    length / `n_default` when longer; more than `n_max` samples is refused."""
+    from greybox._errors import InputError
+
     end = float(wave.end_s)
-    dt = args.dt_ms * 1e-3 if args.dt_ms is not None else max(1e-3, end / 5000)
-    n = int(math.floor((end - 0.0) / dt + 1e-9)) + 1
-    if n > 2_000_000:
+    dt = dt_ms * 1e-3 if dt_ms is not None else max(1e-3, end / n_default)
+    n = int(math.floor(end / dt + 1e-9)) + 1
+    if n > n_max:
         raise InputError(f"{n} output samples; raise --dt-ms", field="--dt-ms")
-    t = np.arange(n) * dt
-    band = fitted.posterior.band(wave, t, noise=args.noise)
-    y, lo, hi = (np.asarray(a).reshape(n, -1) for a in (band.y, band.lower, band.upper))
-    for name, arr in (("response", y), ("band", lo), ("band", hi)):
-        if not np.all(np.isfinite(arr)):
-            k = int(np.flatnonzero(~np.all(np.isfinite(arr), axis=1))[0])
-            raise InputError(
-                f"the simulated {name} is not finite from t = {t[k]:g} s (a waveform or "
-                "parameter value the model cannot take: lower the power, or check the "
-                "values and covariance in params.json); nothing was written",
-                file=str(args.params),
-                field="--waveform",
-            )
+    return np.arange(n) * dt
+
+
+def simulation_columns(outputs, inputs, file_units, t, arrays, wave):
+    """(header, columns, descriptions, peaks) of simulation.csv: time, then per output the
+    response and its band (`arrays` = (y, lo, hi), SI) in the fit's file unit, then each
+    input in its display unit."""
+    from greybox._report import display_unit
+
+    y, lo, hi = arrays
     header, cols, described = ["t_s"], [t], {"t_s": "time [s]"}
     peaks = {}
-    file_units = (fitted.document or {}).get("file_units") or {}
     for j, ch in enumerate(outputs):
         conv = _file_unit(ch, file_units.get(ch.name))
         if conv is None:
@@ -182,13 +173,76 @@ def run(args) -> int:
         described[names[1]] = f"lower end of the band [{u}]"
         described[names[2]] = f"upper end of the band [{u}]"
         peaks[ch.name] = {"y": float(np.max(cols[-3])), "unit": u}
-    levels = np.asarray(wave(t)).reshape(n, -1)
+    levels = np.asarray(wave(t)).reshape(t.size, -1)
     for k, ch in enumerate(inputs):
         f, u = display_unit(ch.si_unit)
         u = _column_unit(u)
         header.append(f"{ch.name}_{u}")
         cols.append(levels[:, k] * f)
         described[header[-1]] = f"{ch.description or ch.name} [{u}]"
+    return header, cols, described, peaks
+
+
+def write_simulation(out, force, header, cols, meta, band, wave, device, text, outputs, inputs):
+    """simulation.csv, simulation.json and simulation.png, written atomically to `out`."""
+    from greybox import _plots as plots
+    from greybox.cli._fit import usual_permissions
+    from greybox.io._atomic import atomic_output_dir
+
+    table = np.column_stack(cols)
+    with atomic_output_dir(out, kind="simulate", force=force) as tmp:
+        usual_permissions(tmp)
+        rows = [",".join(header)]
+        for k in range(table.shape[0]):
+            rows.append(",".join([f"{table[k, 0]:.6f}"] + [_fmt(v) for v in table[k, 1:]]))
+        (tmp / "simulation.csv").write_text("\n".join(rows) + "\n")
+        (tmp / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
+        plots.band_figure(
+            tmp / "simulation.png",
+            band,
+            wave,
+            title=f"{device}: {text}"[:200],
+            output_labels=tuple((c.description or c.name, c.si_unit) for c in outputs),
+            input_labels=tuple((c.description or c.name, c.si_unit) for c in inputs),
+        )
+
+
+def run(args) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from greybox._errors import InputError
+    from greybox.io._atomic import check_output_dir
+    from greybox.io._params_file import load_params
+
+    if args.dt_ms is not None and not (math.isfinite(args.dt_ms) and args.dt_ms > 0):
+        raise InputError(f"must be a positive number of ms, got {args.dt_ms}", field="--dt-ms")
+    check_output_dir(args.out, force=args.force, inputs=[args.params])
+    from greybox.cli import _fit_process
+
+    if _fit_process.is_process_params(args.params):  # a process-noise fit: sample paths
+        return _fit_process.simulate_process(args)
+    fitted = load_params(args.params)
+    inputs, outputs = tuple(fitted.spec.inputs), tuple(fitted.spec.outputs)
+    wave, text, specs = read_waveform(args.waveform, inputs)
+    t = sample_times(wave, args.dt_ms, n_default=5000, n_max=2_000_000)
+    n = t.size
+    band = fitted.posterior.band(wave, t, noise=args.noise)
+    y, lo, hi = (np.asarray(a).reshape(n, -1) for a in (band.y, band.lower, band.upper))
+    for name, arr in (("response", y), ("band", lo), ("band", hi)):
+        if not np.all(np.isfinite(arr)):
+            k = int(np.flatnonzero(~np.all(np.isfinite(arr), axis=1))[0])
+            raise InputError(
+                f"the simulated {name} is not finite from t = {t[k]:g} s (a waveform or "
+                "parameter value the model cannot take: lower the power, or check the "
+                "values and covariance in params.json); nothing was written",
+                file=str(args.params),
+                field="--waveform",
+            )
+    file_units = (fitted.document or {}).get("file_units") or {}
+    header, cols, described, peaks = simulation_columns(
+        outputs, inputs, file_units, t, (y, lo, hi), wave
+    )
     first = peaks[outputs[0].name]
     meta = {
         "params": str(args.params),
@@ -204,24 +258,19 @@ def run(args) -> int:
         "peak": first,
         "peaks": peaks,
     }
-    table = np.column_stack(cols)
-    with atomic_output_dir(args.out, kind="simulate", force=args.force) as tmp:
-        from greybox.cli._fit import usual_permissions
-
-        usual_permissions(tmp)
-        rows = [",".join(header)]
-        for k in range(n):
-            rows.append(",".join([f"{t[k]:.6f}"] + [_fmt(v) for v in table[k, 1:]]))
-        (tmp / "simulation.csv").write_text("\n".join(rows) + "\n")
-        (tmp / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
-        plots.band_figure(
-            tmp / "simulation.png",
-            band,
-            wave,
-            title=f"{fitted.device_name}: {text}"[:200],
-            output_label=(outputs[0].description, outputs[0].si_unit),
-            input_label=(inputs[0].description, inputs[0].si_unit),
-        )
+    write_simulation(
+        args.out,
+        args.force,
+        header,
+        cols,
+        meta,
+        band,
+        wave,
+        fitted.device_name,
+        text,
+        outputs,
+        inputs,
+    )
     width = float(np.nanmax(cols[3] - cols[2]))
     print(
         f"simulated {text}: {n} samples, peak {first['y']:.4g} {first['unit']}, widest band "

@@ -46,6 +46,7 @@ MAX_STARTS = 1000
 MAX_FIT_STEPS = 100_000
 MAX_PROBLEM_BYTES = 4e9  # estimated working memory of a fit (GREYBOX_MAX_PROBLEM_GB overrides)
 _TOP_KEYS = {"experiment", "model", "camera", "fit", "runs", "columns", "data", "candidates"}
+_TOP_KEYS |= {"noise"}  # [noise]: the process-noise structure (greybox/cli/_fit_process.py)
 _CANDIDATE_KEYS = {"name", "model", "free"}
 # how a run's file is read and its clock and inputs interpreted: [data] for every run, or
 # the same keys in a [[runs]] table for that run (a run's `columns` mapping is merged
@@ -65,6 +66,7 @@ _EXPERIMENT_KEYS = {"device", "description", "settings"}
 _CAMERA_KEYS = {"fps", "exposure_ms", "um_per_px", "noise_um"}
 _NOISE_UNITS = {"px": None, "um": 1e-6, "nm": 1e-9, "m": 1.0}  # per-frame sigma columns
 _FIT_KEYS = {"method", "loss", "n_starts", "seed", "max_steps", "solver_max_steps", "free"}
+_FIT_KEYS |= {"noise_model"}  # "none" (least squares) or "process" (Kalman-filter likelihood)
 _FREE_KEYS = {
     "path",
     "unit",
@@ -99,6 +101,8 @@ class InputErrors(InputError):
         if total > len(lines):
             lines.append(f"... and {total - len(lines)} more")
         super().__init__(f"{total} problems (fix them all, then run again):\n" + "\n".join(lines))
+        # where: the first problem's file (each line of the message names its own)
+        self.file = next((e.file for e in self.errors if e.file is not None), None)
 
 
 # --------------------------------------------------------------------------------------
@@ -290,14 +294,33 @@ def _free_parameters(doc: TomlDocument, entries, spec, options: dict, model, fix
 
 
 def _camera(doc: TomlDocument, data: dict) -> dict:
-    cam = doc.table(data, "camera", required=False)
-    doc.check_keys(cam, _CAMERA_KEYS, "camera")
-    fps = doc.number(cam, "fps", "camera", positive=True, unit="frames/s")
-    exposure_ms = doc.number(
-        cam, "exposure_ms", "camera", nonneg=True, unit="ms (0 = instantaneous)"
+    """[camera] in SI. Each key is checked on its own; when some are wrong, `InputErrors`
+    carries every problem and (its `partial` attribute) the usable rest, with a stand-in
+    image scale when um_per_px is wrong or missing, so that the runs are still checked
+    without repeating a [camera] problem for every pixel column."""
+    errors: list = []
+    cam = _attempt(errors, doc.table, data, "camera", required=False, fallback={})
+    _attempt(errors, doc.check_keys, cam, _CAMERA_KEYS, "camera")
+    fps = _attempt(errors, doc.number, cam, "fps", "camera", positive=True, unit="frames/s")
+    exposure_ms = _attempt(
+        errors, doc.number, cam, "exposure_ms", "camera", nonneg=True, unit="ms (0 = instantaneous)"
     )
-    um_per_px = doc.number(cam, "um_per_px", "camera", positive=True, unit="um per pixel")
-    noise_um = doc.number(cam, "noise_um", "camera", positive=True, unit="um (1-sigma per frame)")
+    um_per_px = _attempt(
+        errors, doc.number, cam, "um_per_px", "camera", positive=True, unit="um per pixel"
+    )
+    noise_um = _attempt(
+        errors, doc.number, cam, "noise_um", "camera", positive=True, unit="um (1-sigma per frame)"
+    )
+    if errors:
+        err = InputErrors(errors)
+        err.partial = {
+            "fps": fps,
+            "exposure_s": None if exposure_ms is None else exposure_ms * 1e-3,
+            # a wrong or misspelt um_per_px: a stand-in (nothing is fitted with it)
+            "m_per_px": 1e-6 if um_per_px is None else um_per_px * 1e-6,
+            "noise_m": None if noise_um is None else noise_um * 1e-6,
+        }
+        raise err
     if fps is not None and exposure_ms is not None and exposure_ms > 1e3 / fps * 1.0001:
         raise doc.error(
             f"{exposure_ms:g} ms is longer than one frame interval (1/fps = "
@@ -997,40 +1020,39 @@ def candidate_names(directory) -> list[str]:
     return names
 
 
-def load_experiment_set(directory, *, candidate: int | None = None) -> ExperimentSet:
-    """Load and check an experiment folder (``experiment.toml`` + run CSVs).
+_NO_CAMERA = ("fps", "exposure_s", "m_per_px", "noise_m")
 
-    With `candidate` (an index into ``[[candidates]]``), that candidate's ``model`` options
-    are applied over [model] and its ``free`` list (if given) replaces [fit] free.
-    Raises `InputError` (``file:line: field: problem and fix``) for the first problem.
-    """
-    from greybox._fit import LOSSES
 
-    directory = Path(directory)
-    if not directory.is_dir():
-        raise InputError(
-            f"{directory} is not a folder; give the experiment folder that holds {TOML_NAME}",
-            file=str(directory),
-            field="EXPERIMENT_DIR",
-        )
-    doc = TomlDocument(directory / TOML_NAME)
-    data = doc.data
-    doc.check_keys(data, _TOP_KEYS)
-    exp = doc.table(data, "experiment")
-    doc.check_keys(exp, _EXPERIMENT_KEYS, "experiment")
+def _attempt(errors: list, fn, *args, fallback=None, **kwargs):
+    """`fn(*args, **kwargs)`, or `fallback` with its problem(s) appended to `errors`."""
+    try:
+        return fn(*args, **kwargs)
+    except InputErrors as err:
+        errors.extend(err.errors)
+    except InputError as err:
+        errors.append(err)
+    return fallback
+
+
+def _raise_collected(errors: list) -> None:
+    """Raise the collected problems: one as itself, several as `InputErrors` (capped)."""
+    if len(errors) == 1:
+        raise errors[0]
+    if errors:
+        raise InputErrors(errors)
+
+
+def _device(doc: TomlDocument, exp: dict, directory: Path):
     device_ref = doc.string(exp, "device", "experiment", required=True)
     try:
-        device = resolve(device_ref, base_dir=directory)
+        return resolve(device_ref, base_dir=directory)
     except (DeviceNotFound, DeviceSpecError) as err:
         raise doc.error(str(err), "experiment", "device") from None
-    spec = device.spec
-    model_table = doc.table(data, "model", required=False)
-    free_entries = None
-    if candidate is not None:
-        cand_model, free_entries = _candidate(doc, data, candidate)
-        model_table = {**model_table, **cand_model}
+
+
+def _options(doc: TomlDocument, spec, model_table: dict) -> dict:
     try:
-        options = spec.resolve_options(model_table)
+        return spec.resolve_options(model_table)
     except ValueError as err:
         key = str(err).split(":", 1)[0]
         raise doc.error(
@@ -1038,14 +1060,18 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
             "model",
             key,
         ) from None
-    description = doc.string(exp, "description", "experiment", default="")
-    camera = _camera(doc, data)
+
+
+def _base_model(doc: TomlDocument, spec, options: dict, camera: dict):
     try:
-        base = configure_model(spec, options, camera, {})
+        return configure_model(spec, options, camera, {})
     except ValueError as err:
         raise doc.error(f"cannot build the model ({err})", "model") from None
-    fixed = _settings(doc, exp.get("settings", {}), base, "experiment", "settings")
-    model = configure_model(spec, options, camera, fixed)
+
+
+def _fit_options(doc: TomlDocument, data: dict, model) -> dict:
+    """[fit]: keyword arguments for `greybox._fit.fit` (its free list is read separately)."""
+    from greybox._fit import LOSSES
 
     fitopt = doc.table(data, "fit", required=False)
     doc.check_keys(fitopt, _FIT_KEYS, "fit")
@@ -1054,6 +1080,11 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
         method = check_method(model, method)
     except ValueError as err:
         raise doc.error(str(err).split(": ", 1)[-1], "fit", "method") from None
+    noise_model = doc.string(
+        fitopt, "noise_model", "fit", default="none", choices=("none", "process")
+    )
+    if noise_model == "none" and "noise" in data:
+        raise doc.error('needs [fit] noise_model = "process" (or remove [noise])', "noise")
     fit_options = {
         "method": method,
         "loss": doc.string(fitopt, "loss", "fit", default="huber", choices=LOSSES),
@@ -1072,23 +1103,11 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
     ):
         if (fit_options.get(key) or 0) > cap:
             raise doc.error(f"{fit_options[key]} is more than {cap}; {fix}", "fit", key)
-    if free_entries is None:
-        free_entries = fitopt.get("free")
-    free = _free_parameters(doc, free_entries, spec, options, model, fixed)
-    ranges = {p.path: p for p in spec.parameter_table(options)}
-    _check_ranges(doc, ranges, fixed, "experiment", "settings")
+    return fit_options
 
-    runs = data.get("runs")
-    if not isinstance(runs, list) or not runs:
-        raise doc.error(
-            "no runs; add one [[runs]] table per CSV (name, file, role, waveform)", "runs"
-        )
-    if len(runs) > MAX_RUNS:
-        raise doc.error(
-            f"{len(runs)} runs; at most {MAX_RUNS} per experiment folder (split the "
-            "folder, or merge short runs)",
-            "runs",
-        )
+
+def _all_data_rules(doc: TomlDocument, data: dict, spec) -> dict:
+    """[data] and [columns]: how every run's file is read (a run may override them)."""
     data_table = doc.table(data, "data", required=False)
     doc.check_keys(data_table, _DATA_KEYS, "data")
     data_rules = _data_rules(doc, data_table, spec, None, "data")
@@ -1104,8 +1123,93 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
             "data",
             "header",
         )
-    free_paths = {p.path for p in free}
-    experiments, infos, names, errors = [], [], set(), []
+    return data_rules
+
+
+def load_experiment_set(directory, *, candidate: int | None = None) -> ExperimentSet:
+    """Load and check an experiment folder (``experiment.toml`` + run CSVs).
+
+    With `candidate` (an index into ``[[candidates]]``), that candidate's ``model`` options
+    are applied over [model] and its ``free`` list (if given) replaces [fit] free.
+    Raises `InputError` (``file:line: field: problem and fix``) for one problem and
+    `InputErrors` listing every problem (TOML and CSV, up to `MAX_ERRORS`) for several.
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise InputError(
+            f"{directory} is not a folder; give the experiment folder that holds {TOML_NAME}",
+            file=str(directory),
+            field="EXPERIMENT_DIR",
+        )
+    doc = TomlDocument(directory / TOML_NAME)  # an unreadable file stops here, alone
+    data = doc.data
+    # Every problem is collected: those of the TOML file (each section checked on its own,
+    # a section with a problem replaced by its defaults) and those of every run's CSV, and
+    # reported together. Only a problem that leaves nothing to check the runs against (no
+    # device, a model that cannot be built, a broken [data]/[columns] mapping, no runs)
+    # stops before the CSVs are read.
+    errors: list = []
+    _attempt(errors, doc.check_keys, data, _TOP_KEYS)
+    exp = _attempt(errors, doc.table, data, "experiment", fallback={})
+    _attempt(errors, doc.check_keys, exp, _EXPERIMENT_KEYS, "experiment")
+    device = _attempt(errors, _device, doc, exp, directory)
+    if device is None:
+        _raise_collected(errors)
+    spec = device.spec
+    model_table = _attempt(errors, doc.table, data, "model", required=False, fallback={})
+    free_entries = None
+    if candidate is not None:
+        chosen = _attempt(errors, _candidate, doc, data, candidate)
+        if chosen is not None:
+            model_table = {**model_table, **chosen[0]}
+            free_entries = chosen[1]
+    options = _attempt(errors, _options, doc, spec, model_table)
+    if options is None:  # check the rest against the device's default structure
+        options = spec.resolve_options({})
+    description = _attempt(errors, doc.string, exp, "description", "experiment", default="")
+    try:
+        camera = _camera(doc, data)
+    except InputErrors as err:  # every problem of [camera]; the runs checked with the rest
+        errors.extend(err.errors)
+        camera = getattr(err, "partial", dict.fromkeys(_NO_CAMERA))
+    except InputError as err:
+        errors.append(err)
+        camera = dict.fromkeys(_NO_CAMERA)
+    base = _attempt(errors, _base_model, doc, spec, options, camera)
+    if base is None:
+        _raise_collected(errors)
+    fixed = _attempt(
+        errors, _settings, doc, exp.get("settings", {}), base, "experiment", "settings", fallback={}
+    )
+    model = configure_model(spec, options, camera, fixed)
+    fit_options = _attempt(errors, _fit_options, doc, data, model)
+    fitopt = data.get("fit") if isinstance(data.get("fit"), dict) else {}
+    if free_entries is None:
+        free_entries = fitopt.get("free")
+    free = _attempt(errors, _free_parameters, doc, free_entries, spec, options, model, fixed)
+    ranges = {p.path: p for p in spec.parameter_table(options)}
+    _attempt(errors, _check_ranges, doc, ranges, fixed, "experiment", "settings")
+
+    runs = data.get("runs")
+    data_rules = _attempt(errors, _all_data_rules, doc, data, spec)
+    if not isinstance(runs, list) or not runs:
+        errors.append(
+            doc.error(
+                "no runs; add one [[runs]] table per CSV (name, file, role, waveform)", "runs"
+            )
+        )
+    elif len(runs) > MAX_RUNS:
+        errors.append(
+            doc.error(
+                f"{len(runs)} runs; at most {MAX_RUNS} per experiment folder (split the "
+                "folder, or merge short runs)",
+                "runs",
+            )
+        )
+    if data_rules is None or not isinstance(runs, list) or not runs or len(runs) > MAX_RUNS:
+        _raise_collected(errors)  # no runs to check, or no mapping to read them with
+    free_paths = {p.path for p in free or ()}
+    experiments, infos, names = [], [], set()
     for i, entry in enumerate(runs):
         try:
             e, info = _load_run(
@@ -1124,17 +1228,14 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
             )
             _check_ranges(doc, ranges, dict(e.settings), "runs", i, "settings")
         except InputError as err:  # every run is checked; the problems are listed together
-            errors.append(err)
+            errors.extend(err.errors if isinstance(err, InputErrors) else [err])
             if isinstance(entry, dict) and isinstance(entry.get("name"), str):
                 names.add(entry["name"])
             continue
         names.add(e.name)
         experiments.append(e)
         infos.append(info)
-    if len(errors) == 1:
-        raise errors[0]
-    if errors:
-        raise InputErrors(errors)
+    _raise_collected(errors)
     estimation = tuple(e for e in experiments if e.role == "estimation")
     validation = tuple(e for e in experiments if e.role == "validation")
     if not estimation or sum(int(e.mask.all(axis=1).sum()) for e in estimation) == 0:

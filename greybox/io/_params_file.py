@@ -44,6 +44,25 @@ SCHEMA = "greybox.params/2"
 _FREE_FIELDS = [f.name for f in dataclasses.fields(FreeParameter)]
 
 
+def parameter_record(p) -> dict:
+    """One fitted value (a `ParameterEstimate`) as params.json holds it, SI with its unit."""
+    return {
+        "name": p.name,
+        "path": p.path,
+        "unit": p.unit,
+        "value": _num(p.value),
+        "se": _num(p.se),
+        "ci95": [_num(p.ci95[0]), _num(p.ci95[1])],
+        "verdict": p.verdict,
+        "bound": p.bound,
+        "se_gauss_newton": None if p.se_gauss_newton is None else _num(p.se_gauss_newton),
+        "se_hac": None if p.se_hac is None else _num(p.se_hac),
+        "se_method": p.se_method,
+        "experiment": p.experiment,
+        "prior": None if p.prior is None else {"median": p.prior[0], "log_sd": p.prior[1]},
+    }
+
+
 def _num(x):
     """JSON-safe float: NaN and infinities become None."""
     x = float(x)
@@ -162,24 +181,7 @@ def params_document(fitset, result, validation=None) -> dict:
             "fitted": fitted,
             "method": result.method,
         },
-        "parameters": [
-            {
-                "name": p.name,
-                "path": p.path,
-                "unit": p.unit,
-                "value": _num(p.value),
-                "se": _num(p.se),
-                "ci95": [_num(p.ci95[0]), _num(p.ci95[1])],
-                "verdict": p.verdict,
-                "bound": p.bound,
-                "se_gauss_newton": _num(p.se_gauss_newton),
-                "se_hac": _num(p.se_hac),
-                "se_method": p.se_method,
-                "experiment": p.experiment,
-                "prior": None if p.prior is None else {"median": p.prior[0], "log_sd": p.prior[1]},
-            }
-            for p in result.parameters
-        ],
+        "parameters": [parameter_record(p) for p in result.parameters],
         "free": [{k: getattr(p, k) for k in _FREE_FIELDS} for p in result.free],
         "raw": _nums(result.raw),
         "raw_labels": list(ident.raw_labels),
@@ -189,7 +191,9 @@ def params_document(fitset, result, validation=None) -> dict:
         "standard_errors": {
             "headline": result.se_method,
             "why": "residuals not white" if result.se_method == "hac" else "residuals white",
-            "hac": "Newey-West, Bartlett kernel, Andrews (1991) AR(1) plug-in bandwidth",
+            "hac": "Newey-West sandwich after an FIR model-error model on the inputs (Ljung and "
+            "Guo 1997) and VAR(1) prewhitening (Andrews and Monahan 1992); Bartlett kernel, "
+            "Andrews (1991) AR(1) plug-in bandwidth; n/(n-k) factor",
             "hac_bandwidth_frames": int(result.hac_bandwidth),
         },
         "null_directions_raw": _nums(

@@ -87,23 +87,23 @@ from greybox._prediction import prediction_band as prediction_band
 from greybox._prediction import propagate as propagate
 from greybox._prediction import raw_draws as raw_draws
 from greybox._prediction import with_shared as with_shared
+from greybox._process_fit import ProcessFitResult as ProcessFitResult
+from greybox._process_fit import RunDiagnostics as RunDiagnostics
+from greybox._process_fit import fit_process as fit_process
+from greybox._process_fit import validate_process as validate_process
 from greybox._registry import available as available_devices  # noqa: F401
 from greybox._registry import device_module as device_module
 from greybox._registry import get_device as get_device
 from greybox._report import parameter_table as parameter_table
 from greybox._sde_device import DeviceFilterResult as DeviceFilterResult
 from greybox._sde_device import NoiseStructure as NoiseStructure
-from greybox._sde_device import ProcessFitResult as ProcessFitResult
-from greybox._sde_device import RunDiagnostics as RunDiagnostics
 from greybox._sde_device import StochasticDevice as StochasticDevice
 from greybox._sde_device import device_filter as device_filter
 from greybox._sde_device import device_log_likelihood as device_log_likelihood
 from greybox._sde_device import draw_paths as draw_paths
-from greybox._sde_device import fit_process as fit_process
 from greybox._sde_device import noise_parameters as noise_parameters
 from greybox._sde_device import sample_paths as sample_paths
 from greybox._sde_device import stochastic_device as stochastic_device
-from greybox._sde_device import validate_process as validate_process
 from greybox._simulate import as_arrays as as_arrays
 from greybox._simulate import simulate as simulate
 from greybox._spec import DeviceSpec as DeviceSpec

@@ -473,7 +473,7 @@ def test_covariance_hessian_equals_exact_second_derivatives(stochastic_fit, data
     import jax
     import jax.numpy as jnp
 
-    from greybox import _sde_device as sde
+    from greybox import _process_fit as sde
 
     res = stochastic_fit
     problem = sde._Problem.build(res.model, [data], res.free)

@@ -144,7 +144,8 @@ def interval_note(doc: dict, fitted: dict) -> str:
         f"{min(gn.values()):.2g}-{max(gn.values()):.2g}x smaller. The headline intervals are "
         f"{min(ratio.values()):.2g}-{max(ratio.values()):.2g}x the width of the published "
         f"IDIM-LS 95 % intervals; the published value lies inside greybox's interval for "
-        f"{', '.join(inside) or 'no parameter'} of {', '.join(ratio)}, and the last column "
+        f"{len(inside)} of the {len(ratio)} parameters ({', '.join(inside) or 'none'}), and "
+        "the last column "
         "(difference in published sigmas) is the sharper comparison."
     )
 

@@ -262,7 +262,7 @@ def _stochastic_model(fs, structure, fixed, initial, doc=None, state_unit=None, 
 
 def fit_process_dir(experiment_dir, out, say, *, force: bool = False):
     """Load, fit (process noise), validate and write the result folder; returns a dict."""
-    from greybox._sde_device import fit_process, validate_process
+    from greybox._process_fit import fit_process, validate_process
     from greybox.io._atomic import atomic_output_dir, check_output_dir
     from greybox.io._experiment_set import check_problem_size, load_experiment_set
     from greybox.io._toml import TomlDocument

@@ -2,8 +2,7 @@
 
 `Camera` (PHYSICS.md §10): exposure averaging, offset, drift, pixel scale; `SensorReadout`: an
 instantaneous sensor (a thermometer, an encoder) with an offset (one, or one per output) and a
-drift. Both give the
-readings at frame times from the outputs at their quadrature instants.
+drift. Both give the readings at frame times from the outputs at their quadrature instants.
 
 z_k = (1/T_e) int_{t_k - T_e}^{t_k} y(t) dt + offset + drift (t_k - t_0), in m; `to_px` divides
 by the scale. The exposure integral uses Gauss-Legendre nodes inside the window, so both

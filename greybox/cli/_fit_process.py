@@ -286,14 +286,13 @@ def fit_process_dir(experiment_dir, out, say, *, force: bool = False):
         )
     except ValueError as err:  # e.g. a device field named like a noise table
         raise doc.error(str(err), "noise") from None
-    for e in (*fs.estimation, *fs.validation):
-        offsets, _ = fs.model.readout.quadrature()
-        if np.size(offsets) != 1 or float(np.ravel(offsets)[0]) != 0.0:
-            raise doc.error(
-                "the Kalman filter needs instantaneous readings: set [camera] exposure_ms = 0",
-                "fit",
-                "noise_model",
-            )
+    offsets, _ = fs.model.readout.quadrature()
+    if np.size(offsets) != 1 or float(np.ravel(offsets)[0]) != 0.0:
+        raise doc.error(
+            "the Kalman filter needs instantaneous readings: set [camera] exposure_ms = 0",
+            "fit",
+            "noise_model",
+        )
     free = list(fs.free) + noise_free
     say(
         f"{fs.device_name}: {len(fs.estimation)} estimation runs, {len(fs.validation)} "

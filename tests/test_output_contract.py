@@ -195,9 +195,13 @@ def test_concurrent_writers_never_collide(tmp_path):
 
 _SLOW_COMMAND = textwrap.dedent(
     """
-    import sys, time
+    import signal, sys, time
     import greybox.cli._fit as f
     from greybox.io._atomic import atomic_output_dir
+
+    # as in a terminal: a test runner started in the background (CI, an xdist worker) hands
+    # its children SIGINT ignored, which Python then keeps; Ctrl-C reaches a foreground one
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
     def run(args):
         with atomic_output_dir(args.out) as tmp:

@@ -17,15 +17,16 @@ likelihood; reports the fraction of 95 % intervals that contain the truth, per p
 `--coverage-device N`: the same through the device adapter (`greybox.fit_process` on the
 built-in linear two-heater `tclab` device with process noise on the heater nodes and a
 random-walk ambient shared by both sensors, 9 parameters); each replicate's record (600
-irregular frames, dropped frames, a new design and new noise per seed) comes from the
-independent numpy exact-discretisation simulator of tests/test_stochastic_device.py. Reports
+irregular frames unless `--frames N`, dropped frames, a new design and new noise per seed)
+comes from the independent numpy exact-discretisation simulator of
+tests/test_stochastic_device.py. Reports
 per parameter the fraction of the fit's 95 % intervals (`ParameterEstimate.ci95`: normal in
 the fitted coordinates, log scale for the intensities and sds) that contain the truth, with
-a Clopper-Pearson 95 % interval of that fraction; and, once, the central-difference Hessian
-of the fit against forward-over-forward AD (`jax.jacfwd(jax.jacfwd(-log L))`).
+a Clopper-Pearson 95 % interval of that fraction (the fit's central-difference Hessian is
+checked against forward-over-forward AD in tests/test_stochastic_device.py).
 
 Last line: one JSON object. Run: .venv/bin/python benchmarks/kalman.py [--coverage 100]
-[--coverage-device 100]
+[--coverage-device 100 [--frames 600]]
 """
 
 import jax
@@ -291,7 +292,7 @@ def _binomial_ci(k: int, n: int) -> tuple:
     return float(ci.low), float(ci.high)
 
 
-def coverage_device(n_reps):
+def coverage_device(n_reps, n_frames: int = 600):
     import sys
     from pathlib import Path
 
@@ -306,7 +307,7 @@ def coverage_device(n_reps):
     c0 = time.perf_counter()
     for rep in range(n_reps):
         with threadpool_limits(1):
-            data = T.simulate_truth(seed=2000 + rep)
+            data = T.simulate_truth(seed=2000 + rep, n=n_frames)
         sd = T.cli_model()
         free = T.physical_free() + greybox.noise_parameters(sd, T.UNITS)
         t0 = time.perf_counter()
@@ -329,9 +330,9 @@ def coverage_device(n_reps):
     total = time.perf_counter() - c0
     print(
         f"device-adapter coverage: {n_reps} replicates of the two-heater TCLab with heater "
-        f"process noise and a shared ambient random walk (600 frames each), {n_ok} converged "
-        f"({failed} not), {total:.0f} s (first fit {times[0]:.1f} s with compilation, median "
-        f"{np.median(times):.2f} s)"
+        f"process noise and a shared ambient random walk ({n_frames} frames each), {n_ok} "
+        f"converged ({failed} not), {total:.0f} s (first fit {times[0]:.1f} s with compilation, "
+        f"median {np.median(times):.2f} s)"
     )
     print("parameter               95% coverage  [binomial 95% CI]    mean z   sd z")
     cover, cis = {}, {}
@@ -351,6 +352,7 @@ def coverage_device(n_reps):
     )
     return dict(
         device_coverage_replicates=n_reps,
+        device_coverage_frames=n_frames,
         device_coverage_failed=failed,
         device_coverage=cover,
         device_coverage_ci95={k: [round(a, 4), round(b, 4)] for k, (a, b) in cis.items()},
@@ -366,12 +368,15 @@ def main():
     parser.add_argument(
         "--coverage-device", type=int, default=0, metavar="N", help="replicates (fit_process)"
     )
+    parser.add_argument(
+        "--frames", type=int, default=600, metavar="N", help="frames per --coverage-device record"
+    )
     args = parser.parse_args()
     out = speed()
     if args.coverage:
         out |= coverage(args.coverage)
     if args.coverage_device:
-        out |= coverage_device(args.coverage_device)
+        out |= coverage_device(args.coverage_device, args.frames)
     print(json.dumps(out))
 
 

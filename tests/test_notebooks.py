@@ -18,7 +18,9 @@ import build  # noqa: E402
 NOTEBOOKS = build.sources()
 
 
-def _executes_headless(source, monkeypatch):
+@pytest.mark.slow
+@pytest.mark.parametrize("source", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
+def test_notebook_executes_headless(source, monkeypatch):
     monkeypatch.setenv("CI", "true")  # small problem sizes, as in CI
     nb = build.execute(source, timeout_s=600)
     errors = [
@@ -37,22 +39,6 @@ def _executes_headless(source, monkeypatch):
         if "image/png" in o.get("data", {})
     ]
     assert images, "a notebook with no figure is not doing its job"
-
-
-def _notebook_class(source):
-    """One test class per notebook: the suite's workers (`--dist loadscope`) take a class as
-    one unit, so the notebooks (each tens of seconds) spread over the workers."""
-
-    @pytest.mark.slow
-    def test_executes_headless(self, monkeypatch):
-        _executes_headless(source, monkeypatch)
-
-    name = "TestNotebook_" + source.stem
-    return name, type(name, (), {"test_executes_headless": test_executes_headless})
-
-
-for _name, _cls in map(_notebook_class, NOTEBOOKS):
-    globals()[_name] = _cls
 
 
 @pytest.mark.parametrize("source", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])

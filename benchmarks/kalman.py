@@ -201,71 +201,41 @@ def speed():
 # coverage: the RC device with a random-walk ambient (as in tests/test_kalman.py)
 # ------------------------------------------------------------------------------------------
 
-TRUE = dict(tau_s=30.0, gain_K_per_W=3.0, q_ambient_K2_per_s=2e-3, sigma_K=0.1, ambient0_K=0.5)
 START = dict(tau_s=15.0, gain_K_per_W=1.5, q_ambient_K2_per_s=1e-2, sigma_K=0.3, ambient0_K=0.0)
-POSITIVE = ("tau_s", "gain_K_per_W", "q_ambient_K2_per_s", "sigma_K")
 
 
-def rc_build(th):
-    zero = jnp.zeros(())
-    tau = th["tau_s"]
-    return LinearGaussianSDE(
-        A=jnp.array([[-1.0 / tau, zero], [zero, zero]]),
-        B=jnp.stack([th["gain_K_per_W"] / tau, zero])[:, None],
-        Qc=jnp.diag(jnp.stack([zero, th["q_ambient_K2_per_s"]])),
-        C=jnp.array([[1.0, 1.0]]),
-        R=(th["sigma_K"] ** 2)[None, None],
-        x0=jnp.stack([zero, th["ambient0_K"]]),
-        P0=jnp.zeros((2, 2)),
-    )
+def _tests_module(name: str):
+    """A module of tests/: the devices, truths and independent numpy simulators the tests use."""
+    import importlib
+    import sys
+    from pathlib import Path
 
-
-def rc_design(seed=0, n_frames=400):
-    rng = np.random.default_rng(seed)
-    t = np.cumsum(rng.uniform(0.6, 1.4, n_frames))
-    bt = np.concatenate([[0.0], np.cumsum(rng.uniform(15.0, 60.0, 40))])
-    bt = bt[bt < t[-1]]
-    lv = (np.arange(bt.size) % 2) * rng.uniform(0.5, 1.0, bt.size)
-    return t, bt, lv
-
-
-def rc_simulate(t, bt, lv, seed, drop=0.03):
-    """Exact: theta relaxes by e^{-h/tau} per constant-input step; ambient ~ N(0, q h) steps."""
-    rng = np.random.default_rng(seed)
-    pts = np.unique(np.concatenate([[0.0], bt[(bt > 0) & (bt < t[-1])], t]))
-    level = lv[np.searchsorted(bt, pts[:-1], side="right") - 1]
-    decay = np.exp(-np.diff(pts) / TRUE["tau_s"])
-    theta, th = np.empty(pts.size - 1), 0.0
-    for i in range(theta.size):
-        th = th * decay[i] + TRUE["gain_K_per_W"] * level[i] * (1 - decay[i])
-        theta[i] = th
-    steps = np.sqrt(TRUE["q_ambient_K2_per_s"] * np.diff(pts)) * rng.normal(size=theta.size)
-    walk = np.cumsum(steps)
-    at = np.searchsorted(pts[1:], t)
-    y = theta[at] + TRUE["ambient0_K"] + walk[at] + TRUE["sigma_K"] * rng.normal(size=t.size)
-    y[rng.random(t.size) < drop] = np.nan
-    return y
+    tests = str(Path(__file__).resolve().parents[1] / "tests")
+    if tests not in sys.path:
+        sys.path.insert(0, tests)
+    return importlib.import_module(name)
 
 
 def coverage(n_reps):
-    t, bt, lv = rc_design()
+    rc = _tests_module("test_kalman")  # the RC device with a random-walk ambient
+    t, bt, lv = rc.rc_design(0)
     grid = FilterGrid(t, bt, lv, t0_s=0.0)
     zs, white, failed, times = [], [], 0, []
     c0 = time.perf_counter()
     for rep in range(n_reps):
-        y = rc_simulate(t, bt, lv, seed=1000 + rep)
+        y = rc.rc_simulate(t, bt, lv, seed=1000 + rep)
         t0 = time.perf_counter()
-        res = fit_stochastic(rc_build, START, [(grid, y)], positive=POSITIVE, throw=False)
+        res = fit_stochastic(rc.rc_build, START, [(grid, y)], positive=rc.POSITIVE, throw=False)
         times.append(time.perf_counter() - t0)
         if not (res.converged and res.hessian_positive_definite):
             failed += 1
             continue
-        zs.append([res.z_scores(TRUE)[k] for k in TRUE])
+        zs.append([res.z_scores(rc.TRUE)[k] for k in rc.TRUE])
         white.append(res.records[0].whiteness[0].p_value > 0.01)
         if (rep + 1) % 10 == 0:
             print(f"  {rep + 1} replicates, {time.perf_counter() - c0:.0f} s", flush=True)
     zs = np.array(zs)
-    cover = {k: float(np.mean(np.abs(zs[:, i]) < 1.959964)) for i, k in enumerate(TRUE)}
+    cover = {k: float(np.mean(np.abs(zs[:, i]) < 1.959964)) for i, k in enumerate(rc.TRUE)}
     total = time.perf_counter() - c0
     print(
         f"coverage study: {n_reps} replicates, {len(zs)} converged with a positive-definite "
@@ -273,7 +243,7 @@ def coverage(n_reps):
         f"compilation, median {np.median(times):.2f} s)"
     )
     print("parameter             95% coverage   mean z   sd z   (intervals in fitted coords)")
-    for i, k in enumerate(TRUE):
+    for i, k in enumerate(rc.TRUE):
         print(f"  {k:20s}  {cover[k]:10.2f}   {zs[:, i].mean():+7.2f}  {zs[:, i].std():5.2f}")
     print(f"innovations white (Ljung-Box p > 0.01): {np.mean(white):.2f} of the fits")
     return dict(
@@ -293,13 +263,9 @@ def _binomial_ci(k: int, n: int) -> tuple:
 
 
 def coverage_device(n_reps, n_frames: int = 600):
-    import sys
-    from pathlib import Path
-
     import greybox
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-    import test_stochastic_device as T  # the independent numpy simulator and the truth
+    T = _tests_module("test_stochastic_device")  # the independent numpy simulator and truth
 
     truth = T.TRUTH | T.NOISE
     names = list(truth)

@@ -248,7 +248,6 @@ def _in_unit(values, conv, m_per_px, *, difference: bool = False):
 def write_predictions(folder: Path, fs, runs) -> None:
     """predictions/<run>.csv: t_s, then per output measured, simulated, the 95 % band and
     the residual (measured - simulated), in the unit of the run's file; empty = no reading."""
-    import numpy as np
 
     m_per_px = fs.camera.get("m_per_px")
     (folder / "predictions").mkdir()
@@ -268,11 +267,41 @@ def write_predictions(folder: Path, fs, runs) -> None:
                 ]
             header.append(f"{ch.name}_residual_{unit}")
             cols.append(_in_unit(e.y[:, j] - z[:, j], conv, m_per_px, difference=True))
-        table = np.column_stack(cols)
-        lines = [",".join(header)]
-        for row in table:
-            lines.append(",".join("" if not np.isfinite(v) else f"{v:.10g}" for v in row))
-        (folder / "predictions" / f"{e.name}.csv").write_text("\n".join(lines) + "\n")
+        write_csv_table(folder / "predictions" / f"{e.name}.csv", header, cols)
+
+
+def write_csv_table(path: Path, header, cols) -> None:
+    """A CSV of numeric columns under `header`; an empty cell where a value is not finite."""
+    import numpy as np
+
+    lines = [",".join(header)]
+    for row in np.column_stack(cols):
+        lines.append(",".join("" if not np.isfinite(v) else f"{v:.10g}" for v in row))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def error_metrics(measured, predicted, conv, m_per_px) -> dict:
+    """{"n", "fit_percent", "rmse", "mae", "sae"} of one output's prediction errors over its
+    valid readings, in the file's unit (`conv`); None where undefined (no reading; fit %
+    also needs two readings that vary)."""
+    import numpy as np
+
+    from greybox._metrics import fit_percent
+
+    r = _in_unit(measured - predicted, conv, m_per_px, difference=True)
+    ok = np.isfinite(r)
+    n = int(ok.sum())
+    out = {"n": n, "fit_percent": None, "rmse": None, "mae": None, "sae": None}
+    if n:
+        r = r[ok]
+        out.update(
+            rmse=float(np.sqrt(np.mean(r**2))),
+            mae=float(np.mean(np.abs(r))),
+            sae=float(np.sum(np.abs(r))),
+        )
+        if n >= 2 and np.ptp(measured[ok]) > 0:
+            out["fit_percent"] = float(fit_percent(measured[ok], predicted[ok]))
+    return out
 
 
 def metrics_table(fs, runs) -> dict:
@@ -284,8 +313,6 @@ def metrics_table(fs, runs) -> dict:
     per output, the first run's)."""
     import numpy as np
 
-    from greybox._metrics import fit_percent
-
     common = output_units(fs)
     m_per_px = fs.camera.get("m_per_px")
     out = {"horizon": "simulation", "runs": {}, "sae_total": {}}
@@ -293,20 +320,9 @@ def metrics_table(fs, runs) -> dict:
         units = output_units(fs, e.name)
         per = {}
         for j, (ch, (unit, conv)) in enumerate(zip(fs.spec.outputs, units)):
-            r = _in_unit(e.y[:, j] - z[:, j], conv, m_per_px, difference=True)
-            ok = np.isfinite(r)
-            n = int(ok.sum())
-            entry = {"unit": unit, "n": n, "fit_percent": None, "rmse": None, "mae": None}
-            entry["sae"] = None
-            if n:
-                r = r[ok]
-                entry.update(
-                    rmse=float(np.sqrt(np.mean(r**2))),
-                    mae=float(np.mean(np.abs(r))),
-                    sae=float(np.sum(np.abs(r))),
-                )
-                if n >= 2 and np.ptp(e.y[ok, j]) > 0:
-                    entry["fit_percent"] = float(fit_percent(e.y[ok, j], z[ok, j]))
+            entry = {"unit": unit, **error_metrics(e.y[:, j], z[:, j], conv, m_per_px)}
+            if entry["n"]:
+                ok = np.isfinite(e.y[:, j] - z[:, j])
                 totals = out["sae_total"].setdefault(role, {})
                 total = totals.setdefault(ch.name, {"unit": common[j][0], "sae": 0.0})
                 residual_si = (e.y[:, j] - z[:, j])[ok]

@@ -324,11 +324,23 @@ def fit_process_dir(experiment_dir, out, say, *, force: bool = False):
         write_predictions(tmp, fs, runs)
         lines = ["run,role,output,horizon,unit,n,fit_percent,rmse,mae,sae"]
         for row in metrics:
-            lines.append(",".join(str(c) if not isinstance(c, float) else f"{c:.10g}" for c in row))
+            lines.append(",".join(_csv_cell(c) for c in row))
         (tmp / "metrics.csv").write_text("\n".join(lines) + "\n")
         write_validation_runs(tmp / "validation_runs.json", fs, validation)
         write_figures(tmp, fs, runs, result.model, say)
     return {"fitset": fs, "result": result, "validation": validation, "metrics": metrics}
+
+
+def _text(x, spec: str) -> str:
+    """A metric for the report: formatted, or n/a where undefined."""
+    return "n/a" if x is None else format(x, spec)
+
+
+def _csv_cell(c) -> str:
+    """A metrics.csv cell: numbers as in `greybox fit`'s metrics.csv, empty where undefined."""
+    if c is None:
+        return ""
+    return f"{c:.10g}" if isinstance(c, float) else str(c)
 
 
 def _horizons(run):
@@ -336,9 +348,9 @@ def _horizons(run):
 
 
 def metrics_rows(fs, runs) -> list:
-    """(run, role, output, horizon, unit, n, fit %, RMSE, MAE, SAE) in the file's units."""
-    from greybox._metrics import fit_percent
-    from greybox.cli._fit import _in_unit, output_units
+    """(run, role, output, horizon, unit, n, fit %, RMSE, MAE, SAE) in the file's units;
+    None where undefined (as `greybox fit`'s metrics)."""
+    from greybox.cli._fit import error_metrics, output_units
 
     rows = []
     m_per_px = fs.camera.get("m_per_px")
@@ -346,29 +358,16 @@ def metrics_rows(fs, runs) -> list:
         units = output_units(fs, e.name)
         for horizon, z in _horizons(run):  # simulation, one-step, k-step prediction
             for j, (ch, (unit, conv)) in enumerate(zip(fs.spec.outputs, units)):
-                r = _in_unit(e.y[:, j] - z[:, j], conv, m_per_px, difference=True)
-                ok = np.isfinite(r)
-                r = r[ok]
-                fp = float(fit_percent(e.y[ok, j], z[ok, j])) if ok.sum() > 1 else float("nan")
+                m = error_metrics(e.y[:, j], z[:, j], conv, m_per_px)
                 rows.append(
-                    (
-                        e.name,
-                        run.role,
-                        ch.name,
-                        horizon,
-                        unit,
-                        int(ok.sum()),
-                        fp,
-                        float(np.sqrt(np.mean(r**2))),
-                        float(np.mean(np.abs(r))),
-                        float(np.sum(np.abs(r))),
-                    )
+                    (e.name, run.role, ch.name, horizon, unit)
+                    + tuple(m[k] for k in ("n", "fit_percent", "rmse", "mae", "sae"))
                 )
     return rows
 
 
 def write_predictions(folder: Path, fs, runs) -> None:
-    from greybox.cli._fit import _in_unit, output_units
+    from greybox.cli._fit import _in_unit, output_units, write_csv_table
 
     m_per_px = fs.camera.get("m_per_px")
     (folder / "predictions").mkdir()
@@ -388,11 +387,7 @@ def write_predictions(folder: Path, fs, runs) -> None:
                 _in_unit(e.y[:, j] - run.y_simulation[:, j], conv, m_per_px, difference=True),
                 _in_unit(e.y[:, j] - run.y_one_step[:, j], conv, m_per_px, difference=True),
             ]
-        table = np.column_stack(cols)
-        lines = [",".join(header)]
-        for row in table:
-            lines.append(",".join("" if not np.isfinite(v) else f"{v:.10g}" for v in row))
-        (folder / "predictions" / f"{e.name}.csv").write_text("\n".join(lines) + "\n")
+        write_csv_table(folder / "predictions" / f"{e.name}.csv", header, cols)
 
 
 def _run_doc(run, outputs) -> dict:
@@ -521,7 +516,8 @@ def report(fs, result, validation, structure, fixed, metrics) -> str:
     for row in metrics:
         run, role, out, horizon, unit, n, fp, rmse, mae, sae = row
         lines.append(
-            f"| {run} | {role} | {out} | {horizon} | {fp:.2f} | {rmse:.4g} | {sae:.4g} | {unit} |"
+            f"| {run} | {role} | {out} | {horizon} | {_text(fp, '.2f')} | {_text(rmse, '.4g')} | "
+            f"{_text(sae, '.4g')} | {unit} |"
         )
     lines += [
         "",
@@ -538,14 +534,6 @@ def report(fs, result, validation, structure, fixed, metrics) -> str:
                 f"{verdict} |"
             )
     return "\n".join(lines) + "\n"
-
-
-def _plain(p):
-    def one(x):
-        return "n/a" if x is None or not np.isfinite(x) else f"{x:.3g}"
-
-    ci = "n/a" if not np.all(np.isfinite(p.ci95)) else f"[{one(p.ci95[0])}, {one(p.ci95[1])}]"
-    return one(p.value), ci, p.unit
 
 
 def write_validation_runs(path: Path, fs, validation) -> None:
@@ -616,12 +604,9 @@ def run(args, say, out) -> int:
     lines = ["parameter                  value        95 % interval               verdict"]
     for p in res.parameters:
         value, ci, unit = estimate_texts(p)
-        if p.path.split(".")[0] in ("process", "output_walk", "input_walk") and unit != p.unit:
-            # an SI prefix on a squared unit reads wrongly (mm^2/s is not 1e-3 m^2/s): SI
-            value, ci, unit = _plain(p)
         lines.append(f"{p.name:<26} {value:>8} {unit:<6} {ci:<27} {p.verdict}")
     for row in outcome["metrics"]:
-        lines.append(f"{row[0]} ({row[1]}) {row[2]} {row[3]} fit % {row[6]:.2f}")
+        lines.append(f"{row[0]} ({row[1]}) {row[2]} {row[3]} fit % {_text(row[6], '.2f')}")
     white = all(r.white for r in res.runs)
     lines.append(
         f"likelihood: {res.likelihood}; innovations "

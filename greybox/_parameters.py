@@ -17,6 +17,16 @@ import jax.numpy as jnp
 
 @dataclasses.dataclass(frozen=True)
 class ParameterInfo:
+    """One row of a device's parameter table (SI units).
+
+    - `lower`, `upper`: the optimiser's bounds when the parameter is freed by its path alone
+      (wide enough for devices of its class, not one unit's values).
+    - `physical`: (lower, upper) physical range for the device's material and geometry (None
+      on a side: unbounded); a fitted value outside it is flagged as implausible and a setting
+      outside it is refused (`greybox._plausibility`; ``[physical_ranges]`` in experiment.toml
+      overrides it). None: the same as (`lower`, `upper`).
+    """
+
     path: str
     unit: str
     nominal: float
@@ -24,6 +34,11 @@ class ParameterInfo:
     upper: float | None
     description: str
     identifiability: str = ""
+    physical: tuple[float | None, float | None] | None = None
+
+    @property
+    def physical_range(self) -> tuple[float | None, float | None]:
+        return self.physical if self.physical is not None else (self.lower, self.upper)
 
 
 _STEP = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)((?:\[\d+\])*)$")

@@ -22,6 +22,7 @@ from greybox._device import check_method, with_camera
 from greybox._errors import InputError
 from greybox._freeparams import FreeParameter
 from greybox._parameters import check_scalar_path
+from greybox._plausibility import out_of_range_settings, parse_physical_ranges, physical_ranges
 from greybox._registry import DeviceNotFound, ResolvedDevice, resolve
 from greybox._spec import DeviceSpecError
 from greybox._waveforms import from_samples, stack_channels
@@ -47,6 +48,7 @@ MAX_FIT_STEPS = 100_000
 MAX_PROBLEM_BYTES = 4e9  # estimated working memory of a fit (GREYBOX_MAX_PROBLEM_GB overrides)
 _TOP_KEYS = {"experiment", "model", "camera", "fit", "runs", "columns", "data", "candidates"}
 _TOP_KEYS |= {"noise"}  # [noise]: the process-noise structure (greybox/cli/_fit_process.py)
+_TOP_KEYS |= {"physical_ranges"}  # overrides of the device's physical ranges (_plausibility)
 _CANDIDATE_KEYS = {"name", "model", "free"}
 # how a run's file is read and its clock and inputs interpreted: [data] for every run, or
 # the same keys in a [[runs]] table for that run (a run's `columns` mapping is merged
@@ -88,6 +90,21 @@ _RUN_KEYS = {
     "t_start_s",
     "notes",
 } | _DATA_KEYS
+
+
+def accepted_keys() -> dict:
+    """{table: set of keys} that experiment.toml may hold ("" = the top level); each is
+    documented in experiments/README.md (tests/test_format_docs.py compares the two)."""
+    return {
+        "": set(_TOP_KEYS),
+        "experiment": set(_EXPERIMENT_KEYS),
+        "camera": set(_CAMERA_KEYS),
+        "fit": set(_FIT_KEYS),
+        "fit.free": set(_FREE_KEYS),
+        "data": set(_DATA_KEYS),
+        "runs": set(_RUN_KEYS),
+        "candidates": set(_CANDIDATE_KEYS),
+    }
 
 
 class InputErrors(InputError):
@@ -153,6 +170,7 @@ class ExperimentSet:
     runs: tuple
     free: tuple
     fit_options: dict
+    physical_ranges: dict = dataclasses.field(default_factory=dict)  # path -> PhysicalRange
 
     def run_info(self, name: str) -> RunInfo:
         return next(r for r in self.runs if r.name == name)
@@ -671,20 +689,26 @@ def _check_run_consistency(doc, table, path, t, y, refs, valid, wave, t_start) -
 
 
 def _check_ranges(doc: TomlDocument, ranges: dict, settings: dict, *path) -> None:
-    """Settings against the device's parameter table (sign and range)."""
-    for key, v in settings.items():
-        info = ranges.get(key)
-        if info is None:
-            continue
-        lo, hi = info.lower, info.upper
-        if (lo is not None and v < lo) or (hi is not None and v > hi):
-            raise doc.error(
-                f"{v:g} {info.unit} is outside the physical range of {info.path} "
-                f"[{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}]"
-                f" {info.unit} ({info.description}); give a value in range, in SI units",
-                *path,
-                key,
-            )
+    """Settings against their physical ranges ({path: PhysicalRange}); every one outside."""
+    bad = [doc.error(msg, *path, key) for key, msg in out_of_range_settings(settings, ranges)]
+    if len(bad) == 1:
+        raise bad[0]
+    if bad:
+        raise InputErrors(bad)
+
+
+def _physical_ranges(doc: TomlDocument, data: dict, spec, options: dict) -> dict:
+    """{path: PhysicalRange}: the device's, with [physical_ranges] overrides (every problem
+    in that table reported together)."""
+    table = spec.parameter_table(options)
+    given = data.get("physical_ranges")
+    overrides, problems = parse_physical_ranges({} if given is None else given, table)
+    bad = [doc.error(msg, "physical_ranges", *((key,) if key else ())) for key, msg in problems]
+    if len(bad) == 1:
+        raise bad[0]
+    if bad:
+        raise InputErrors(bad)
+    return physical_ranges(table, overrides)
 
 
 def check_problem_size(fs, max_bytes: float | None = None) -> None:
@@ -1187,7 +1211,15 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
     if free_entries is None:
         free_entries = fitopt.get("free")
     free = _attempt(errors, _free_parameters, doc, free_entries, spec, options, model, fixed)
-    ranges = {p.path: p for p in spec.parameter_table(options)}
+    ranges = _attempt(
+        errors,
+        _physical_ranges,
+        doc,
+        data,
+        spec,
+        options,
+        fallback=physical_ranges(spec.parameter_table(options)),
+    )
     _attempt(errors, _check_ranges, doc, ranges, fixed, "experiment", "settings")
 
     runs = data.get("runs")
@@ -1264,4 +1296,5 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
         runs=tuple(infos),
         free=free,
         fit_options=fit_options,
+        physical_ranges=ranges,
     )

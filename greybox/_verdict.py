@@ -169,7 +169,7 @@ def headline(
             implausible,
         )
     residual = {
-        True: "the residual test rejects the structure (structure in the misfit)",
+        True: "residuals that are not white (the residual test rejects the structure)",
         False: "residuals consistent with white noise",
         None: "residual test not possible",
     }[rejected]

@@ -89,7 +89,9 @@ def chain_nominals(
 
 
 def chain_parameter_table(thermal: ThermalChain) -> tuple:
-    """`ParameterInfo` rows of every named scalar of a chain at its nominal values."""
+    """`ParameterInfo` rows of every named scalar of a chain at its nominal values: the
+    optimiser's bounds (x100 around the nominal resistances) and the physical ranges
+    (x10 for silicon beams and an air gap; x3 for the capacities, rho c_p V)."""
     rows = []
     n = thermal.n_nodes
     for i, c in enumerate(thermal.capacity_J_per_K):
@@ -111,11 +113,12 @@ def chain_parameter_table(thermal: ThermalChain) -> tuple:
                 f"thermal.resistance_K_per_W[{i}]",
                 "K/W",
                 r,
-                r / 10,
-                r * 10,
+                r / 100,
+                r * 100,
                 f"series resistance node {i} -> {to} (beam conduction L/(n k w h) share)",
                 "through the second time constant and the gain, only if sampled faster than "
                 "both time constants; otherwise fix (§13.3)",
+                physical=(r / 10, r * 10),  # silicon: override for another material
             )
         )
     for i, r in enumerate(thermal.air_resistance_K_per_W or ()):
@@ -124,10 +127,11 @@ def chain_parameter_table(thermal: ThermalChain) -> tuple:
                 f"thermal.air_resistance_K_per_W[{i}]",
                 "K/W",
                 r,
-                r / 10,
-                r * 10,
+                r / 100,
+                r * 100,
                 f"node {i} -> substrate through the air gap",
                 "product with the series resistances only: fix",
+                physical=(r / 10, r * 10),  # gap height and air conductivity within x10
             )
         )
     if thermal.lag_s is not None:

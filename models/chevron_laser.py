@@ -226,19 +226,22 @@ def parameters(**options) -> tuple[ParameterInfo, ...]:
                 "thermal.tau_s",
                 "s",
                 tau,
-                min(1e-3, tau / 3),
-                max(0.2, tau * 3),
+                min(1e-4, tau / 30),
+                max(2.0, tau * 30),
                 "thermal time constant C/G",
                 "identifiable if frames are faster than tau or tau >~ 20-50 ms",
+                # C from rho c_p and the geometry; G within x10 (conduction, air gap)
+                physical=(min(1e-3, tau / 10), max(0.2, tau * 10)),
             ),
             ParameterInfo(
                 "thermal.resistance_K_per_W",
                 "K/W",
                 r,
-                min(200.0, r / 3),
-                max(1e4, r * 3),
+                min(20.0, r / 30),
+                max(1e5, r * 30),
                 "thermal resistance 1/G",
                 "product with absorptance only",
+                physical=(min(200.0, r / 10), max(1e4, r * 10)),
             ),
         )
     else:
@@ -249,10 +252,13 @@ def parameters(**options) -> tuple[ParameterInfo, ...]:
             "absorptance",
             "1",
             0.67,
-            0.40,
-            0.70,
+            0.01,
+            1.0,
             "absorptance of the heated Si pad at 800 nm",
             "product with spot fraction and thermal resistance only",
+            # 1 - reflectance of Si thicker than its absorption depth: bare 0.67; thin films
+            # move it within ~0.4-0.95 (a metal coating: override in [physical_ranges])
+            physical=(0.3, 1.0),
         ),
         ParameterInfo(
             "spot.waist_m", "m", 150e-6, 25e-6, 500e-6, "1/e^2 spot radius", "not identifiable"
@@ -268,16 +274,28 @@ def parameters(**options) -> tuple[ParameterInfo, ...]:
             "product only",
         ),
         ParameterInfo(
-            "elongation.cte_per_K", "1/K", CTE_SI_PER_K, 2.5e-6, 3.3e-6, "CTE of Si", "fixed"
+            "elongation.cte_per_K",
+            "1/K",
+            CTE_SI_PER_K,
+            2.5e-6,
+            3.3e-6,
+            "CTE of Si",
+            "fixed",
+            physical=(2.0e-6, 4.5e-6),  # Si from 250 K to 700 K
         ),
         ParameterInfo(
             "kinematics.angle_rad",
             "rad",
             angle,
-            min(float(np.deg2rad(0.5)), angle),
-            max(float(np.deg2rad(5.0)), angle),
+            min(float(np.deg2rad(0.05)), angle / 10),
+            max(float(np.deg2rad(30.0)), angle * 2),
             "chevron pre-bend angle",
             "weak (curvature only)",
+            # the mask angle, give or take what etching and buckling change: x2
+            physical=(
+                min(float(np.deg2rad(0.5)), angle / 2),
+                max(float(np.deg2rad(10.0)), 2 * angle),
+            ),
         ),
         ParameterInfo(
             "camera.offset_m",

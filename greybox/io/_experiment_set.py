@@ -1074,13 +1074,21 @@ def _device(doc: TomlDocument, exp: dict, directory: Path):
         raise doc.error(str(err), "experiment", "device") from None
 
 
-def _options(doc: TomlDocument, spec, model_table: dict) -> dict:
+def describe_hint(device) -> str:
+    """A `greybox describe` command that finds `device` (a `ResolvedDevice`) from any folder:
+    a file device by its absolute path, others by name."""
+    if device.source == "file":
+        return f"greybox describe {device.location}:{device.ref.partition(':')[2] or 'SPEC'}"
+    return f"greybox describe {device.ref}"
+
+
+def _options(doc: TomlDocument, device, model_table: dict) -> dict:
     try:
-        return spec.resolve_options(model_table)
+        return device.spec.resolve_options(model_table)
     except ValueError as err:
         key = str(err).split(":", 1)[0]
         raise doc.error(
-            f"{str(err).split(': ', 1)[-1]} (`greybox describe {spec.name}` lists the options)",
+            f"{str(err).split(': ', 1)[-1]} (`{describe_hint(device)}` lists the options)",
             "model",
             key,
         ) from None
@@ -1187,7 +1195,7 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
         if chosen is not None:
             model_table = {**model_table, **chosen[0]}
             free_entries = chosen[1]
-    options = _attempt(errors, _options, doc, spec, model_table)
+    options = _attempt(errors, _options, doc, device, model_table)
     if options is None:  # check the rest against the device's default structure
         options = spec.resolve_options({})
     description = _attempt(errors, doc.string, exp, "description", "experiment", default="")

@@ -45,7 +45,7 @@ NOT_VALID, IMPLAUSIBLE, REJECTED, VALID = (
 # Exit status of `greybox fit` and `greybox compare`: code -> meaning. README.md's table is
 # checked against this one (tests/test_verdict.py).
 EXIT_STATUS = {
-    0: "done: the result is written; the headline verdict (first line of report.md) says "
+    0: "done: the result is written; the headline verdict (printed, and first in report.md) says "
     "whether its intervals cover the physical values or the best approximation within the "
     "structure (a rejected structure or an implausible value is reported, not an error)",
     1: "written, but the estimate is not valid (not converged, ran out of steps, a parameter "
@@ -125,6 +125,18 @@ class Headline:
     def lines(self) -> list[str]:
         """Markdown lines for the top of report.md."""
         return [f"**{self.text}**", "", self.intervals, *[f"- {d}" for d in self.details]]
+
+    def as_json(self) -> dict:
+        """For params.json and compare.json: the verdict, its words and every implausible
+        value."""
+        return {
+            "verdict": self.verdict,
+            "text": self.text,
+            "intervals": self.intervals,
+            "details": list(self.details),
+            "implausible": [f.as_json() for f in self.implausible],
+            "exit_status": self.exit_status,
+        }
 
 
 def residuals_rejected(residuals) -> bool | None:

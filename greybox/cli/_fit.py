@@ -6,8 +6,11 @@ import argparse
 import dataclasses
 import os
 import sys
+import textwrap
 import time
 from pathlib import Path
+
+from greybox._verdict import exit_status_help
 
 HELP = """\
 Fit the physical parameters of a device model to an experiment folder and write the
@@ -40,11 +43,8 @@ The result folder is written atomically: it appears complete or not at all (an e
 bad input, Ctrl-C or SIGTERM leaves no partial result, and an earlier result stays as it
 was). --out must be absent, empty or an earlier greybox result (it holds a
 .greybox-result marker); any other folder is refused before any work unless --force.
-Exit status: 0 done; 1 written but the estimate is not valid (not converged, a parameter at a
-bound, or diverged; see the first lines of report.md); 2 bad input
-or output location (one line naming the file, line and field; nothing written); 3 a bug
-in greybox (traceback; please report it); 130 interrupted; 143 terminated (SIGTERM).
 """
+HELP += textwrap.fill(exit_status_help(), width=92) + "\n"
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -71,6 +71,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="replace --out even if it is a non-empty folder greybox did not write",
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument(
+        "--strict",
+        action="store_true",
+        help="exit 1 also when the residual test rejects the structure or a fitted value is "
+        "physically implausible (the result is written either way)",
+    )
     p.set_defaults(func=run)
     return p
 
@@ -560,6 +566,10 @@ def run(args) -> int:
         f"wrote {out}/ (params.json, report.md, figures/, predictions/, metrics.csv, "
         f"validation_runs.json) in {say.elapsed:.1f} s"
     )
+    from greybox._verdict import fit_headline  # one verdict: status, bounds, physics, residuals
+
+    head = fit_headline(outcome.result, outcome.fitset.physical_ranges, strict=args.strict)
+    print("\n".join([head.text, *[f"  {d}" for d in head.details], head.intervals]))
     if not outcome.result.valid:
         print(
             f"greybox fit: warning: {outcome.result.status}: the estimate is not valid "
@@ -568,4 +578,4 @@ def run(args) -> int:
             file=sys.stderr,
         )
         return 1
-    return 0
+    return head.exit_status

@@ -254,17 +254,9 @@ def residual_lines(result, validation=None, outputs=None) -> list[str]:
 
 def error_lines(result) -> list[str]:
     """Which standard errors are the headline and why."""
-    if result.se_method == "hac":
-        why = (
-            "**the residuals are not white, so the headline standard errors and intervals "
-            "are the Newey-West (HAC) sandwich ones**, which allow for the autocorrelated "
-            "misfit; the Gauss-Newton ones assume white residuals and are shown beside them"
-        )
-    else:
-        why = (
-            "the residuals are white, so the headline standard errors are the Gauss-Newton "
-            "ones; the Newey-West (HAC) sandwich ones are shown beside them and should agree"
-        )
+    from greybox._verdict import standard_error_text  # never "allows for" when narrower
+
+    why = standard_error_text(result)
     return [
         f"Standard errors: {why}. HAC: the part of the residuals explained by the inputs "
         "(an FIR model-error model, Ljung and Guo 1997) is removed first, the score "
@@ -374,8 +366,12 @@ def fit_report(
     source: str = "",
     output_unit: str = "m",
     outputs: tuple | None = None,
+    physical_ranges: dict | None = None,
 ) -> str:
     """Markdown report of a fit (and its validation) for people who did not run it.
+
+    It opens with the headline verdict (`greybox._verdict`), its fitted values checked
+    against `physical_ranges` ({path: PhysicalRange}).
 
     - `result`: `greybox.FitResult`; `validation`: `greybox.ValidationResult` or None.
     - `runs`: per-run info with `name` and `waveform` (one-line laser description).
@@ -389,7 +385,10 @@ def fit_report(
     n_frames = sum(e.n_frames for e in result.experiments)
     sigma_f, sigma_u = display_unit(output_unit)
     n_out = sum(result.n_outliers.values())
-    lines = [f"# greybox fit: {title}", "", *status_lines(result, validation), ""]
+    from greybox._verdict import fit_headline
+
+    head = fit_headline(result, physical_ranges or {})
+    lines = [f"# greybox fit: {title}", "", *head.lines, "", *status_lines(result, validation), ""]
     if source:
         lines += [source, ""]
     lines += [

@@ -87,7 +87,8 @@ class DeviceSpec:
     - `name`: identifier used in ``experiment.toml`` and reports.
     - `inputs`, `outputs`: `Channel`s (column names and units of the files).
     - `build`: ``build(**options) -> model`` at nominal values for the given options.
-    - `parameters`: the parameter table (`ParameterInfo`s), or a function of the options.
+    - `parameters`: the parameter table (`ParameterInfo`s), or a function of the options;
+      each row's physical range (`ParameterInfo.physical`, else its bounds) holds its nominal.
     - `default_free`: the standard fit's `FreeParameter`s, or a function of the options.
     - `options`: the structural `Option`s accepted in ``[model]``.
     - `start_values`: optional hook ``(model, free, experiments) -> free`` that sets starting
@@ -217,6 +218,14 @@ class DeviceSpec:
                 check_scalar_path(model, p.path)
             except ValueError as err:
                 fail(f"parameter table: {err}")
+            lo, hi = p.physical_range  # a fact about the device: its nominal value lies inside
+            if (lo is not None and hi is not None and not hi > lo) or not (
+                (lo is None or p.nominal >= lo) and (hi is None or p.nominal <= hi)
+            ):
+                fail(
+                    f"parameter {p.path!r}: physical range [{lo}, {hi}] must be ordered and "
+                    f"hold the nominal value {p.nominal:g}"
+                )
         for fp in self.free_parameters():
             if fp.path not in paths:
                 fail(f"default free parameter {fp.path!r} is not in the parameter table")

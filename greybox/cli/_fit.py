@@ -432,6 +432,7 @@ def render_report(fs, result, validation, figures) -> str:
         source=source,
         output_unit=fs.spec.outputs[0].si_unit,
         outputs=tuple(c.name for c in fs.spec.outputs),
+        physical_ranges=fs.physical_ranges,
     )
 
 

@@ -87,6 +87,7 @@ def _fit_scores(field: str, frames: str, result, validation) -> dict:
 def params_document(fitset, result, validation=None) -> dict:
     """The `params.json` content (a plain dict) for a fit of `fitset` (an `ExperimentSet`)."""
     import greybox
+    from greybox._verdict import fit_headline
 
     shared = [p for p in result.free if not p.per_experiment]
     fitted = {p.path: _num(result.estimate(p.path).value) for p in shared}
@@ -224,6 +225,8 @@ def params_document(fitset, result, validation=None) -> dict:
         "residuals_validation": residual_tests(validation),
         "runs": runs,
         "n_data": int(result.n_data),
+        # the headline verdict and every fitted value outside its physical range
+        "headline": fit_headline(result, getattr(fitset, "physical_ranges", {})).as_json(),
         "convergence": {
             "status": result.status,
             "valid": bool(result.valid),

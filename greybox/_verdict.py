@@ -77,13 +77,18 @@ def interval_factor(ci95) -> float | None:
     return max(abs(lo), abs(hi)) / min(abs(lo), abs(hi))
 
 
-def refined_verdict(estimate, factor: float = WEAK_FACTOR) -> str:
-    """The estimate's verdict, "weakly identified" instead of "identifiable" when its 95 %
-    interval spans more than `factor` (upper / lower)."""
-    f = interval_factor(estimate.ci95)
-    if estimate.verdict == "identifiable" and f is not None and f > factor:
+def interval_verdict(verdict: str, ci95, factor: float = WEAK_FACTOR) -> str:
+    """`verdict`, or "weakly identified" instead of "identifiable" when the 95 % interval
+    `ci95` spans more than `factor` (upper / lower)."""
+    f = interval_factor(ci95)
+    if verdict == "identifiable" and f is not None and f > factor:
         return "weakly identified"
-    return estimate.verdict
+    return verdict
+
+
+def refined_verdict(estimate, factor: float = WEAK_FACTOR) -> str:
+    """`interval_verdict` of a `ParameterEstimate`."""
+    return interval_verdict(estimate.verdict, estimate.ci95, factor)
 
 
 def with_refined_verdicts(parameters: Iterable, factor: float = WEAK_FACTOR) -> tuple:

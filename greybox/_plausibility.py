@@ -173,7 +173,10 @@ class Implausible:
             "path": self.path,
             "value": self.value,
             "unit": self.unit,
-            "physical_range": [self.range.lower, self.range.upper],
+            "physical_range": [  # JSON has no inf: an open side is null
+                v if v is not None and math.isfinite(v) else None
+                for v in (self.range.lower, self.range.upper)
+            ],
             "range_source": self.range.source,
             "run": self.experiment,
         }
@@ -187,7 +190,8 @@ def implausible_values(estimates: Iterable, ranges: Mapping) -> tuple[Implausibl
     out = []
     for p in estimates:
         r = ranges.get(p.path)
-        if r is None or r.contains(float(p.value)):
+        # a non-finite value is a diverged fit, which its status reports, not a physics question
+        if r is None or not math.isfinite(float(p.value)) or r.contains(float(p.value)):
             continue
         out.append(
             Implausible(

@@ -103,6 +103,7 @@ def test_every_implausible_value_is_reported_together():
     est = [estimate("a", 0.1, (0, 1)), estimate("b", 5.0, (4, 6)), estimate("c", 3.0, (2, 4))]
     found = implausible_values(est, ranges)
     assert [f.path for f in found] == ["a", "c"]  # b's override accepts 5
+    assert not implausible_values([estimate("a", float("nan"), (0, 1))], ranges)  # diverged
     assert [f.side for f in found] == ["below", "above"]
     assert ranges["b"].source == "experiment.toml"
     overrides, problems = parse_physical_ranges({"a": [0.5, "x"], "zz": [1, 2]}, table)

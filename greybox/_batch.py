@@ -13,7 +13,8 @@ devices:
 - every solve (each start of each device, then the re-fit at the re-estimated noise scale) is
   an item; items are cut into chunks of one fixed size (the last chunk is padded with copies
   of its last item), so every chunk of a group reuses the same compiled function. The chunk
-  size is chosen from a memory budget (`bytes_per_item`);
+  size is chosen from a memory budget (`bytes_per_item`), by default a share of the device's
+  own memory (`device_budget`: the accelerator's limit, or the CPU's physical memory);
 - the noise handling is `fit`'s, per device: a declared `sigma` (one for every device, or one
   per device name), per-frame `Experiment.sigma`, or estimated: a first solve at the
   frame-difference guess, the robust (MAD) scale of its residuals, then the re-fit from that
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from collections.abc import Callable, Mapping, Sequence
 
 import equinox as eqx
@@ -42,10 +44,25 @@ from greybox._data import Experiment
 from greybox._device import check_method
 from greybox._freeparams import FreeParameter
 from greybox._parameters import get_value
-from greybox._simulate import pad_schedules, require_x64, schedule_for
+from greybox._simulate import pad_schedules, require_x64, schedule_for, zoh_scan_kind
 
-DEFAULT_MEMORY_BUDGET = 2 * 1024**3  # bytes one chunk may allocate (estimate)
-MAX_CHUNK = 256  # devices x starts per compiled call: beyond this vmap gains little on CPU
+MAX_CHUNK = 256  # solves per compiled call on a CPU: beyond this vmap gains little there
+MAX_CHUNK_ACCELERATOR = 65536  # on a GPU/TPU the memory budget is what limits a chunk
+ACCELERATOR_MEMORY_SHARE = 0.5  # of the accelerator memory not in use, for one chunk
+CPU_MEMORY_SHARE = 0.25  # of the physical memory, for one chunk
+
+
+def device_budget(device=None) -> tuple[float, int]:
+    """(bytes one chunk may allocate, most solves per compiled call) on `device` (default:
+    JAX's first device): from the accelerator's own memory limit (`memory_stats`) or, on a
+    CPU, from the physical memory, never a fixed constant."""
+    device = device or jax.devices()[0]
+    stats = device.memory_stats() if device.platform != "cpu" else None
+    if stats and stats.get("bytes_limit"):
+        free = stats["bytes_limit"] - stats.get("bytes_in_use", 0)
+        return ACCELERATOR_MEMORY_SHARE * free, MAX_CHUNK_ACCELERATOR
+    physical = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    return CPU_MEMORY_SHARE * physical, MAX_CHUNK
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,14 +156,16 @@ def bytes_per_item(problem) -> int:
     p = problem.n_raw
     rows = n_exp * n_frames * n_y + len(problem.priors)
     sim = n_exp * (n_int * (n_x * n_x + n_x * n_u + n_x + n_u) + n_eval * (n_x + n_y))
+    if zoh_scan_kind(n_int) == "associative":  # its up- and down-sweep keep ~2 more copies
+        sim += n_exp * n_int * 2 * (n_x * n_x + n_x)
     jac = rows * p
     return int(8 * 3 * ((p + 1) * sim + 3 * jac + 4 * rows))
 
 
-def chunk_size_for(bytes_item: int, budget: float, n_items: int) -> int:
-    """Largest chunk within `budget` bytes (at least 1, at most MAX_CHUNK and the work)."""
+def chunk_size_for(bytes_item: int, budget: float, n_items: int, max_chunk=MAX_CHUNK) -> int:
+    """Largest chunk within `budget` bytes (at least 1, at most `max_chunk` and the work)."""
     fit_in = max(1, int(budget // max(bytes_item, 1)))
-    return int(max(1, min(fit_in, MAX_CHUNK, n_items)))
+    return int(max(1, min(fit_in, max_chunk, n_items)))
 
 
 @eqx.filter_jit
@@ -326,7 +345,7 @@ def fit_batch(
     solver_atol: float = 1e-10,
     solver_max_steps: int = 16384,
     chunk_size: int | None = None,
-    memory_budget_bytes: float = DEFAULT_MEMORY_BUDGET,
+    memory_budget_bytes: float | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> BatchResult:
     """Fit every device of `devices` (each as `greybox.fit(device.model, device.experiments,
@@ -342,7 +361,8 @@ def fit_batch(
     `sigma` is one declared noise level for all devices, a {device name: sigma} mapping, or
     None (estimated per device, as `fit` does; a device's own `Device.sigma` wins);
     `chunk_size`: solves per compiled call (None: from `memory_budget_bytes` and
-    `bytes_per_item`); `progress`: called with a text line after each chunk.
+    `bytes_per_item`); `memory_budget_bytes`: bytes one call may allocate (None: from the
+    device's memory, `device_budget`); `progress`: called with a text line after each chunk.
 
     **Returns:** a `BatchResult` whose `results[name]` is that device's `FitResult`.
     """
@@ -359,12 +379,17 @@ def fit_batch(
         devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver
     )
     opts = (float(rtol), float(atol), int(max_steps))
+    budget, max_chunk = device_budget()
+    if memory_budget_bytes is not None:
+        budget = float(memory_budget_bytes)
     counter = [0]
     results, item_bytes, chunk_used = {}, 0, 0
     for g, members in enumerate(groups):
         n_items = sum(len(prepared[i].starts) for i in members)
         b = bytes_per_item(prepared[members[0]].problem)
-        chunk = int(chunk_size) if chunk_size else chunk_size_for(b, memory_budget_bytes, n_items)
+        chunk = (
+            int(chunk_size) if chunk_size else chunk_size_for(b, budget, n_items, max_chunk)
+        )
         item_bytes, chunk_used = max(item_bytes, b), max(chunk_used, chunk)
         label = f"group {g + 1}/{len(groups)}"
         say(

@@ -44,7 +44,7 @@ from greybox._data import Experiment
 from greybox._device import check_method
 from greybox._freeparams import FreeParameter
 from greybox._parameters import get_value
-from greybox._simulate import pad_schedules, require_x64, schedule_for, zoh_scan_kind
+from greybox._simulate import pad_schedules, require_x64, schedules_for, zoh_scan_kind
 
 MAX_CHUNK = 256  # solves per compiled call on a CPU: beyond this vmap gains little there
 MAX_CHUNK_ACCELERATOR = 65536  # on a GPU/TPU the memory budget is what limits a chunk
@@ -179,14 +179,37 @@ def _solve_many(dynamic, static, raw, sigma, rtol, atol, max_steps):
 
 
 @dataclasses.dataclass
+class _Group:
+    """Devices of one problem structure: their common static part and their array leaves
+    stacked once (numpy, leading axis = member), from which every chunk gathers its rows."""
+
+    members: list
+    static: object
+    stacked: object
+
+    def rows(self, positions) -> object:
+        """The stacked leaves of members at `positions`, on the device (one transfer)."""
+        idx = np.asarray(positions)
+        return jtu.tree_map(lambda x: jnp.asarray(np.take(x, idx, axis=0)), self.stacked)
+
+
+@dataclasses.dataclass
 class _Prepared:
     device: Device
-    problem: object  # _fit._Problem padded to its group's shapes
+    group: _Group
+    row: int  # position in the group's stack
     free: tuple
     source: str
     raw0: np.ndarray
     starts: list
     sigma0: np.ndarray
+
+    @property
+    def problem(self):
+        """This device's `_fit._Problem` (padded to its group's shapes; numpy views)."""
+        return eqx.combine(
+            jtu.tree_map(lambda x: x[self.row], self.group.stacked), self.group.static
+        )
 
 
 def _check(device: Device, free, method):
@@ -237,30 +260,34 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
         key = (jtu.tree_structure(static), jtu.tree_structure(eqx.filter(prob, eqx.is_array)))
         groups.setdefault(key, []).append(i)
     prepared: list = [None] * len(built)
+    out_groups = []
     for members in groups.values():
-        scheds = []
-        for i in members:
-            d, prob = built[i][0], built[i][1]
-            scheds += [
-                schedule_for(d.model, e.inputs, e.t_s, t_start_s=e.t_start_s) for e in d.experiments
-            ]
-        joint = pad_schedules(scheds)
+        # one joint padding of every run of the group, kept in numpy until a chunk needs it
+        scheds = [
+            s for i in members for s in schedules_for(built[i][0].model, built[i][0].experiments)
+        ]
+        joint = pad_schedules(scheds, on_device=False)
         n_f = joint["t_s"].shape[1]
-        start = 0
+        dyns, start = [], 0
         for i in members:
-            d, prob, f, source, sig_d, raw0 = built[i]
-            n_e = len(d.experiments)
-            sched = {k: v[start : start + n_e] for k, v in joint.items()}
-            start += n_e
-            pad = n_f - prob.y.shape[1]
-            widths = ((0, 0), (0, pad), (0, 0))
+            prob = built[i][1]
+            n_e = prob.n_exp
+            widths = ((0, 0), (0, n_f - prob.y.shape[1]), (0, 0))
             prob = dataclasses.replace(
                 prob,
-                sched=sched,
-                y=jnp.pad(prob.y, widths),
-                w=jnp.pad(prob.w, widths),
-                noise=jnp.pad(prob.noise, widths, constant_values=1.0),
+                sched={k: v[start : start + n_e] for k, v in joint.items()},
+                y=np.pad(np.asarray(prob.y), widths),
+                w=np.pad(np.asarray(prob.w), widths),
+                noise=np.pad(np.asarray(prob.noise), widths, constant_values=1.0),
             )
+            start += n_e
+            dyns.append(eqx.filter(prob, eqx.is_array))
+        _, static = eqx.partition(built[members[0]][1], eqx.is_array)
+        stacked = jtu.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *dyns)
+        group = _Group(list(members), static, stacked)
+        out_groups.append(group)
+        for row, i in enumerate(members):
+            d, prob, f, source, sig_d, raw0 = built[i]
             k = n_starts
             if k is None:
                 k = _fit.AUTO_STARTS if len(prob.shared) > 2 else 1
@@ -277,8 +304,8 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
                     raise ValueError(f"{d.name}: sigma must be > 0 (SI units of the output)")
             else:
                 sig = np.ones(n_y)
-            prepared[i] = _Prepared(d, prob, f, source, raw0, starts, sig)
-    return prepared, list(groups.values())
+            prepared[i] = _Prepared(d, group, row, f, source, raw0, starts, sig)
+    return prepared, out_groups
 
 
 def _no_initial(free) -> tuple:
@@ -311,15 +338,14 @@ def _run_items(prepared, items, chunk, rtol, atol, max_steps, say, label, counte
     returns one host-side output dict per item."""
     outputs = []
     n_chunks = math.ceil(len(items) / chunk)
-    _, static = eqx.partition(prepared[items[0][0]].problem, eqx.is_array)
+    group = prepared[items[0][0]].group
     for c in range(n_chunks):
         part = items[c * chunk : (c + 1) * chunk]
         padded = part + [part[-1]] * (chunk - len(part))
-        dyn = [eqx.filter(prepared[i].problem, eqx.is_array) for i, _, _ in padded]
-        stacked = jtu.tree_map(lambda *xs: jnp.stack(xs), *dyn)
+        stacked = group.rows([prepared[i].row for i, _, _ in padded])
         raw = jnp.asarray(np.stack([r for _, r, _ in padded]))
         sig = jnp.asarray(np.stack([s for _, _, s in padded]))
-        out = jax.device_get(_solve_many(stacked, static, raw, sig, rtol, atol, max_steps))
+        out = jax.device_get(_solve_many(stacked, group.static, raw, sig, rtol, atol, max_steps))
         counter[0] += 1
         for j in range(len(part)):
             outputs.append({k: v[j] for k, v in out.items()})
@@ -384,7 +410,8 @@ def fit_batch(
         budget = float(memory_budget_bytes)
     counter = [0]
     results, item_bytes, chunk_used = {}, 0, 0
-    for g, members in enumerate(groups):
+    for g, group in enumerate(groups):
+        members = group.members
         n_items = sum(len(prepared[i].starts) for i in members)
         b = bytes_per_item(prepared[members[0]].problem)
         chunk = (

@@ -132,12 +132,13 @@ def _bucket(n: int) -> int:
     return -(-n // 256) * 256
 
 
-def pad_schedules(schedules: Sequence[Schedule]) -> dict:
+def pad_schedules(schedules: Sequence[Schedule], *, on_device: bool = True) -> dict:
     """Stack schedules of different lengths into equal-shape arrays for `jax.vmap`.
 
     Lengths are rounded up (`_bucket`), so runs of similar size reuse one compiled function.
     Padding is inert: ZOH intervals of length 0 (identity step), evaluation instants repeated
     at the end, breakpoints and jump times pushed past the end of the record.
+    `on_device=False` keeps numpy arrays (for callers that stack many before one transfer).
     """
     n_frames = _bucket(max(s.t_s.size for s in schedules))
     n_int = _bucket(max(s.dt.size for s in schedules))
@@ -182,7 +183,8 @@ def pad_schedules(schedules: Sequence[Schedule]) -> dict:
         )
         far_j = t_end + 1.0 + np.arange(n_jumps - s.jump_ts.size)
         out["jump_ts"].append(np.concatenate([s.jump_ts, far_j]))
-    return {k: jnp.asarray(np.stack(v)) for k, v in out.items()}
+    to = jnp.asarray if on_device else np.asarray
+    return {k: to(np.stack(v)) for k, v in out.items()}
 
 
 _EXPM_MAX_SQUARINGS = 24  # handles |A h| up to ~4e6: far beyond any RC time-constant ratio
@@ -369,6 +371,22 @@ def schedule_for(model: AbstractDevice, inputs, t_s, *, t_start_s: float = 0.0) 
     return Schedule.build(
         inputs.to_piecewise(), t_s, offsets, t_start_s=t_start_s, n_inputs=model.n_inputs
     )
+
+
+def schedules_for(model: AbstractDevice, experiments) -> list[Schedule]:
+    """`schedule_for` of each experiment (anything with `inputs`, `t_s`, `t_start_s`), with the
+    readout's quadrature computed once for all of them."""
+    offsets, _ = model.readout.quadrature()
+    return [
+        Schedule.build(
+            e.inputs.to_piecewise(),
+            e.t_s,
+            offsets,
+            t_start_s=e.t_start_s,
+            n_inputs=model.n_inputs,
+        )
+        for e in experiments
+    ]
 
 
 def simulate(

@@ -82,8 +82,8 @@ def test_associative_scan_equals_sequential(model):
 def test_auto_scan_choice():
     assert zoh_scan_kind(10, "sequential") == "sequential"
     assert zoh_scan_kind(10, "associative") == "associative"
-    expected_short = "sequential" if greybox._simulate.jax.default_backend() == "cpu" else "associative"
-    assert zoh_scan_kind(10) == expected_short
+    on_cpu = greybox._simulate.jax.default_backend() == "cpu"
+    assert zoh_scan_kind(10) == ("sequential" if on_cpu else "associative")
     assert zoh_scan_kind(ASSOCIATIVE_MIN_INTERVALS) == "associative"
     with pytest.raises(ValueError, match="zoh_scan"):
         zoh_scan_kind(10, "parallel")

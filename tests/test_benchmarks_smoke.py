@@ -19,6 +19,7 @@ BENCH = ROOT / "benchmarks"
 
 # keys each script's last JSON line must carry (present in the full run's line as well)
 KEYS = {
+    "batch_independence.py": {"max_rel", "steps_differ", "ok_differ", "backend"},
     "blackbox.py": {"arx_speedup_vs_sippy", "armax_speedup_vs_sippy", "armax_fit_pct"},
     "design.py": {"det_gain", "predicted_se_ratio", "measured_se_ratio", "replicates"},
     "fit_chevron.py": {"compile_s", "zoh_fit_s", "adaptive_fit_s", "ratio_vs_scipy"},

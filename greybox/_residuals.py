@@ -789,10 +789,12 @@ def _input_lags(t_s, grid: FrameGrid, inputs, n_frames: int, lags: int) -> np.nd
     u = np.asarray(inputs, dtype=float).reshape(n_frames, -1)
     slot_u = np.full((grid.n_slots, u.shape[1]), np.nan)
     slot_u[grid.slots] = u
-    for k in range(1, grid.n_slots):  # missing timestamps: hold the last known level
-        gap = ~np.isfinite(slot_u[k])
-        slot_u[k, gap] = slot_u[k - 1, gap]
-    slot_u = np.where(np.isfinite(slot_u), slot_u, 0.0)
+    # missing timestamps: hold the last known level (forward fill: each slot reads the latest
+    # slot at or before it that holds a finite level, per input)
+    known = np.isfinite(slot_u)
+    last = np.maximum.accumulate(np.where(known, np.arange(grid.n_slots)[:, None], -1), axis=0)
+    filled = np.take_along_axis(slot_u, np.maximum(last, 0), axis=0)
+    slot_u = np.where((last >= 0) & np.isfinite(filled), filled, 0.0)
     return np.concatenate([slot_u[np.maximum(grid.slots - k, 0)] for k in range(lags)], axis=1)
 
 

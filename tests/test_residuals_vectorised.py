@@ -93,3 +93,26 @@ def test_pooled_analysis_is_reproducible_for_a_seed():
     a, b = analyse(runs, seed=11), analyse(runs, seed=11)
     np.testing.assert_array_equal(a.p_value, b.p_value)
     assert not np.array_equal(analyse(runs, seed=12).p_value, a.p_value)
+
+
+def test_input_levels_hold_the_last_known_level_across_gaps():
+    rng = np.random.default_rng(6)
+    n = 120
+    t = np.cumsum(np.where(rng.random(n) < 0.1, 3.0, 1.0))  # missing timestamps: empty slots
+    u = rng.normal(size=(n, 2))
+    u[rng.random((n, 2)) < 0.15] = np.nan  # and unknown levels at some frames
+    grid = _residuals.FrameGrid.build(t)
+    lags = 4
+    got = _residuals._input_lags(t, grid, u, n, lags)
+    # the definition, slot by slot: an empty slot or unknown level holds the one before it
+    slot_u = np.zeros((grid.n_slots, 2))
+    held = np.zeros(2)
+    have = np.zeros(2, bool)
+    by_slot = dict(zip(grid.slots.tolist(), u))
+    for k in range(grid.n_slots):
+        level = by_slot.get(k, np.full(2, np.nan))
+        have = have | np.isfinite(level)
+        held = np.where(np.isfinite(level), level, held)
+        slot_u[k] = np.where(have, held, 0.0)
+    want = np.concatenate([slot_u[np.maximum(grid.slots - k, 0)] for k in range(lags)], axis=1)
+    np.testing.assert_array_equal(got, want)

@@ -5,13 +5,14 @@ estimation samples, and scores each ARMAX by the simulation fit % on 2,000 fresh
 samples. greybox times are warm (a first call compiles the JAX solver for the shape; its time
 is printed separately). Last line: one JSON object.
 
-Run: .venv/bin/python benchmarks/blackbox.py
+Run: .venv/bin/python benchmarks/blackbox.py [--smoke]
 """
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
+import argparse  # noqa: E402
 import json  # noqa: E402
 import time  # noqa: E402
 
@@ -26,6 +27,8 @@ B = np.array([0.0, 1.0, 0.5])
 C = np.array([1.0, -0.6, 0.2])
 SIGMA = 0.3
 
+
+SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
 
 def make(rng, n):
     u = np.sign(rng.standard_normal(n))
@@ -49,14 +52,18 @@ def sippy_model(sys, kind):
     return bb.ARMAX.from_coefficients(a, [np.r_[0.0, b]], [1.0], dt=1.0), kind
 
 
-def main():
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
+    args = ap.parse_args(argv)
+    small, large = (300, 600) if args.smoke else (2000, 20000)
     rng = np.random.default_rng(2024)
-    val = make(rng, 2000)
+    val = make(rng, small)
     summary = {}
-    for n in (2000, 20000):
+    for n in (small, large):
         est = make(rng, n)
         y, u = est.y[:, 0], est.u[:, 0]
-        reps = 5 if n == 2000 else 3
+        reps = 1 if args.smoke else 5 if n == small else 3
         t_arx, arx = best_time(lambda: bb.fit_arx(est, 2, 2, 1), reps)
         t_arx_s, _ = best_time(
             lambda: sippy.system_identification(
@@ -78,7 +85,7 @@ def main():
                 max_iterations=200,
                 centering="None",
             ),
-            1 if n == 20000 else 2,
+            1 if n == large or args.smoke else 2,
         )
         t_rarx, _ = best_time(lambda: bb.recursive_arx(est, 2, 2, 1), 1)
         t_rarx_s, _ = best_time(
@@ -118,7 +125,7 @@ def main():
             fit_s=fit_s,
             t_first=t_first,
         )
-    s = summary[2000]
+    s = summary[small]
     print(
         json.dumps(
             {
@@ -127,12 +134,13 @@ def main():
                 "recursive_arx_speedup_vs_sippy": round(s["rarx"], 2),
                 "armax_fit_pct": round(s["fit"], 3),
                 "armax_fit_pct_sippy": round(s["fit_s"], 3),
-                "arx_speedup_vs_sippy_20k": round(summary[20000]["arx"], 2),
-                "armax_speedup_vs_sippy_20k": round(summary[20000]["armax"], 2),
-                "armax_fit_pct_20k": round(summary[20000]["fit"], 3),
-                "armax_fit_pct_sippy_20k": round(summary[20000]["fit_s"], 3),
+                "arx_speedup_vs_sippy_20k": round(summary[large]["arx"], 2),
+                "armax_speedup_vs_sippy_20k": round(summary[large]["armax"], 2),
+                "armax_fit_pct_20k": round(summary[large]["fit"], 3),
+                "armax_fit_pct_sippy_20k": round(summary[large]["fit_s"], 3),
                 "armax_first_call_s": round(s["t_first"], 3),
                 "timing": "warm, best of repeats; fit % = validation simulation, 2000 samples",
+                "samples": [small, large],
             }
         )
     )

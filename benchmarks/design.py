@@ -12,7 +12,7 @@ PHYSICS.md §6, the camera's exposure average, white tracking noise), then fitte
 `greybox.fit` over N noise replicates. The measured SE ratio (baseline SD of the estimates
 over the designed SD) is compared with the ratio the design predicted.
 
-Usage: .venv/bin/python benchmarks/design.py [--replicates 200]  (about 4 min on 2 cores)
+Usage: .venv/bin/python benchmarks/design.py [--replicates 200] [--smoke]  (about 4 min on 2 cores)
 Last line: one JSON object (det_gain, predicted_se_ratio, measured_se_ratio, ...).
 """
 
@@ -99,6 +99,8 @@ class NumpyChevron:
         return (y.reshape(t.size, n_quad) * (w / 2)[None]).sum(axis=1)
 
 
+SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
+
 def numpy_truth():
     spec = greybox.get_device("chevron_laser")
     m = spec.model()
@@ -153,10 +155,29 @@ def replicate_estimates(runs, sim, model0, free, n_rep, rng):
     return np.asarray(est), np.asarray(ses)
 
 
+def independent_check(sim, nominal, base) -> float:
+    """Max |difference| [m] of the independent simulator against greybox at the truth on the
+    last baseline run (a sanity check of both)."""
+    truth_model = greybox.set_values(nominal, list(TRUE), list(TRUE.values()))
+    w0 = base[-1].waveform
+    return float(
+        np.max(
+            np.abs(
+                sim.camera(w0, frames(w0), EXPOSURE_S)
+                - greybox.simulate(truth_model, w0, frames(w0))
+            )
+        )
+    )
+
+
+SMOKE_KEYS = ("det_gain", "predicted_se_ratio", "measured_se_ratio", "predicted_se_ratio_at_truth")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--replicates", type=int, default=200)
     ap.add_argument("--seed", type=int, default=2026)
+    ap.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
 
@@ -166,6 +187,11 @@ def main(argv=None) -> None:
     base = baseline_runs()
     base_T = sum(r.waveform.duration_s for r in base)
     base_E = sum(r.energy_J for r in base)
+    if args.smoke:  # no design and no replicate fits: the data path and the simulator check
+        sim_err = independent_check(numpy_truth(), nominal, base)
+        out = dict.fromkeys(SMOKE_KEYS) | {"replicates": 0, "independent_sim_max_diff_m": sim_err}
+        print(json.dumps(out | {"smoke": True}))
+        return
     constraints = greybox.LabConstraints(
         power_max_W=POWER_MAX_W,
         run_duration_s=base_T / len(base),
@@ -211,17 +237,7 @@ def main(argv=None) -> None:
     )
 
     sim = numpy_truth()
-    # the independent simulator against greybox at the truth (a sanity check of both)
-    truth_model = greybox.set_values(nominal, list(TRUE), list(TRUE.values()))
-    w0 = base[-1].waveform
-    sim_err = float(
-        np.max(
-            np.abs(
-                sim.camera(w0, frames(w0), EXPOSURE_S)
-                - greybox.simulate(truth_model, w0, frames(w0))
-            )
-        )
-    )
+    sim_err = independent_check(sim, nominal, base)
     print(f"independent simulator vs greybox.simulate: max |difference| {sim_err:.3g} m")
 
     rng = np.random.default_rng(args.seed)

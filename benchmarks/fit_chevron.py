@@ -1,6 +1,6 @@
 """Fit the six-experiment chevron set (~2,000 frames): compile time, fit times, scipy baseline.
 
-Run: .venv/bin/python benchmarks/fit_chevron.py [--repeats 5] [--skip-scipy]
+Run: .venv/bin/python benchmarks/fit_chevron.py [--repeats 5] [--skip-scipy] [--smoke]
 
 The scipy baseline fits the same data from the same start with the same raw parameterisation
 and Huber loss: `solve_ivp` (RK45, same tolerances as our adaptive path, restarted at every
@@ -38,6 +38,8 @@ CHEVRON = greybox.get_device("chevron_laser")
 default_model = CHEVRON.model
 
 
+SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
+
 def default_free_parameters():
     return list(CHEVRON.free_parameters())
 
@@ -48,11 +50,11 @@ START = {"absorptance": 0.45, "thermal.tau_s": 0.07}
 SOLVER = dict(rtol=1e-8, atol=1e-10)
 
 
-def dataset():
+def dataset(runs=RUNS, duration_s=11.0):
     truth = set_values(default_model(), list(TRUE), list(TRUE.values()))
     exps = []
-    for i, (p_mw, period) in enumerate(RUNS):
-        wave = PulseTrain(p_mw * 1e-3, period, 0.5, int(np.ceil(11.0 / period)))
+    for i, (p_mw, period) in enumerate(runs):
+        wave = PulseTrain(p_mw * 1e-3, period, 0.5, int(np.ceil(duration_s / period)))
         d = CameraDefects(burst_length=6 if i == 3 else 0)
         exps.append(record(truth, wave, name=f"run{i + 1}", defects=d, seed=i)[0])
     return exps
@@ -140,9 +142,12 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--skip-scipy", action="store_true")
+    parser.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
     args = parser.parse_args()
+    if args.smoke:  # two 1 s runs, the ZOH fit only (the adaptive compile alone is ~10 s)
+        args.repeats, args.skip_scipy = 1, True
 
-    exps = dataset()
+    exps = dataset(RUNS[:2], 1.0) if args.smoke else dataset()
     start = set_values(default_model(), list(START), list(START.values()))
     free = default_free_parameters()
     n_frames = sum(e.n_frames for e in exps)
@@ -170,6 +175,11 @@ def main():
         f"A = {res.estimate('absorptance').value:.4f}, converged={res.converged}"
     )
 
+    if args.smoke:
+        keys = ("adaptive_compile_s", "adaptive_fit_s", "adaptive_full_fit_s", "ratio_vs_scipy")
+        out = dict.fromkeys(keys) | {"compile_s": round(compile_s, 3), "zoh_fit_s": zoh_s}
+        print(json.dumps(out | {"frames": n_frames, "smoke": True}))
+        return
     sigma = float(first.sigma[0])  # the noise scale both adaptive fits use (one LM pass each)
     t0 = time.perf_counter()
     run("adaptive", sigma)

@@ -54,6 +54,8 @@ NAMES = ("c1_J_per_K", "c2_J_per_K", "g1_W_per_K", "g12_W_per_K", "q_node_K2_per
 THETA = np.array([20.0, 8.0, 0.5, 0.3, 1e-3, 1e-3, 0.05, 0.08])
 
 
+SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
+
 def thermal_matrices(theta):
     """(A, B, Qc, C, R) of the two-node model; works on numpy and jax arrays alike."""
     xp = jnp if isinstance(theta, jax.Array) else np
@@ -140,8 +142,8 @@ def numpy_log_likelihood(theta, t, bt, lv, y):
     return ll
 
 
-def speed():
-    t, bt, lv, y = make_record()
+def speed(n_frames=2000, repeats=5):
+    t, bt, lv, y = make_record(n_frames)
     grid = FilterGrid(t, bt, lv, t0_s=0.0)
     yj = jnp.asarray(y)
 
@@ -155,7 +157,7 @@ def speed():
     jax.block_until_ready(vg(log_theta))
     compile_s = time.process_time() - c0
     best, cpu = float("inf"), float("inf")
-    for _ in range(5):
+    for _ in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
         for _ in range(10):
             value, grad = jax.block_until_ready(vg(log_theta))
@@ -163,7 +165,7 @@ def speed():
         cpu = min(cpu, (time.process_time() - c0) / 10)
     np_best, np_cpu = float("inf"), float("inf")
     with threadpool_limits(1):  # multithreaded BLAS on 7x7 matrices only slows numpy down
-        for _ in range(3):
+        for _ in range(min(3, repeats)):
             t0, c0 = time.perf_counter(), time.process_time()
             np_value = numpy_log_likelihood(THETA, t, bt, lv, y)
             np_best = min(np_best, time.perf_counter() - t0)
@@ -337,8 +339,9 @@ def main():
     parser.add_argument(
         "--frames", type=int, default=600, metavar="N", help="frames per --coverage-device record"
     )
+    parser.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
     args = parser.parse_args()
-    out = speed()
+    out = speed(200, 1) if args.smoke else speed()
     if args.coverage:
         out |= coverage(args.coverage)
     if args.coverage_device:

@@ -1,29 +1,33 @@
-"""Many devices: a loop of `greybox.fit` calls vs one vmapped batch vs Dask (issue 19).
+"""Many devices: a loop of `greybox.fit` calls vs one vmapped batch (issues 19 and 24).
 
 Synthetic chevron-laser devices (six short pulse-train runs each, 30 fps camera with jitter,
 noise and dropped frames, from `greybox.record`) whose absorptance and thermal time constant
-are drawn from a known log-normal population. For 8, 64 and 512 devices it measures devices
-fitted per second by
+are drawn from a known log-normal population. It measures
 
-(a) a Python loop of `greybox.fit` calls, one per device: timed on the first `--loop-sample`
-    devices only (8 by default) and extrapolated per device (each call compiles its own
-    solver, because a device's starting values are part of its problem's static structure);
-(b) `fit_batch` (one compiled, vmapped solver; compile time included);
-(c) `fit_distributed` on a Dask `LocalCluster` with 2 worker processes (worker start-up and
-    compile included);
+(a) `loop_fits_per_s`: a Python loop of `greybox.fit` over NEW devices of one structure
+    (`--loop-sample` of them, default 3), after a first fit whose time (compile included)
+    is reported apart (`loop_first_fit_s`). While a device's starting values are static
+    fields of its problem, every new device compiles again, and this rate shows it;
+(b) `batch_fits_per_min`: `fit_batch` of `--devices` devices (default 512), warm: a first
+    call of the same batch compiles (`batch_first_s`, reported apart), the second is timed;
+(c) `solve_share`: the fraction of the warm batch's wall time spent inside the compiled,
+    vmapped solver (`_batch._solve_many`, waited for), with the host phases beside it
+    (`prepare_s`, `assemble_s`: `_batch._prepare` and the per-device `_fit._assemble`);
+(d) optionally (`--dask`) `fit_distributed` on a Dask `LocalCluster` of `--workers` processes;
 
-checks that the batch and Dask results agree with single-device `fit` / with each other, and
-fits the population model to the batch estimates (recovery z-scores of the known median and
-spread). The last line is one JSON object (fits per second at the largest size,
-`batch_speedup` = batch / loop, `peak_rss_mb` of this process and of its children).
+and checks that the batch agrees with the single fits of the loop (`batch_vs_fit_max_rel`)
+and that the population model recovers the known median and spread from the batch
+(z-scores). `backend` is JAX's default backend; `load_average` the 1-minute load at the end.
 
-Usage (repository root):  .venv/bin/python benchmarks/many_devices.py [--sizes 8 64 512]
+Usage (repository root): .venv/bin/python benchmarks/many_devices.py [--devices 512] [--smoke]
+Last line: one JSON object.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import sys
 import time
@@ -35,12 +39,14 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import greybox  # noqa: E402
+from greybox import _batch, _fit  # noqa: E402
 
 SPEC = greybox.get_device("chevron_laser")
 M_PER_PX = 0.645e-6
 POPULATION = {"absorptance": (0.62, 0.08), "thermal.tau_s": (0.045, 0.15)}  # median, log-sd
 RUNS = [(5, 200), (10, 200), (10, 300), (15, 400), (20, 600), (30, 800)]  # mW, ms
 SPAN_S = 1.4  # pulses per run: short runs, ~50 frames each
+SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
 
 
 def camera_model():
@@ -81,118 +87,135 @@ def synthetic_devices(n, seed=0, population=POPULATION, runs=RUNS, outlier=None)
     return devices, truth
 
 
+class PhaseTimer:
+    """Wall time spent in `_batch._solve_many` (waited for), `_batch._prepare` and
+    `_fit._assemble` while active: the module attributes are wrapped, then restored."""
+
+    def __init__(self):
+        self.t = {"solve": 0.0, "prepare": 0.0, "assemble": 0.0}
+
+    def _wrap(self, key, fn, block=False):
+        def timed(*a, **k):
+            t0 = time.perf_counter()
+            out = fn(*a, **k)
+            if block:
+                out = jax.block_until_ready(out)
+            self.t[key] += time.perf_counter() - t0
+            return out
+
+        return timed
+
+    def __enter__(self):
+        self.saved = (_batch._solve_many, _batch._prepare, _fit._assemble)
+        _batch._solve_many = self._wrap("solve", _batch._solve_many, block=True)
+        _batch._prepare = self._wrap("prepare", _batch._prepare)
+        _fit._assemble = self._wrap("assemble", _fit._assemble)
+        return self
+
+    def __exit__(self, *exc):
+        _batch._solve_many, _batch._prepare, _fit._assemble = self.saved
+
+
 def max_rel_diff(a, b):
     """Largest relative difference over every parameter value of two {name: FitResult}."""
     worst = 0.0
     for name in a:
-        x, y = np.asarray(a[name].raw), np.asarray(b[name].raw)
         va = np.array([p.value for p in a[name].parameters])
         vb = np.array([p.value for p in b[name].parameters])
         worst = max(worst, float(np.max(np.abs(va - vb) / np.maximum(np.abs(vb), 1e-300))))
-        del x, y
     return worst
+
+
+def population_z(results):
+    """Recovery z-scores of the known population median and spread from batch estimates."""
+    kinds = {"absorptance": "random", "thermal.tau_s": "random"}
+    pop = greybox.population_from_batch(results, kinds)
+    out = {}
+    for path, (med, sd) in POPULATION.items():
+        p = pop.parameters[path]
+        out[path] = {
+            "median": round(float((p.log_mu - np.log(med)) / p.log_mu_se), 2),
+            "omega": round(float((p.omega - sd) / p.omega_se), 2),
+        }
+    return out
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[8, 64, 512])
-    ap.add_argument("--loop-sample", type=int, default=8)
+    ap.add_argument("--devices", type=int, default=512)
+    ap.add_argument("--loop-sample", type=int, default=3)
+    ap.add_argument("--dask", action="store_true", help="also time fit_distributed")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--no-dask", action="store_true")
+    ap.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
     args = ap.parse_args(argv)
     say = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
+    runs = RUNS
+    if args.smoke:
+        args.devices, args.loop_sample, runs = 4, 1, RUNS[:2]
 
-    biggest = max(args.sizes)
     t0 = time.perf_counter()
-    all_devices, truth = synthetic_devices(biggest, seed=19)
-    say(f"generated {biggest} devices x {len(RUNS)} runs in {time.perf_counter() - t0:.1f} s")
-    frames = [e.n_frames for e in all_devices[0].experiments]
+    devices, _ = synthetic_devices(args.devices + args.loop_sample + 1, seed=19, runs=runs)
+    say(f"generated {len(devices)} devices x {len(runs)} runs in {time.perf_counter() - t0:.1f} s")
+    free = SPEC.free_parameters()
 
-    # (a) loop of fit calls on a sample
-    sample = all_devices[: args.loop_sample]
+    # (a) loop of fit calls over new devices of one structure, the first one apart
+    loop_devs = devices[: args.loop_sample + 1]
+    single = {}
     t0 = time.perf_counter()
-    single = {d.name: greybox.fit(d.model, d.experiments, d.free) for d in sample}
-    loop_s = (time.perf_counter() - t0) / len(sample)
-    loop_rate = 1.0 / loop_s
-    say(f"loop: {loop_s:.2f} s per device (sample of {len(sample)}, extrapolated)")
+    d = loop_devs[0]
+    single[d.name] = greybox.fit(d.model, d.experiments, d.free)
+    first_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for d in loop_devs[1:]:
+        single[d.name] = greybox.fit(d.model, d.experiments, d.free)
+    loop_s = time.perf_counter() - t0
+    loop_rate = args.loop_sample / loop_s
+    say(f"loop: first fit {first_s:.2f} s, then {loop_s / args.loop_sample:.2f} s per new device")
 
-    rows, batch_res = [], None
-    for n in sorted(args.sizes):
-        devs = all_devices[:n]
-        jax.clear_caches()  # each size pays its own compile, as a fresh process would
+    # (b, c) the batch: a first call compiles, the second is timed phase by phase
+    batch_devs = devices[: args.devices]
+    t0 = time.perf_counter()
+    greybox.fit_batch(batch_devs, free)
+    batch_first_s = time.perf_counter() - t0
+    with PhaseTimer() as phases:
         t0 = time.perf_counter()
-        batch_res = greybox.fit_batch(devs, SPEC.free_parameters())
+        batch = greybox.fit_batch(batch_devs, free)
         batch_s = time.perf_counter() - t0
-        row = {
-            "devices": n,
-            "loop_fits_per_s": loop_rate,
-            "loop_s_extrapolated": loop_s * n,
-            "batch_s": batch_s,
-            "batch_fits_per_s": n / batch_s,
-            "batch_chunk": batch_res.chunk_size,
-            "batch_calls": batch_res.n_calls,
-            "bytes_per_solve": batch_res.bytes_per_item,
-        }
-        common = [k for k in single if k in batch_res.results]
-        row["batch_vs_fit_max_rel"] = max_rel_diff(
-            {k: batch_res[k] for k in common}, {k: single[k] for k in common}
-        )
-        if not args.no_dask:
-            t0 = time.perf_counter()
-            dask_res = greybox.fit_distributed(devs, SPEC.free_parameters(), n_workers=args.workers)
-            dask_s = time.perf_counter() - t0
-            row["dask_s"] = dask_s
-            row["dask_fits_per_s"] = n / dask_s
-            row["dask_vs_batch_max_rel"] = max_rel_diff(dask_res.results, batch_res.results)
-        row["batch_speedup"] = row["batch_fits_per_s"] / loop_rate
-        say(json.dumps(row))
-        rows.append(row)
+    say(f"batch: first call {batch_first_s:.1f} s, warm {batch_s:.2f} s; phases {phases.t}")
+    common = [k for k in single if k in batch.results]
+    agree = max_rel_diff({k: batch[k] for k in common}, {k: single[k] for k in common})
 
-    # population recovery from the largest batch
-    kinds = {"absorptance": "random", "thermal.tau_s": "random"}
-    pop = greybox.population_from_batch(batch_res.results, kinds)
-    recovery = {}
-    for path, (med, sd) in POPULATION.items():
-        p = pop.parameters[path]
-        recovery[path] = {
-            "median": p.median,
-            "median_true": med,
-            "z_median": (p.log_mu - np.log(med)) / p.log_mu_se,
-            "omega": p.omega,
-            "omega_true": sd,
-            "z_omega": (p.omega - sd) / p.omega_se,
-            "new_device_95": p.new_device[1:],
-        }
-    n_valid = sum(r.valid for r in batch_res.results.values())
-    say(json.dumps({"population": recovery, "flagged": pop.outliers, "valid": n_valid}))
-
-    last = rows[-1]
-    self_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    child_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
     out = {
-        "devices": last["devices"],
-        "runs_per_device": len(RUNS),
-        "frames_per_run": frames,
+        "backend": jax.default_backend(),
+        "devices": args.devices,
+        "runs_per_device": len(runs),
+        "frames_per_run": [e.n_frames for e in devices[0].experiments],
         "loop_fits_per_s": round(loop_rate, 4),
-        "loop_note": f"timed on {len(sample)} devices, extrapolated per device",
-        "batch_fits_per_s": round(last["batch_fits_per_s"], 3),
-        "dask_fits_per_s": round(last.get("dask_fits_per_s", float("nan")), 3),
-        "batch_speedup": round(last["batch_speedup"], 2),
-        "peak_rss_mb": round(self_mb, 1),
-        "peak_rss_child_mb": round(child_mb, 1),
-        "by_size": {
-            r["devices"]: {
-                k: round(v, 4) if isinstance(v, float) else v
-                for k, v in r.items()
-                if k != "devices"
-            }
-            for r in rows
-        },
-        "population_z": {
-            k: {"median": round(v["z_median"], 2), "omega": round(v["z_omega"], 2)}
-            for k, v in recovery.items()
-        },
+        "loop_first_fit_s": round(first_s, 3),
+        "loop_sample": args.loop_sample,
+        "batch_fits_per_min": round(60.0 * args.devices / batch_s, 1),
+        "batch_s": round(batch_s, 3),
+        "batch_first_s": round(batch_first_s, 3),
+        "solve_share": round(phases.t["solve"] / batch_s, 3),
+        "solve_s": round(phases.t["solve"], 3),
+        "prepare_s": round(phases.t["prepare"], 3),
+        "assemble_s": round(phases.t["assemble"], 3),
+        "batch_chunk": batch.chunk_size,
+        "batch_calls": batch.n_calls,
+        "bytes_per_solve": batch.bytes_per_item,
+        "batch_vs_fit_max_rel": agree,
+        "batch_valid": int(sum(r.valid for r in batch.results.values())),
     }
+    if args.dask:
+        t0 = time.perf_counter()
+        dask_res = greybox.fit_distributed(batch_devs, free, n_workers=args.workers)
+        dask_s = time.perf_counter() - t0
+        out["dask_fits_per_min"] = round(60.0 * args.devices / dask_s, 1)
+        out["dask_vs_batch_max_rel"] = max_rel_diff(dask_res.results, batch.results)
+    if args.devices >= 8:
+        out["population_z"] = population_z(batch.results)
+    out["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+    out["load_average"] = round(os.getloadavg()[0], 2)
     print(json.dumps(out))
 
 

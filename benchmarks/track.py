@@ -1,6 +1,6 @@
 """Throughput of `greybox track`, end to end, on a 640x480 video with a 64x64 ROI.
 
-Usage: .venv/bin/python benchmarks/track.py [--frames N]
+Usage: .venv/bin/python benchmarks/track.py [--frames N] [--smoke]
 
 Container/codec: uncompressed 8-bit grey AVI (``rawvideo``), what scientific cameras
 record and the only lossless format whose decoding is not itself the bottleneck: FFV1
@@ -55,6 +55,8 @@ from greybox.video import (  # noqa: E402  # noqa: E402
 ROI = Roi(288, 208, 64, 64)
 
 
+SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
+
 def _cpu_s():
     """CPU seconds used so far by this process (all threads) and its waited-for children
     (the ffmpeg processes)."""
@@ -108,12 +110,16 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=2000)
     ap.add_argument("--ffv1-frames", type=int, default=300)
+    ap.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
     args = ap.parse_args()
+    if args.smoke:
+        args.frames, args.ffv1_frames = 20, 10
     n = args.frames
     load_start = _load()
     # 50 rendered frames (640x480 rendering is slow), tiled to n: the rate does not
     # depend on which frames repeat.
-    base = render_shuttle(1.5 * np.sin(np.linspace(0, 12, 50)), shape=(480, 640), seed=0)
+    n_render = 5 if args.smoke else 50
+    base = render_shuttle(1.5 * np.sin(np.linspace(0, 12, n_render)), shape=(480, 640), seed=0)
     frames = np.resize(base.frames, (n, 480, 640))
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

@@ -1,6 +1,6 @@
 """Calibration of the residual test and of the sandwich (HAC) standard errors.
 
-Run: .venv/bin/python benchmarks/whiteness.py [--replicates 200]
+Run: .venv/bin/python benchmarks/whiteness.py [--replicates 200] [--smoke]
 
 1. False alarms. Well-specified data (the one-node chevron recorded by `greybox.record`: two
    pulse runs of 4 s at ~30 fps with 2 ms jitter, 5 % dropped frames, 0.05 um white noise)
@@ -69,6 +69,8 @@ SHORT = {"absorptance": "absorptance", "thermal.tau_s": "tau"}
 Z95 = 1.959963984540054
 
 
+SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
+
 def two_node_clean():
     """(waveforms, frame times, noise-free readings) of the misspecified runs (fixed)."""
     rng = np.random.default_rng(2024)
@@ -124,7 +126,10 @@ def rate_interval(n: int, p: float) -> list[float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--replicates", type=int, default=1000)
+    ap.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
     args = ap.parse_args()
+    if args.smoke:
+        args.replicates = 2
     n = args.replicates
     t0 = time.perf_counter()
 

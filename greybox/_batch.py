@@ -13,7 +13,8 @@ devices:
 - every solve (each start of each device, then the re-fit at the re-estimated noise scale) is
   an item; items are cut into chunks of one fixed size (the last chunk is padded with copies
   of its last item), so every chunk of a group reuses the same compiled function. The chunk
-  size is chosen from a memory budget (`bytes_per_item`);
+  size is chosen from a memory budget (`bytes_per_item`), by default a share of the device's
+  own memory (`device_budget`: the accelerator's limit, or the CPU's physical memory);
 - the noise handling is `fit`'s, per device: a declared `sigma` (one for every device, or one
   per device name), per-frame `Experiment.sigma`, or estimated: a first solve at the
   frame-difference guess, the robust (MAD) scale of its residuals, then the re-fit from that
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 from collections.abc import Callable, Mapping, Sequence
 
 import equinox as eqx
@@ -42,10 +44,25 @@ from greybox._data import Experiment
 from greybox._device import check_method
 from greybox._freeparams import FreeParameter
 from greybox._parameters import get_value
-from greybox._simulate import pad_schedules, require_x64, schedule_for
+from greybox._simulate import pad_schedules, require_x64, schedules_for, zoh_scan_kind
 
-DEFAULT_MEMORY_BUDGET = 2 * 1024**3  # bytes one chunk may allocate (estimate)
-MAX_CHUNK = 256  # devices x starts per compiled call: beyond this vmap gains little on CPU
+MAX_CHUNK = 256  # solves per compiled call on a CPU: beyond this vmap gains little there
+MAX_CHUNK_ACCELERATOR = 65536  # on a GPU/TPU the memory budget is what limits a chunk
+ACCELERATOR_MEMORY_SHARE = 0.5  # of the accelerator memory not in use, for one chunk
+CPU_MEMORY_SHARE = 0.25  # of the physical memory, for one chunk
+
+
+def device_budget(device=None) -> tuple[float, int]:
+    """(bytes one chunk may allocate, most solves per compiled call) on `device` (default:
+    JAX's first device): from the accelerator's own memory limit (`memory_stats`) or, on a
+    CPU, from the physical memory, never a fixed constant."""
+    device = device or jax.devices()[0]
+    stats = device.memory_stats() if device.platform != "cpu" else None
+    if stats and stats.get("bytes_limit"):
+        free = stats["bytes_limit"] - stats.get("bytes_in_use", 0)
+        return ACCELERATOR_MEMORY_SHARE * free, MAX_CHUNK_ACCELERATOR
+    physical = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    return CPU_MEMORY_SHARE * physical, MAX_CHUNK
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,14 +156,21 @@ def bytes_per_item(problem) -> int:
     p = problem.n_raw
     rows = n_exp * n_frames * n_y + len(problem.priors)
     sim = n_exp * (n_int * (n_x * n_x + n_x * n_u + n_x + n_u) + n_eval * (n_x + n_y))
+    if zoh_scan_kind(n_int) == "associative":  # its up- and down-sweep keep ~2 more copies
+        sim += n_exp * n_int * 2 * (n_x * n_x + n_x)
     jac = rows * p
     return int(8 * 3 * ((p + 1) * sim + 3 * jac + 4 * rows))
 
 
-def chunk_size_for(bytes_item: int, budget: float, n_items: int) -> int:
-    """Largest chunk within `budget` bytes (at least 1, at most MAX_CHUNK and the work)."""
+def chunk_size_for(bytes_item: int, budget: float, n_items: int, max_chunk=MAX_CHUNK) -> int:
+    """Chunk size within `budget` bytes (at least 1, at most `max_chunk` and the work), evened
+    out over the chunks the work needs: the last chunk is padded to the same size (one
+    compiled function), so 32,768 solves in chunks of 29,000 would pad 25,232 copies; in two
+    chunks of 16,384 none."""
     fit_in = max(1, int(budget // max(bytes_item, 1)))
-    return int(max(1, min(fit_in, MAX_CHUNK, n_items)))
+    largest = int(max(1, min(fit_in, max_chunk, n_items)))
+    n_chunks = math.ceil(max(int(n_items), 1) / largest)
+    return int(math.ceil(max(int(n_items), 1) / n_chunks))
 
 
 @eqx.filter_jit
@@ -160,14 +184,37 @@ def _solve_many(dynamic, static, raw, sigma, rtol, atol, max_steps):
 
 
 @dataclasses.dataclass
+class _Group:
+    """Devices of one problem structure: their common static part and their array leaves
+    stacked once (numpy, leading axis = member), from which every chunk gathers its rows."""
+
+    members: list
+    static: object
+    stacked: object
+
+    def rows(self, positions) -> object:
+        """The stacked leaves of members at `positions`, on the device (one transfer)."""
+        idx = np.asarray(positions)
+        return jtu.tree_map(lambda x: jnp.asarray(np.take(x, idx, axis=0)), self.stacked)
+
+
+@dataclasses.dataclass
 class _Prepared:
     device: Device
-    problem: object  # _fit._Problem padded to its group's shapes
+    group: _Group
+    row: int  # position in the group's stack
     free: tuple
     source: str
     raw0: np.ndarray
     starts: list
     sigma0: np.ndarray
+
+    @property
+    def problem(self):
+        """This device's `_fit._Problem` (padded to its group's shapes; numpy views)."""
+        return eqx.combine(
+            jtu.tree_map(lambda x: x[self.row], self.group.stacked), self.group.static
+        )
 
 
 def _check(device: Device, free, method):
@@ -204,11 +251,8 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
                 f"{d.name}: {prob.n_data} valid frames cannot determine {prob.n_raw} parameters"
             )
         raw0 = _fit._initial_raw(prob, d.model)
-        # the starting values live in raw0; without them in the static fields every device of
-        # the same structure has the same static part, hence one compiled solver
-        prob = dataclasses.replace(
-            prob, shared=_no_initial(prob.shared), per_exp=_no_initial(prob.per_exp)
-        )
+        # the starting values live in raw0; `FreeParameter.initial` takes no part in the static
+        # part's equality, so every device of the same structure shares one compiled solver
         built.append((d, prob, f, source, sig_d, raw0))
 
     # group by structure (static fields) and pad every run of a group jointly
@@ -218,30 +262,34 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
         key = (jtu.tree_structure(static), jtu.tree_structure(eqx.filter(prob, eqx.is_array)))
         groups.setdefault(key, []).append(i)
     prepared: list = [None] * len(built)
+    out_groups = []
     for members in groups.values():
-        scheds = []
-        for i in members:
-            d, prob = built[i][0], built[i][1]
-            scheds += [
-                schedule_for(d.model, e.inputs, e.t_s, t_start_s=e.t_start_s) for e in d.experiments
-            ]
-        joint = pad_schedules(scheds)
+        # one joint padding of every run of the group, kept in numpy until a chunk needs it
+        scheds = [
+            s for i in members for s in schedules_for(built[i][0].model, built[i][0].experiments)
+        ]
+        joint = pad_schedules(scheds, on_device=False)
         n_f = joint["t_s"].shape[1]
-        start = 0
+        dyns, start = [], 0
         for i in members:
-            d, prob, f, source, sig_d, raw0 = built[i]
-            n_e = len(d.experiments)
-            sched = {k: v[start : start + n_e] for k, v in joint.items()}
-            start += n_e
-            pad = n_f - prob.y.shape[1]
-            widths = ((0, 0), (0, pad), (0, 0))
+            prob = built[i][1]
+            n_e = prob.n_exp
+            widths = ((0, 0), (0, n_f - prob.y.shape[1]), (0, 0))
             prob = dataclasses.replace(
                 prob,
-                sched=sched,
-                y=jnp.pad(prob.y, widths),
-                w=jnp.pad(prob.w, widths),
-                noise=jnp.pad(prob.noise, widths, constant_values=1.0),
+                sched={k: v[start : start + n_e] for k, v in joint.items()},
+                y=np.pad(np.asarray(prob.y), widths),
+                w=np.pad(np.asarray(prob.w), widths),
+                noise=np.pad(np.asarray(prob.noise), widths, constant_values=1.0),
             )
+            start += n_e
+            dyns.append(eqx.filter(prob, eqx.is_array))
+        _, static = eqx.partition(built[members[0]][1], eqx.is_array)
+        stacked = jtu.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *dyns)
+        group = _Group(list(members), static, stacked)
+        out_groups.append(group)
+        for row, i in enumerate(members):
+            d, prob, f, source, sig_d, raw0 = built[i]
             k = n_starts
             if k is None:
                 k = _fit.AUTO_STARTS if len(prob.shared) > 2 else 1
@@ -258,12 +306,8 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
                     raise ValueError(f"{d.name}: sigma must be > 0 (SI units of the output)")
             else:
                 sig = np.ones(n_y)
-            prepared[i] = _Prepared(d, prob, f, source, raw0, starts, sig)
-    return prepared, list(groups.values())
-
-
-def _no_initial(free) -> tuple:
-    return tuple(dataclasses.replace(p, initial=None) for p in free)
+            prepared[i] = _Prepared(d, group, row, f, source, raw0, starts, sig)
+    return prepared, out_groups
 
 
 def device_from_spec(
@@ -292,15 +336,14 @@ def _run_items(prepared, items, chunk, rtol, atol, max_steps, say, label, counte
     returns one host-side output dict per item."""
     outputs = []
     n_chunks = math.ceil(len(items) / chunk)
-    _, static = eqx.partition(prepared[items[0][0]].problem, eqx.is_array)
+    group = prepared[items[0][0]].group
     for c in range(n_chunks):
         part = items[c * chunk : (c + 1) * chunk]
         padded = part + [part[-1]] * (chunk - len(part))
-        dyn = [eqx.filter(prepared[i].problem, eqx.is_array) for i, _, _ in padded]
-        stacked = jtu.tree_map(lambda *xs: jnp.stack(xs), *dyn)
+        stacked = group.rows([prepared[i].row for i, _, _ in padded])
         raw = jnp.asarray(np.stack([r for _, r, _ in padded]))
         sig = jnp.asarray(np.stack([s for _, _, s in padded]))
-        out = jax.device_get(_solve_many(stacked, static, raw, sig, rtol, atol, max_steps))
+        out = jax.device_get(_solve_many(stacked, group.static, raw, sig, rtol, atol, max_steps))
         counter[0] += 1
         for j in range(len(part)):
             outputs.append({k: v[j] for k, v in out.items()})
@@ -326,7 +369,7 @@ def fit_batch(
     solver_atol: float = 1e-10,
     solver_max_steps: int = 16384,
     chunk_size: int | None = None,
-    memory_budget_bytes: float = DEFAULT_MEMORY_BUDGET,
+    memory_budget_bytes: float | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> BatchResult:
     """Fit every device of `devices` (each as `greybox.fit(device.model, device.experiments,
@@ -342,7 +385,8 @@ def fit_batch(
     `sigma` is one declared noise level for all devices, a {device name: sigma} mapping, or
     None (estimated per device, as `fit` does; a device's own `Device.sigma` wins);
     `chunk_size`: solves per compiled call (None: from `memory_budget_bytes` and
-    `bytes_per_item`); `progress`: called with a text line after each chunk.
+    `bytes_per_item`); `memory_budget_bytes`: bytes one call may allocate (None: from the
+    device's memory, `device_budget`); `progress`: called with a text line after each chunk.
 
     **Returns:** a `BatchResult` whose `results[name]` is that device's `FitResult`.
     """
@@ -359,12 +403,18 @@ def fit_batch(
         devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver
     )
     opts = (float(rtol), float(atol), int(max_steps))
+    budget, max_chunk = device_budget()
+    if memory_budget_bytes is not None:
+        budget = float(memory_budget_bytes)
     counter = [0]
     results, item_bytes, chunk_used = {}, 0, 0
-    for g, members in enumerate(groups):
+    for g, group in enumerate(groups):
+        members = group.members
         n_items = sum(len(prepared[i].starts) for i in members)
         b = bytes_per_item(prepared[members[0]].problem)
-        chunk = int(chunk_size) if chunk_size else chunk_size_for(b, memory_budget_bytes, n_items)
+        chunk = (
+            int(chunk_size) if chunk_size else chunk_size_for(b, budget, n_items, max_chunk)
+        )
         item_bytes, chunk_used = max(item_bytes, b), max(chunk_used, chunk)
         label = f"group {g + 1}/{len(groups)}"
         say(

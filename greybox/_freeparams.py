@@ -39,7 +39,9 @@ class FreeParameter:
     - `lower`, `upper`: physical bounds (None = unbounded on that side).
     - `per_experiment`: one value per experiment instead of one shared value.
     - `prior_median`, `prior_log_sd`: Gaussian prior on log(value) (needs a positive value).
-    - `initial`: starting value (default: the model's current value).
+    - `initial`: starting value (default: the model's current value). Not part of the
+      parameter's identity (equality, hash): two parameters that differ only in where they
+      start share one compiled solver.
     - `scale`: typical magnitude [unit], used only by unbounded ("linear") parameters; None
       derives it from the starting value when fitting (see the module docstring).
     """
@@ -51,7 +53,9 @@ class FreeParameter:
     per_experiment: bool = False
     prior_median: float | None = None
     prior_log_sd: float | None = None
-    initial: float | None = None
+    # the starting value is read on the host only (the raw start vector is a dynamic input):
+    # left out of equality and hash, a new device's starts never make a new compiled solver
+    initial: float | None = dataclasses.field(default=None, compare=False)
     scale: float | None = None
 
     def __post_init__(self):

@@ -54,6 +54,7 @@ Andrews-Monahan prewhitening, Newey-West; see its section).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from statistics import NormalDist
 
 import numpy as np
@@ -92,14 +93,7 @@ class FrameGrid:
     @staticmethod
     def build(t_s) -> FrameGrid:
         t = np.asarray(t_s, dtype=float).reshape(-1)
-        if t.size < 2:
-            return FrameGrid(np.zeros(t.size, dtype=int), t.size, float("nan"), 0.0)
-        dts = np.diff(t)
-        dt = float(np.median(dts))
-        spread = float((np.percentile(dts, 90) - np.percentile(dts, 10)) / dt)
-        steps = np.maximum(1, np.rint(dts / dt)).astype(int)
-        slots = np.concatenate([[0], np.cumsum(steps)])
-        return FrameGrid(slots, int(slots[-1]) + 1, dt, spread)
+        return _frame_grid(t.tobytes())
 
     def place(self, values: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(grid values (n_slots, k) zero where empty, occupancy (n_slots, k))."""
@@ -113,26 +107,70 @@ class FrameGrid:
         return grid, occ
 
 
+@functools.lru_cache(maxsize=512)
+def _frame_grid(t_bytes: bytes) -> FrameGrid:
+    """`FrameGrid.build` of the frame times in `t_bytes` (float64), cached: a fit's residual
+    analysis, its model-error residuals and its HAC meat all place the same runs."""
+    t = np.frombuffer(t_bytes, dtype=float)
+    if t.size < 2:
+        slots = np.zeros(t.size, dtype=int)
+        slots.setflags(write=False)
+        return FrameGrid(slots, t.size, float("nan"), 0.0)
+    dts = np.diff(t)
+    dt = float(np.median(dts))
+    p10, p90 = np.percentile(dts, [10, 90])
+    spread = float((p90 - p10) / dt)
+    steps = np.maximum(1, np.rint(dts / dt)).astype(int)
+    slots = np.concatenate([[0], np.cumsum(steps)])
+    slots.setflags(write=False)  # shared by every caller of the cache
+    return FrameGrid(slots, int(slots[-1]) + 1, dt, spread)
+
+
+LAG_BLOCK = 1 << 22  # elements of one block of rows of `_permuted_autocorrelation` (32 MB)
+CORRELATE_MAX = 4096  # 1-D series up to this length: all lags from one np.correlate call
+
+
+def lag_products(a: np.ndarray, b: np.ndarray, lags) -> np.ndarray:
+    """(..., K) sums over t of a[..., t] b[..., t - k] for each lag k of `lags` (zero beyond
+    the ends): one vectorised product per lag over every leading row at once."""
+    a = np.asarray(a, dtype=float)
+    b = np.broadcast_to(np.asarray(b, dtype=float), a.shape)
+    s = a.shape[-1]
+    lags = np.asarray(lags, dtype=int).reshape(-1)
+    out = np.zeros((*a.shape[:-1], lags.size))
+    for i, k in enumerate(lags):
+        if abs(k) >= s:
+            continue
+        if k >= 0:
+            out[..., i] = np.einsum("...t,...t->...", a[..., k:], b[..., : s - k])
+        else:
+            out[..., i] = np.einsum("...t,...t->...", a[..., : s + k], b[..., -k:])
+    return out
+
+
 def lagged_sums(a, occ_a, b, occ_b, lags) -> tuple[np.ndarray, np.ndarray]:
     """For each lag k: (sum over slots t with both occupied of a[t] b[t - k], pair count).
 
     `a`, `b`: (S,) zero where unoccupied; negative lags pair a[t] with b[t + |k|]. The one
     lagged-product kernel behind every correlation and portmanteau statistic in greybox
-    (this module, `greybox._stochastic.ljung_box`, `greybox.blackbox.residual_test`)."""
+    (this module, `greybox._stochastic.ljung_box`, `greybox.blackbox.residual_test`).
+    Short series take every lag from one `np.correlate` (direct sums); long ones one
+    product per lag (`lag_products`)."""
+    a = np.asarray(a, dtype=float).reshape(-1)
+    b = np.asarray(b, dtype=float).reshape(-1)
+    oa = np.asarray(occ_a, dtype=float).reshape(-1)
+    ob = np.asarray(occ_b, dtype=float).reshape(-1)
+    lags = np.asarray(lags, dtype=int).reshape(-1)
     s = a.size
-    oa, ob = occ_a.astype(float), occ_b.astype(float)
-    sums, pairs = [], []
-    for k in np.asarray(lags, dtype=int):
-        if abs(k) >= s:
-            sums.append(0.0)
-            pairs.append(0.0)
-        elif k >= 0:
-            sums.append(float(a[k:] @ b[: s - k]))
-            pairs.append(float(oa[k:] @ ob[: s - k]))
-        else:
-            sums.append(float(a[: s + k] @ b[-k:]))
-            pairs.append(float(oa[: s + k] @ ob[-k:]))
-    return np.asarray(sums), np.asarray(pairs)
+    if s > CORRELATE_MAX:
+        both = lag_products(np.stack([a, oa]), np.stack([b, ob]), lags)
+        return both[0], both[1]
+    # np.correlate(x, y, "full")[s - 1 + k] = sum_t x[t + k] y[t] = sum_t x[t] y[t - k]
+    inside = np.abs(lags) < s
+    at = np.where(inside, s - 1 + lags, 0)
+    sums = np.where(inside, np.correlate(a, b, "full")[at], 0.0)
+    pairs = np.where(inside, np.correlate(oa, ob, "full")[at], 0.0)
+    return sums, pairs
 
 
 def white_null_variance(pairs, n) -> np.ndarray:
@@ -253,28 +291,30 @@ def _robust_keep(e: np.ndarray, valid: np.ndarray) -> np.ndarray:
 def _permuted_autocorrelation(g, occ, npairs, n, permutations, rng) -> np.ndarray:
     """(B + 1, h) bias-corrected r(1..h): row 0 of the residuals `g` as placed on the grid
     (`occ` occupied, zero elsewhere), rows 1.. of B shuffles of the values among the occupied
-    slots (the gaps stay where they are). Computed in chunks to bound memory."""
+    slots (the gaps stay where they are). Every lag of a block of rows is one product
+    (`lag_products`); the blocks bound memory, and the shuffles drawn block by block are one
+    stream from `rng` (one `rng.random` row per shuffle, ranked), so the p-values do not
+    depend on the blocking."""
     h = npairs.size
-    vals = g[occ]
+    slots = np.flatnonzero(occ)
+    vals = g[slots]
     c0 = float(vals @ vals) / n
-    out = np.empty((int(permutations) + 1, h))
+    b = int(permutations)
+    out = np.empty((b + 1, h))
+    rows = max(1, LAG_BLOCK // max(g.size, 1))
     with np.errstate(invalid="ignore", divide="ignore"):
-        for start in range(0, int(permutations) + 1, 128):
-            rows = min(128, int(permutations) + 1 - start)
-            grid = np.zeros((rows, g.size))
+        for start in range(0, b + 1, rows):
+            stop = min(start + rows, b + 1)
+            grid = np.zeros((stop - start, g.size))
+            first = 0
             if start == 0:
                 grid[0] = g
-                shuffled = rows - 1
-            else:
-                shuffled = rows
-            if shuffled:
-                order = rng.random((shuffled, vals.size)).argsort(axis=1)
-                grid[rows - shuffled :, occ] = vals[order]
-            for k in range(1, h + 1):
-                sums = np.einsum("bt,bt->b", grid[:, k:], grid[:, :-k])
-                out[start : start + rows, k - 1] = sums / np.maximum(
-                    npairs[k - 1], 1
-                ) / c0 + 1.0 / (n - 1)
+                first = 1
+            if stop - start > first:
+                order = rng.random((stop - start - first, vals.size)).argsort(axis=1)
+                grid[first:, slots] = vals[order]
+            sums = lag_products(grid, grid, np.arange(1, h + 1))
+            out[start:stop] = sums / np.maximum(npairs, 1) / c0 + 1.0 / (n - 1)
     out[:, npairs == 0] = np.nan
     return out
 
@@ -749,10 +789,12 @@ def _input_lags(t_s, grid: FrameGrid, inputs, n_frames: int, lags: int) -> np.nd
     u = np.asarray(inputs, dtype=float).reshape(n_frames, -1)
     slot_u = np.full((grid.n_slots, u.shape[1]), np.nan)
     slot_u[grid.slots] = u
-    for k in range(1, grid.n_slots):  # missing timestamps: hold the last known level
-        gap = ~np.isfinite(slot_u[k])
-        slot_u[k, gap] = slot_u[k - 1, gap]
-    slot_u = np.where(np.isfinite(slot_u), slot_u, 0.0)
+    # missing timestamps: hold the last known level (forward fill: each slot reads the latest
+    # slot at or before it that holds a finite level, per input)
+    known = np.isfinite(slot_u)
+    last = np.maximum.accumulate(np.where(known, np.arange(grid.n_slots)[:, None], -1), axis=0)
+    filled = np.take_along_axis(slot_u, np.maximum(last, 0), axis=0)
+    slot_u = np.where((last >= 0) & np.isfinite(filled), filled, 0.0)
     return np.concatenate([slot_u[np.maximum(grid.slots - k, 0)] for k in range(lags)], axis=1)
 
 

@@ -3,7 +3,9 @@
 - ``method="zoh"``: exact zero-order-hold discretisation of a linear device. The time grid is
   the union of the input's switching times and every camera evaluation instant, so each
   interval has a constant input and x+ = expm(A h) x + int_0^h expm(A s) ds B u is exact;
-  the intervals are stepped with `lax.scan`.
+  the intervals are stepped with `lax.scan`, or, on an accelerator or for a long record, with
+  `lax.associative_scan` (the interval maps x -> Phi x + Gamma u compose associatively, so
+  the states are prefix compositions computed in log depth; `zoh_scan_kind`).
 - ``method="adaptive"``: diffrax Tsit5 with a PID controller clipped to the input's jump times
   (`ClipStepSizeController(jump_ts=...)`), forward-mode adjoint (Levenberg-Marquardt builds
   Jacobians with jvp) and ``throw=False`` so that a failed solve never aborts an outer fit.
@@ -130,12 +132,13 @@ def _bucket(n: int) -> int:
     return -(-n // 256) * 256
 
 
-def pad_schedules(schedules: Sequence[Schedule]) -> dict:
+def pad_schedules(schedules: Sequence[Schedule], *, on_device: bool = True) -> dict:
     """Stack schedules of different lengths into equal-shape arrays for `jax.vmap`.
 
     Lengths are rounded up (`_bucket`), so runs of similar size reuse one compiled function.
     Padding is inert: ZOH intervals of length 0 (identity step), evaluation instants repeated
     at the end, breakpoints and jump times pushed past the end of the record.
+    `on_device=False` keeps numpy arrays (for callers that stack many before one transfer).
     """
     n_frames = _bucket(max(s.t_s.size for s in schedules))
     n_int = _bucket(max(s.dt.size for s in schedules))
@@ -180,7 +183,8 @@ def pad_schedules(schedules: Sequence[Schedule]) -> dict:
         )
         far_j = t_end + 1.0 + np.arange(n_jumps - s.jump_ts.size)
         out["jump_ts"].append(np.concatenate([s.jump_ts, far_j]))
-    return {k: jnp.asarray(np.stack(v)) for k, v in out.items()}
+    to = jnp.asarray if on_device else np.asarray
+    return {k: to(np.stack(v)) for k, v in out.items()}
 
 
 _EXPM_MAX_SQUARINGS = 24  # handles |A h| up to ~4e6: far beyond any RC time-constant ratio
@@ -219,17 +223,53 @@ def zoh_matrices(a, b, dt):
     return blocks[:, :n, :n], blocks[:, :n, n:]
 
 
-def _zoh_grid_states(model: AbstractDevice, x0, dt, u_grid):
-    """States at every grid point (L+1, n) by exact ZOH steps x+ = Phi x + Gamma u."""
+ZOH_SCANS = ("auto", "sequential", "associative")
+ASSOCIATIVE_MIN_INTERVALS = 16384  # on a CPU the two scans ran within ~20 % of each other at
+# 1,000-64,000 intervals (1- and 3-node chevron, linear TCLab); beyond this, log depth wins
+
+
+def zoh_scan_kind(n_intervals: int, scan: str = "auto") -> str:
+    """Which scan steps the ZOH intervals: "sequential" (one interval after another) or
+    "associative" (`jax.lax.associative_scan`, log depth: what an accelerator needs, since a
+    sequential scan runs one tiny kernel per interval). "auto" takes the associative scan on
+    an accelerator (`jax.default_backend() != "cpu"`) or for records of at least
+    `ASSOCIATIVE_MIN_INTERVALS` intervals, else the sequential one. Both give the same
+    states to rounding (`tests/test_simulate_scan.py`)."""
+    if scan not in ZOH_SCANS:
+        raise ValueError(f"zoh_scan: {scan!r} is unknown; use one of {ZOH_SCANS}")
+    if scan != "auto":
+        return scan
+    if jax.default_backend() != "cpu" or int(n_intervals) >= ASSOCIATIVE_MIN_INTERVALS:
+        return "associative"
+    return "sequential"
+
+
+def _compose(earlier, later):
+    """(A2, b2) o (A1, b1) = (A2 A1, A2 b1 + b2): the map x -> A1 x + b1, then A2 x + b2."""
+    a1, b1 = earlier
+    a2, b2 = later
+    return a2 @ a1, (a2 @ b1[..., None])[..., 0] + b2
+
+
+def _zoh_grid_states(model: AbstractDevice, x0, dt, u_grid, scan: str = "auto"):
+    """States at every grid point (L+1, n) by exact ZOH steps x+ = Phi x + Gamma u.
+
+    Each interval is the affine map x -> Phi x + Gamma u; the maps compose associatively, so
+    the states are also the prefix compositions applied to x0 (`zoh_scan_kind`)."""
     a, b = model.linear_dynamics()
     phi, gamma = zoh_matrices(a, b, dt)
+    drive = (gamma @ u_grid[..., None])[..., 0]  # (L, n): Gamma u of each interval
+    if zoh_scan_kind(dt.shape[0], scan) == "associative":
+        phi_cum, drive_cum = jax.lax.associative_scan(_compose, (phi, drive))
+        xs = (phi_cum @ x0[:, None])[..., 0] + drive_cum
+    else:
 
-    def step(x, inp):
-        p, g, u = inp
-        x = p @ x + g @ u
-        return x, x
+        def step(x, inp):
+            p, d = inp
+            x = p @ x + d
+            return x, x
 
-    _, xs = jax.lax.scan(step, x0, (phi, gamma, u_grid))
+        _, xs = jax.lax.scan(step, x0, (phi, drive))
     return jnp.concatenate([x0[None], xs]), jnp.array(True)
 
 
@@ -288,6 +328,7 @@ def observe_schedule(
     atol: float = 1e-10,
     max_steps: int = 16384,
     adjoint: str = "forward",
+    zoh_scan: str = "auto",
 ):
     """Camera readings (N, n_y) [SI] and a success flag for one (padded) schedule dict.
 
@@ -300,7 +341,7 @@ def observe_schedule(
     x0 = jnp.asarray(model.initial_state(), dtype=float)
     n_frames = sched["t_s"].shape[0]
     if method == "zoh":
-        grid, ok = _zoh_grid_states(model, x0, sched["dt"], sched["u_grid"])
+        grid, ok = _zoh_grid_states(model, x0, sched["dt"], sched["u_grid"], zoh_scan)
         states = grid[sched["eval_index"]]
     elif method == "adaptive":
         sorted_states, ok = _adaptive_states(
@@ -332,6 +373,22 @@ def schedule_for(model: AbstractDevice, inputs, t_s, *, t_start_s: float = 0.0) 
     )
 
 
+def schedules_for(model: AbstractDevice, experiments) -> list[Schedule]:
+    """`schedule_for` of each experiment (anything with `inputs`, `t_s`, `t_start_s`), with the
+    readout's quadrature computed once for all of them."""
+    offsets, _ = model.readout.quadrature()
+    return [
+        Schedule.build(
+            e.inputs.to_piecewise(),
+            e.t_s,
+            offsets,
+            t_start_s=e.t_start_s,
+            n_inputs=model.n_inputs,
+        )
+        for e in experiments
+    ]
+
+
 def simulate(
     model: AbstractDevice,
     inputs,
@@ -343,6 +400,7 @@ def simulate(
     atol: float = 1e-10,
     max_steps: int = 16384,
     throw: bool = True,
+    zoh_scan: str = "auto",
 ):
     """Simulate what the camera sees for a given input waveform.
 
@@ -356,6 +414,8 @@ def simulate(
     - `t_start_s`: time [s] at which the device is in `model.initial_state()` (default 0).
     - `rtol`, `atol`, `max_steps`: adaptive solver settings (state units: K).
     - `throw`: raise if the adaptive solve fails; with False the result is NaN instead.
+    - `zoh_scan`: how the ZOH path steps its intervals: "sequential", "associative" (a
+      parallel prefix scan, for accelerators and long records) or "auto" (`zoh_scan_kind`).
 
     **Returns:** observations in SI (m for displacement), shape (N,) for one output, else (N, n_y).
     """
@@ -363,7 +423,8 @@ def simulate(
     method = check_method(model, method)
     sched = pad_schedules([schedule_for(model, inputs, t_s, t_start_s=t_start_s)])
     row = {k: v[0] for k, v in sched.items()}
-    z, ok = _observe_jit(as_arrays(model), row, method, rtol, atol, max_steps)
+    zoh_scan_kind(0, zoh_scan)  # a clear error for a misspelt scan before compiling
+    z, ok = _observe_jit(as_arrays(model), row, method, rtol, atol, max_steps, zoh_scan)
     if not bool(ok):
         if throw:
             raise ValueError(
@@ -388,5 +449,7 @@ def as_arrays(model):
 
 
 @eqx.filter_jit
-def _observe_jit(model, row, method, rtol, atol, max_steps):
-    return observe_schedule(model, row, method=method, rtol=rtol, atol=atol, max_steps=max_steps)
+def _observe_jit(model, row, method, rtol, atol, max_steps, zoh_scan="auto"):
+    return observe_schedule(
+        model, row, method=method, rtol=rtol, atol=atol, max_steps=max_steps, zoh_scan=zoh_scan
+    )

@@ -1,0 +1,217 @@
+"""Many chevron fits on an accelerator: 32,768 devices, and the same estimates as the CPU.
+
+Meant for one GPU (H100/H200; one device window, under 8 minutes); `--smoke` runs the same
+path on a CPU at the smallest size. The devices are those of `benchmarks/many_devices.py`
+(six short pulse-train runs each): `--pool` of them are recorded by `greybox.record` with
+their parameters drawn from the known population, and every further device is one of them
+with fresh measurement noise on the same clean signal and dropped frames (so that making
+32,768 devices takes seconds, not the half hour of recording each).
+
+Measured, on the default JAX backend (`backend`):
+
+- `solve_fits_per_min`: `--devices` Levenberg-Marquardt solves (one start per device, at the
+  first noise scale) through the compiled, vmapped solver, chunked by the device's memory
+  (`_batch.device_budget`, chunks evened out); the problems are stacked once (the replicated
+  devices gather the pool's rows and add their noise in one numpy operation); a first chunk
+  alone compiles (`solve_first_chunk_s`, compile and that chunk's solves), then every chunk
+  is timed warm;
+- `batch_fits_per_min`: complete `fit_batch` fits (everything it returns) of `--complete`
+  devices, warm (the first call, reported as `batch_first_s`, compiles);
+- `cpu_agreement_max_rel`: the largest relative difference of any parameter estimate between
+  `fit_batch` on this backend and on the CPU (`jax.devices("cpu")`) for the first
+  `--check` devices (target 1e-6);
+- `batch_independence_max_rel`, `batch_independence_steps_differ`: the first 64 solves
+  inside the big batch against the same solves in a batch of 64 (a solve must not depend
+  on the batch it rides in).
+
+Usage: .venv/bin/python benchmarks/gpu_many_devices.py [--devices 32768] [--smoke]
+Last line: one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import many_devices as md  # noqa: E402
+
+import greybox  # noqa: E402
+from greybox import _batch  # noqa: E402
+
+SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
+NOISE_M = 0.05e-6
+DROP = 0.05
+
+
+def pool_devices(n_pool, seed=24):
+    """(devices, clean readings per device and run): `n_pool` recorded chevrons."""
+    rng = np.random.default_rng(seed)
+    model = md.camera_model()
+    waves = [md.waveform(p, per) for p, per in md.RUNS]
+    devices, cleans = [], []
+    for k in range(n_pool):
+        vals = {p: med * np.exp(sd * rng.normal()) for p, (med, sd) in md.POPULATION.items()}
+        dev = greybox.set_values(model, list(vals), list(vals.values()))
+        exps, clean = [], []
+        for j, wave in enumerate(waves):
+            offset = (312 + rng.uniform(-4, 4)) * md.M_PER_PX
+            run = greybox.set_values(dev, ["camera.offset_m"], [offset])
+            defects = greybox.CameraDefects(fps=30.0, noise_m=NOISE_M, drop_fraction=DROP)
+            seed_k = int(rng.integers(2**31))
+            e, c = greybox.record(run, wave, name=f"r{j}", defects=defects, seed=seed_k)
+            exps.append(e)
+            clean.append(c)
+        devices.append(greybox.device_from_spec(md.SPEC, f"pool{k:04d}", exps, model=model))
+        cleans.append(clean)
+    return devices, cleans
+
+
+def replicated_readings(group, cleans, n_devices, seed=7):
+    """(pool row of each device, readings (n_devices, E, N, n_y)): device k is pool device
+    k mod P with fresh noise on its clean readings (its own dropped frames kept, zero like
+    the padded frames), one vectorised draw for all of them."""
+    rows = np.arange(n_devices) % len(group.members)
+    clean = np.zeros_like(group.stacked.y)  # (P, E, N, n_y)
+    for p, runs in enumerate(cleans):
+        for e, c in enumerate(runs):
+            clean[p, e, : c.shape[0]] = c
+    w = np.take(group.stacked.w, rows, axis=0)
+    noisy = clean[rows] + np.random.default_rng(seed).normal(0.0, NOISE_M, w.shape)
+    return rows, np.where(w > 0, noisy, 0.0)
+
+
+def solve_all(group, stacked, raw, sig, chunk, opts):
+    """Every row through `_batch._solve_many` in chunks of `chunk` (the last one padded with
+    copies of its last row, so that one compiled function serves every chunk)."""
+    n = raw.shape[0]
+    outs = []
+    for c in range(math.ceil(n / chunk)):
+        idx = np.arange(c * chunk, min((c + 1) * chunk, n))
+        idx = np.concatenate([idx, np.full(chunk - idx.size, idx[-1])])
+        rows = jax.tree.map(lambda x: jnp.asarray(np.take(x, idx, axis=0)), stacked)
+        raw_c, sig_c = jnp.asarray(raw[idx]), jnp.asarray(sig[idx])
+        out = jax.device_get(_batch._solve_many(rows, group.static, raw_c, sig_c, *opts))
+        keep = min(chunk, n - c * chunk)
+        outs.append({k: v[:keep] for k, v in out.items() if k in ("raw", "steps", "ok", "cost")})
+    return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--devices", type=int, default=32768)
+    ap.add_argument("--pool", type=int, default=64)
+    ap.add_argument("--complete", type=int, default=1024, help="devices of the full fit_batch")
+    ap.add_argument("--check", type=int, default=16, help="devices compared with the CPU")
+    ap.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
+    args = ap.parse_args(argv)
+    if args.smoke:
+        args.devices, args.pool, args.complete, args.check = 16, 4, 2, 2
+    say = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
+    t_start = time.perf_counter()
+    free = tuple(md.SPEC.free_parameters())
+
+    t0 = time.perf_counter()
+    pool, cleans = pool_devices(args.pool)
+    say(f"recorded {args.pool} pool devices in {time.perf_counter() - t0:.1f} s")
+    prepared, groups = _batch._prepare(
+        pool, free, None, "huber", 1.5, 4.0, None, 1, 0, (1e-8, 1e-10, 16384)
+    )
+    (group,) = groups
+    rows, noisy = replicated_readings(group, cleans, args.devices)
+    stacked = jax.tree.map(lambda x: np.take(x, rows, axis=0), group.stacked)
+    stacked = eqx.tree_at(lambda p: p.y, stacked, noisy)
+    raw = np.stack([prepared[r].raw0 for r in rows])
+    sig = np.stack([prepared[r].sigma0 for r in rows])
+    budget, max_chunk = _batch.device_budget()
+    b = _batch.bytes_per_item(prepared[0].problem)
+    chunk = _batch.chunk_size_for(b, budget, args.devices, max_chunk)
+    opts = (1e-6, 1e-6, 200)
+    say(f"{args.devices} problems stacked; chunks of {chunk} (~{b * chunk / 1e9:.2f} GB each)")
+
+    t0 = time.perf_counter()  # one chunk first: the compile, reported apart
+    head = jax.tree.map(lambda x: x[:chunk], stacked)
+    solve_all(group, head, raw[:chunk], sig[:chunk], chunk, opts)
+    first_chunk_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    solved = solve_all(group, stacked, raw, sig, chunk, opts)
+    solve_s = time.perf_counter() - t0
+    say(f"solved {args.devices} in {solve_s:.1f} s warm (first chunk {first_chunk_s:.1f} s)")
+
+    # the first 64 solves again in a batch of their own
+    n_ind = min(64, args.devices)
+    sub = jax.tree.map(lambda x: x[:n_ind], stacked)
+    alone = solve_all(group, sub, raw[:n_ind], sig[:n_ind], n_ind, opts)
+    diff = np.abs(alone["raw"] - solved["raw"][:n_ind])
+    ind_rel = float(np.max(diff / np.maximum(np.abs(alone["raw"]), 1e-12)))
+    steps_differ = int(np.sum(alone["steps"] != solved["steps"][:n_ind]))
+
+    # complete fits (everything fit_batch returns), warm
+    complete = [_device_from_rows(pool, cleans, k, rows, noisy) for k in range(args.complete)]
+    t0 = time.perf_counter()
+    greybox.fit_batch(complete, free)
+    batch_first_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    res = greybox.fit_batch(complete, free)
+    batch_s = time.perf_counter() - t0
+    say(f"fit_batch of {args.complete}: first {batch_first_s:.1f} s, warm {batch_s:.1f} s")
+
+    # the same estimates on the CPU
+    check = complete[: args.check]
+    with jax.default_device(jax.devices("cpu")[0]):
+        cpu = greybox.fit_batch(check, free)
+    worst = 0.0
+    for d in check:
+        va = np.array([p.value for p in res[d.name].parameters])
+        vb = np.array([p.value for p in cpu[d.name].parameters])
+        worst = max(worst, float(np.max(np.abs(va - vb) / np.maximum(np.abs(vb), 1e-300))))
+
+    out = {
+        "backend": jax.default_backend(),
+        "device": str(jax.devices()[0].device_kind),
+        "devices": args.devices,
+        "solve_fits_per_min": round(60.0 * args.devices / solve_s, 1),
+        "solve_s": round(solve_s, 2),
+        "solve_first_chunk_s": round(first_chunk_s, 2),
+        "solve_chunk": int(chunk),
+        "solves_ok": int(np.sum(solved["ok"])),
+        "batch_independence_max_rel": ind_rel,
+        "batch_independence_steps_differ": steps_differ,
+        "complete_devices": args.complete,
+        "batch_fits_per_min": round(60.0 * args.complete / batch_s, 1),
+        "batch_first_s": round(batch_first_s, 2),
+        "cpu_agreement_max_rel": worst,
+        "cpu_check_devices": len(check),
+        "total_s": round(time.perf_counter() - t_start, 1),
+        "load_average": round(os.getloadavg()[0], 2),
+    }
+    print(json.dumps(out))
+
+
+def _device_from_rows(pool, cleans, k, rows, noisy):
+    """Device k of the replicated set as a `greybox.Device` (for `fit_batch`)."""
+    base = pool[rows[k]]
+    exps = []
+    for e_i, e in enumerate(base.experiments):
+        y = noisy[k, e_i, : e.n_frames]
+        y = np.where(np.isfinite(e.y), y, np.nan)
+        exps.append(greybox.Experiment(e.name, e.t_s, y, e.inputs))
+    return greybox.Device(f"dev{k:05d}", base.model, tuple(exps), free=base.free)
+
+
+if __name__ == "__main__":
+    main()

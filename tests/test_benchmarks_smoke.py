@@ -1,0 +1,84 @@
+"""Every benchmark script still runs (issue 24, item 6): each one with `--smoke` (its smallest
+setting) in a subprocess, its last line one JSON object with the keys its full run reports.
+
+The scripts run two at a time (the machine has two cores); a script that is not listed here
+fails the test, so a new benchmark cannot be added without a smoke run.
+"""
+
+import json
+import os
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "benchmarks"
+
+# keys each script's last JSON line must carry (present in the full run's line as well)
+KEYS = {
+    "batch_independence.py": {"max_rel", "steps_differ", "ok_differ", "backend"},
+    "blackbox.py": {"arx_speedup_vs_sippy", "armax_speedup_vs_sippy", "armax_fit_pct"},
+    "design.py": {"det_gain", "predicted_se_ratio", "measured_se_ratio", "replicates"},
+    "fit_chevron.py": {"compile_s", "zoh_fit_s", "adaptive_fit_s", "ratio_vs_scipy"},
+    "gpu_many_devices.py": {
+        "backend",
+        "solve_fits_per_min",
+        "batch_fits_per_min",
+        "cpu_agreement_max_rel",
+        "batch_independence_max_rel",
+    },
+    "kalman.py": {"loglik_grad_s", "numpy_loglik_s", "speedup", "loglik_rel_diff"},
+    "many_devices.py": {
+        "loop_fits_per_s",
+        "batch_fits_per_min",
+        "solve_share",
+        "backend",
+        "loop_first_fit_s",
+    },
+    "microrobot.py": {"detailed_1000_cycles_s", "play_1000_cycles_s"},
+    "tclab.py": {"greybox_sae_val", "arx_sae_val", "greybox_structure", "horizon"},
+    "track.py": {"frames_per_s", "baseline_frames_per_s", "speedup"},
+    "whiteness.py": {"replicates"},
+}
+TIMEOUT_S = 240  # per script, on a loaded machine
+
+
+def run_smoke(name):
+    env = dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu")
+    proc = subprocess.run(
+        [sys.executable, str(BENCH / name), "--smoke"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+    )
+    return proc
+
+
+@pytest.fixture(scope="module")
+def smoke_runs():
+    names = sorted(KEYS)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        return dict(zip(names, pool.map(run_smoke, names)))
+
+
+def test_every_script_has_a_smoke_run():
+    scripts = {p.name for p in BENCH.glob("*.py") if not p.name.startswith("_")}
+    assert scripts == set(KEYS)
+    for p in BENCH.glob("*.py"):
+        assert "--smoke" in p.read_text(), f"{p.name}: no --smoke flag"
+
+
+@pytest.mark.parametrize("name", sorted(KEYS))
+def test_smoke_run_ends_with_its_json_line(smoke_runs, name):
+    proc = smoke_runs[name]
+    assert proc.returncode == 0, f"{name} failed:\n{proc.stderr[-3000:]}"
+    last = proc.stdout.strip().splitlines()[-1]
+    out = json.loads(last)
+    assert isinstance(out, dict)
+    missing = KEYS[name] - set(out)
+    assert not missing, f"{name}: JSON line lacks {sorted(missing)}"

@@ -1,0 +1,71 @@
+"""A new device of a known structure reuses the compiled solver (issue 24, item 1).
+
+A parameter's starting value (`FreeParameter.initial`, e.g. per-run camera offsets started at
+each device's rest reading) is read on the host only, to build the raw start vector; it takes
+no part in a problem's identity, so a second device with other starting values must compile
+nothing for its solve. Truth: JAX's own record of backend compilations during the second fit,
+and the second fit's estimates against a fit of that device alone.
+"""
+
+import jax
+import numpy as np
+import pytest
+
+import greybox
+from greybox._freeparams import FreeParameter
+
+SPEC = greybox.get_device("chevron_laser")
+
+
+def _device(seed):
+    rng = np.random.default_rng(seed)
+    model = greybox.with_camera(SPEC.model(), exposure_s=10e-3)
+    truth = greybox.set_values(
+        model, ["absorptance", "thermal.tau_s"], [0.6 * np.exp(0.1 * rng.normal()), 0.045]
+    )
+    runs = [
+        greybox.record(
+            truth,
+            greybox.PulseTrain(p, 0.3, n_pulses=3, delay_s=0.05, tail_s=0.2),
+            name=f"r{j}",
+            defects=greybox.CameraDefects(noise_m=0.05e-6),
+            seed=seed * 10 + j,
+        )[0]
+        for j, p in enumerate((0.01, 0.02))
+    ]
+    return greybox.device_from_spec(SPEC, f"d{seed}", runs, model=model)
+
+
+@pytest.fixture(scope="module")
+def compiles():
+    names = []
+
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            names.append(kw.get("fun_name", ""))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    return names
+
+
+def test_second_device_compiles_no_solver(compiles):
+    a, b = _device(1), _device(2)
+    starts = {p.path: p.initial for p in a.free if p.initial is not None}
+    assert starts and any(
+        q.initial != starts.get(q.path) for q in b.free if q.initial is not None
+    )  # the two devices really start from different values
+    greybox.fit(a.model, a.experiments, a.free)
+    first = [n for n in compiles if "_solve" in n]
+    assert first  # the first device compiled the solver
+    before = len(compiles)
+    res = greybox.fit(b.model, b.experiments, b.free)
+    assert [n for n in compiles[before:] if "_solve" in n] == []
+    assert res.valid
+
+
+def test_initial_is_not_part_of_the_identity():
+    p = FreeParameter("x", "m", lower=0.0, initial=1.0)
+    q = FreeParameter("x", "m", lower=0.0, initial=2.0)
+    assert p == q and hash(p) == hash(q)
+    assert p != FreeParameter("x", "m", lower=0.5, initial=1.0)  # bounds still count
+    assert FreeParameter("y", scale=1.0) != FreeParameter("y", scale=2.0)  # and the scale

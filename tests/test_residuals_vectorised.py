@@ -1,0 +1,118 @@
+"""The vectorised residual kernels against plain loops written from their definitions.
+
+Truth: double loops over slots and lags (the definitions of the lagged sums and of the
+permutation p-value), and the documented random stream of the shuffles: for run `i` and
+output `j` of `analyse(..., seed=s)`, `np.random.default_rng([s, i, j])`, one
+`rng.random(n)` row per shuffle, ranked (`argsort`) to give the permutation.
+"""
+
+import numpy as np
+import pytest
+
+from greybox import _residuals
+from greybox._residuals import analyse, analyse_run, lag_products, lagged_sums
+
+
+def naive_lagged_sums(a, oa, b, ob, lags):
+    s = a.size
+    sums, pairs = [], []
+    for k in lags:
+        ts = [t for t in range(s) if 0 <= t - k < s]
+        sums.append(sum(a[t] * b[t - k] for t in ts))
+        pairs.append(sum(float(oa[t] and ob[t - k]) for t in ts))
+    return np.array(sums), np.array(pairs)
+
+
+@pytest.mark.parametrize("s", [1, 7, 60, _residuals.CORRELATE_MAX + 3])
+def test_lagged_sums_match_the_double_loop(s):
+    rng = np.random.default_rng(s)
+    oa, ob = rng.random(s) > 0.2, rng.random(s) > 0.1
+    a, b = np.where(oa, rng.normal(size=s), 0.0), np.where(ob, rng.normal(size=s), 0.0)
+    lags = np.array([-s - 2, -s, -3, -1, 0, 1, 2, 5, s - 1, s + 4])
+    sums, pairs = lagged_sums(a, oa, b, ob, lags)
+    want_s, want_p = naive_lagged_sums(a, oa, b, ob, lags)
+    np.testing.assert_allclose(sums, want_s, rtol=1e-12, atol=1e-12 * s)
+    np.testing.assert_array_equal(pairs, want_p)
+    rows = lag_products(np.stack([a, 2 * a]), b, lags)
+    np.testing.assert_allclose(rows[1], 2 * want_s, rtol=1e-12, atol=1e-12 * s)
+
+
+def naive_p_value(t, e, valid, seed, h, b):
+    """Permutation p-value of the gapped, bias-corrected Ljung-Box Q of one run, one output,
+    written out from the module docstring (no outliers in these data)."""
+    grid = _residuals.FrameGrid.build(t)
+    n = int(valid.sum())
+    x = np.where(valid, e - e[valid].mean(), 0.0)
+    g = np.zeros(grid.n_slots)
+    occ = np.zeros(grid.n_slots, bool)
+    g[grid.slots], occ[grid.slots] = x, valid
+    slots = np.flatnonzero(occ)
+    vals = g[slots]
+    c0 = vals @ vals / n
+
+    def q_of(series):
+        q = 0.0
+        for k in range(1, h + 1):
+            pairs = sum(occ[t] and occ[t - k] for t in range(k, g.size))
+            r = sum(series[t] * series[t - k] for t in range(k, g.size)) / pairs / c0
+            r += 1.0 / (n - 1)
+            q += r**2 * pairs * (1 + 2 / n)
+        return q
+
+    rng = np.random.default_rng([*seed, 0])
+    q0 = q_of(g)
+    beyond = 0
+    for _ in range(b):
+        shuffled = np.zeros_like(g)
+        shuffled[slots] = vals[rng.random(vals.size).argsort()]
+        beyond += q_of(shuffled) >= q0
+    return q0, (1 + beyond) / (b + 1)
+
+
+def test_permutation_p_value_matches_the_loop_with_the_documented_stream(monkeypatch):
+    rng = np.random.default_rng(4)
+    n = 90
+    t = np.cumsum(rng.uniform(0.9, 1.1, n) * np.where(rng.random(n) < 0.05, 3, 1))
+    e = rng.normal(size=n)
+    e[1:] += 0.25 * e[:-1]  # mildly coloured: a p-value away from both ends
+    valid = rng.random(n) > 0.08
+    q0, p0 = naive_p_value(t, e, valid, (3, 1), 6, 199)
+    monkeypatch.setattr(_residuals, "LAG_BLOCK", 7 * 128)  # several blocks of shuffles
+    r = analyse_run("a", t, e[:, None], valid[:, None], None, 6, 6, permutations=199, seed=(3, 1))
+    assert 0.01 < p0 < 0.99
+    np.testing.assert_allclose(r.q[0], q0, rtol=1e-12)
+    assert r.p_value[0] == p0
+
+
+def test_pooled_analysis_is_reproducible_for_a_seed():
+    rng = np.random.default_rng(8)
+    runs = [
+        (f"r{i}", np.arange(80) / 30.0, rng.normal(size=(80, 2)), np.ones((80, 2), bool), None)
+        for i in range(3)
+    ]
+    a, b = analyse(runs, seed=11), analyse(runs, seed=11)
+    np.testing.assert_array_equal(a.p_value, b.p_value)
+    assert not np.array_equal(analyse(runs, seed=12).p_value, a.p_value)
+
+
+def test_input_levels_hold_the_last_known_level_across_gaps():
+    rng = np.random.default_rng(6)
+    n = 120
+    t = np.cumsum(np.where(rng.random(n) < 0.1, 3.0, 1.0))  # missing timestamps: empty slots
+    u = rng.normal(size=(n, 2))
+    u[rng.random((n, 2)) < 0.15] = np.nan  # and unknown levels at some frames
+    grid = _residuals.FrameGrid.build(t)
+    lags = 4
+    got = _residuals._input_lags(t, grid, u, n, lags)
+    # the definition, slot by slot: an empty slot or unknown level holds the one before it
+    slot_u = np.zeros((grid.n_slots, 2))
+    held = np.zeros(2)
+    have = np.zeros(2, bool)
+    by_slot = dict(zip(grid.slots.tolist(), u))
+    for k in range(grid.n_slots):
+        level = by_slot.get(k, np.full(2, np.nan))
+        have = have | np.isfinite(level)
+        held = np.where(np.isfinite(level), level, held)
+        slot_u[k] = np.where(have, held, 0.0)
+    want = np.concatenate([slot_u[np.maximum(grid.slots - k, 0)] for k in range(lags)], axis=1)
+    np.testing.assert_array_equal(got, want)

@@ -490,12 +490,13 @@ def _unit_error(table, channel, col, unit, problem, mapped):
 
     examples = unit_examples(channel)
     names = ", ".join(f"{channel.name}_{u}" for u in examples)
+    quoted = ", ".join('"' + u + '"' for u in examples)
     # the unit the file's numbers are in (degC for Celsius readings), never simply the SI
     # unit: `unit = "K"` on Celsius data would load 21 degC as 21 K
     fix = (
         f"give the unit the column's numbers are in, in the mapping ({mapped}), e.g. "
-        f"unit = {examples[0]!r} (one of {', '.join(map(repr, examples))}; a "
-        f"{channel.description or channel.name} converts to {channel.si_unit or 'a level'})"
+        f'unit = "{examples[0]}" (one of {quoted}: the unit '
+        f"of the numbers as logged; greybox converts them to {channel.si_unit or 'a level'})"
         if mapped
         else f"{channel.description or channel.name} columns must be named one of {names} "
         f"(or map the column in experiment.toml: [columns] {channel.name} = "

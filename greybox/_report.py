@@ -68,6 +68,20 @@ def display_unit(unit: str, value: float | None = None) -> tuple[float, str]:
     return 1.0, unit
 
 
+def channel_unit(channel) -> tuple[float, str]:
+    """(factor from SI, unit) to show a channel's values in: the readable unit (um, mW) when
+    the channel declares it, else the channel's own first declared unit (a heating power
+    declared in W stays in W, a user's x_mm output in mm), else its SI unit."""
+    factor, unit = display_unit(channel.si_unit)
+    units = getattr(channel, "units", None) or {}
+    if unit == channel.si_unit or unit in units or not units:
+        return factor, unit
+    for name, conv in units.items():
+        if conv is not None and conv[1] == 0.0 and conv[0] > 0:
+            return 1.0 / conv[0], name
+    return 1.0, channel.si_unit
+
+
 def _leading_power(unit: str) -> bool:
     """True when the unit's leading factor carries a power (m^2/s) or is not a plain symbol:
     a prefix would then apply to the power (nm^2 is 1e-18 m^2, not 1e-9 m^2)."""

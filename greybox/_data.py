@@ -38,8 +38,23 @@ class Experiment:
     sigma: np.ndarray | None = None
 
     def __post_init__(self):
-        t = check_times(self.t_s, name=f"{self.name}: t_s")
-        y = np.asarray(self.y, dtype=float)
+        from greybox._quantities import si_magnitude
+
+        # pint quantities become SI numbers here (numpy alone would strip the unit)
+        t = check_times(
+            si_magnitude(self.t_s, f"{self.name}: t_s", "[time]"), name=f"{self.name}: t_s"
+        )
+        y = np.asarray(si_magnitude(self.y, f"{self.name}: y"), dtype=float)
+        if self.sigma is not None:
+            object.__setattr__(self, "sigma", si_magnitude(self.sigma, f"{self.name}: sigma"))
+        object.__setattr__(
+            self,
+            "settings",
+            {
+                k: si_magnitude(v, f"{self.name}: setting {k}")
+                for k, v in dict(self.settings).items()
+            },
+        )
         if y.ndim == 1:
             y = y[:, None]
         if y.shape[0] != t.size:
@@ -80,6 +95,25 @@ class Experiment:
                     f"(frame {frame} has {sigma[bad][0]!r}); NaN is allowed only where y is NaN"
                 )
             object.__setattr__(self, "sigma", sigma)
+
+    @classmethod
+    def from_dataframe(cls, df, device, **kwargs) -> Experiment:
+        """An `Experiment` from a pandas DataFrame as a run CSV is read: time from the index
+        (``t_s``, ``t_ms``, a Timedelta or Datetime index) or a ``t_<unit>`` column, outputs
+        and inputs from ``<name>_<unit>`` columns of `device` (a `DeviceSpec` or device
+        name) converted to SI. Keywords: `inputs` (a waveform instead of input columns),
+        `name`, `columns` ({signal: column or (column, unit)}), `role`, `t_start_s`,
+        `settings`. See `greybox.io._dataframe`."""
+        from greybox.io._dataframe import experiment_from_dataframe
+
+        return experiment_from_dataframe(df, device, **kwargs)
+
+    def to_dataframe(self, device=None):
+        """A pandas DataFrame: index ``t_s``, one column per output and input named
+        ``<name>_<unit>`` (the channel's readable unit with `device`, else SI)."""
+        from greybox.io._dataframe import experiment_to_dataframe
+
+        return experiment_to_dataframe(self, device)
 
     def input_onset_s(self) -> float:
         """Time [s] at which the input first leaves zero (inf if it never does)."""

@@ -75,6 +75,9 @@ class CsvTable:
         """The text of row `i`'s cell in column `name` (for messages)."""
         if name in self.text_columns:
             return self.text_columns[name][i]
+        if not self.source:  # a table built from arrays (a DataFrame): the number itself
+            v = self.values[i, self.header.index(name)]
+            return "" if np.isnan(v) else repr(float(v))
         line = self.source.splitlines()[int(self.lines[i]) - 1]
         cells = next(csv.reader([line], delimiter=self.delimiter, strict=False))
         j = self.header.index(name)

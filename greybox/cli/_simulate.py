@@ -240,6 +240,13 @@ def write_simulation(
 
 
 def run(args) -> int:
+    from greybox.cli._ticker import Ticker, to_stderr
+
+    with Ticker(to_stderr) as tick:  # speaks only after 5 s of silence (compile, writing)
+        return _run(args, tick)
+
+
+def _run(args, tick) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -265,6 +272,7 @@ def run(args) -> int:
         wave, args.dt_ms, n_default=5000, n_max=2_000_000, duration_s=args.duration_s
     )
     n = t.size
+    tick.phase_is("computing the response and its band (compiling the model first)")
     band = fitted.posterior.band(wave, t, noise=args.noise)
     y, lo, hi = (np.asarray(a).reshape(n, -1) for a in (band.y, band.lower, band.upper))
     for name, arr in (("response", y), ("band", lo), ("band", hi)):
@@ -298,6 +306,7 @@ def run(args) -> int:
         "initial_state": dict(_initial_values(args.initial_state)),
         "file_units": file_units,
     }
+    tick.phase_is(f"writing {args.out}")
     write_simulation(
         args.out,
         args.force,

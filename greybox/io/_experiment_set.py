@@ -941,7 +941,7 @@ def _load_run(
     rules = _data_rules(doc, entry, spec, data_rules, *path)
 
     table = read_csv(
-        csv_path,
+        directory / rel,  # as the user named it (messages), checked above to lie inside
         names=None if rules["header"] else rules["names"],
         delimiter=rules["delimiter"],
     )

@@ -417,7 +417,7 @@ def fit_report(
         + ".",
         "",
         "**All fit % in this report are free-run simulation**: the model is driven by the "
-        "laser waveform alone from rest and never corrected by the measured positions. They "
+        "inputs alone from its initial state and never corrected by the measured outputs. They "
         "are not one-step-ahead prediction (which re-uses each measured frame and scores far "
         "higher on slow systems). Fit % = 100 (1 - |y - y_model| / |y - mean(y)|), as "
         "MATLAB `compare`; 100 is perfect, 0 is no better than the mean.",
@@ -491,7 +491,7 @@ def fit_report(
         f"model (estimation runs); the {result.loss} loss limits their pull. The headline "
         "fit % counts every valid frame; the column beside it leaves the flagged frames out. "
         "On a validation run, many flagged frames mean the model drifts from the data, not "
-        "that the camera failed.",
+        "that the sensor failed.",
         f"- Frames: {n_frames} in estimation runs, {result.n_data} valid readings fitted; "
         f"{result.n_params} fitted values.",
         f"- Status: **{result.status}**"

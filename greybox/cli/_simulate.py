@@ -1,4 +1,4 @@
-"""`greybox simulate`: fitted params.json + a new laser waveform -> CSV and PNG with a 95 % band."""
+"""`greybox simulate`: fitted params.json + a new input waveform -> CSV and figure with a 95 % band."""
 
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ prediction interval for new readings.
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "simulate",
-        help="simulate a new laser waveform with fitted params.json (95 %% band)",
+        help="simulate a new input waveform with fitted params.json (95 %% band)",
         description=HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )

@@ -59,7 +59,7 @@ def best_of(fn, n: int) -> float:
 def csv_read(folder: Path) -> dict:
     import pandas as pd
 
-    from greybox.io._csv import read_csv
+    from greybox.io import read_csv  # the run-CSV reader `greybox fit` uses
 
     path = folder / "log.csv"
     write_log(path)

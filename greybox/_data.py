@@ -96,25 +96,6 @@ class Experiment:
                 )
             object.__setattr__(self, "sigma", sigma)
 
-    @classmethod
-    def from_dataframe(cls, df, device, **kwargs) -> Experiment:
-        """An `Experiment` from a pandas DataFrame as a run CSV is read: time from the index
-        (``t_s``, ``t_ms``, a Timedelta or Datetime index) or a ``t_<unit>`` column, outputs
-        and inputs from ``<name>_<unit>`` columns of `device` (a `DeviceSpec` or device
-        name) converted to SI. Keywords: `inputs` (a waveform instead of input columns),
-        `name`, `columns` ({signal: column or (column, unit)}), `role`, `t_start_s`,
-        `settings`. See `greybox.io._dataframe`."""
-        from greybox.io._dataframe import experiment_from_dataframe
-
-        return experiment_from_dataframe(df, device, **kwargs)
-
-    def to_dataframe(self, device=None):
-        """A pandas DataFrame: index ``t_s``, one column per output and input named
-        ``<name>_<unit>`` (the channel's readable unit with `device`, else SI)."""
-        from greybox.io._dataframe import experiment_to_dataframe
-
-        return experiment_to_dataframe(self, device)
-
     def input_onset_s(self) -> float:
         """Time [s] at which the input first leaves zero (inf if it never does)."""
         levels = np.asarray(self.inputs.values).reshape(len(self.inputs.times_s), -1)

@@ -86,7 +86,11 @@ def experiment_from_dataframe(
     settings: dict | None = None,
 ):
     """An `Experiment` from a DataFrame (see the module docstring); `device`: a `DeviceSpec`
-    or a device name; `columns`: {signal or "time": column or (column, unit)}."""
+    or a device name; `columns`: {signal or "time": column or (column, unit)}; `inputs`: a
+    waveform in SI instead of input columns.
+
+    (A function of `greybox.io`, not a method of `Experiment`: the core never reads files
+    or tables; this is the same reader as a run CSV's.)"""
     from greybox._data import Experiment
     from greybox._waveforms import from_samples, stack_channels
     from greybox.io._csv import channel_numbers, check_increasing, find_column, time_column

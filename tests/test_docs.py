@@ -189,13 +189,15 @@ ambient_K = 294.15
 name = "a"
 file = "a.csv"
 role = "estimation"
-columns = { time = "Time", T1 = { column = "T1", unit = "degC" }, T2 = { column = "T2", unit = "degC" }, H1 = "Q1", H2 = "Q2" }
+columns = { time = "Time", T1 = { column = "T1", unit = "degC" }, \
+T2 = { column = "T2", unit = "degC" }, H1 = "Q1", H2 = "Q2" }
 
 [[runs]]
 name = "b"
 file = "b.csv"
 role = "estimation"
-columns = { time = "Time", T1 = { column = "T1", unit = "degC" }, T2 = { column = "T2", unit = "degC" }, H1 = "Q1", H2 = "Q2" }
+columns = { time = "Time", T1 = { column = "T1", unit = "degC" }, \
+T2 = { column = "T2", unit = "degC" }, H1 = "Q1", H2 = "Q2" }
 
 [[runs]]
 name = "c"

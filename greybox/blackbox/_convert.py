@@ -155,7 +155,9 @@ def _logm_real(M):
     if np.max(np.abs(L.imag), initial=0.0) > 1e-8 * max(1.0, np.max(np.abs(L))) or not (
         np.allclose(scipy.linalg.expm(L.real), M, atol=1e-9)
     ):
-        raise ValueError("model: the ZOH inversion has no accurate real logarithm; use method='tustin'")
+        raise ValueError(
+            "model: the ZOH inversion has no accurate real logarithm; use method='tustin'"
+        )
     return L.real
 
 

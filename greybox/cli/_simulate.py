@@ -1,4 +1,4 @@
-"""`greybox simulate`: fitted params.json + a new input waveform -> CSV and figure with a 95 % band."""
+"""`greybox simulate`: fitted params.json + a new input waveform -> CSV and figure, 95 % band."""
 
 from __future__ import annotations
 

@@ -129,7 +129,8 @@ def main() -> None:
             d = out["demo_silence"]
             print(
                 f"greybox demo: longest silence {d['longest_gap_s']:.1f} s (first line after "
-                f"{d['first_line_s']:.1f} s; longest after it {d['longest_gap_after_first_line_s']:.1f} s)"
+                f"{d['first_line_s']:.1f} s; longest after it "
+                f"{d['longest_gap_after_first_line_s']:.1f} s)"
             )
     out["process_fit_silence"] = None  # not measured (see the docstring)
     print(json.dumps(out))

@@ -67,7 +67,8 @@ class Ticker:
         while not self._stop.wait(self.poll_s):
             with self._lock:
                 now = self.clock()
-                if now - self.last >= self.every_s:
+                # one poll early, so that the silence a user sees stays under every_s
+                if now - self.last >= self.every_s - self.poll_s:
                     self.gaps.append(now - self.last)
                     self.last = now
                     self.say(f"... still {self.phase} ({now - self.phase_start:.0f} s so far)")

@@ -55,12 +55,15 @@ def lab(tmp_path_factory):
         'waveform = { type = "steps", times_s = [0.0], F_N = [3.0], end_s = 2.0 }\n'
     )
     out = root / "result"
-    assert main(["fit", str(exp), "--out", str(out), "--quiet"]) == 0
-    return root, exp, out
+    from greybox.cli._fit import fit_experiment_dir
+
+    # one fit: its result for the API figures, its folder (params.json) for the commands
+    outcome = fit_experiment_dir(exp, out, lambda message: None)
+    return root, exp, out, outcome
 
 
 def test_simulate_units_format_duration_and_initial_state(lab, tmp_path, capsys):
-    _, _, out = lab
+    _, _, out, _ = lab
     sim = tmp_path / "sim"
     argv = ["simulate", "--params", str(out / "params.json"), "--out", str(sim),
             "--waveform", "pulse:F_N=2,period_s=1,duty=0.5,n=1", "--duration-s", "3",
@@ -77,7 +80,7 @@ def test_simulate_units_format_duration_and_initial_state(lab, tmp_path, capsys)
 
 
 def test_initial_state_is_refused_for_a_device_without_one(lab, tmp_path, capsys):
-    _, _, out = lab
+    _, _, out, _ = lab
     argv = ["simulate", "--params", str(out / "params.json"), "--out", str(tmp_path / "s"),
             "--waveform", "pulse:F_N=2,period_s=1,duty=0.5,n=1",
             "--initial-state", "stiffness_N_per_m=3"]  # fmt: skip
@@ -89,7 +92,7 @@ def test_band_figure_reads_back_in_mm(lab, tmp_path):
     from greybox import _plots
     from greybox.io._params_file import load_params
 
-    _, _, out = lab
+    _, _, out, _ = lab
     fitted = load_params(out / "params.json")
     wave = greybox.PiecewiseConstant(np.array([0.0, 0.5]), np.array([0.0, 2.0]), 1.5)
     t = np.linspace(0, 1.5, 151)
@@ -112,11 +115,8 @@ def test_band_figure_reads_back_in_mm(lab, tmp_path):
 
 
 def test_fit_figure_through_the_api(lab):
-    from greybox.io import load_experiment_set
-
-    _, exp, out = lab
-    fs = load_experiment_set(exp)
-    result = greybox.fit(fs.model, fs.estimation, fs.free, **fs.fit_options)
+    _, _, out, outcome = lab
+    fs, result = outcome.fitset, outcome.result
     fig = plots.plot_fit(result, 0, outputs=fs.spec.outputs, inputs=fs.spec.inputs,
                          file_units={"x": "mm"})  # fmt: skip
     top, bottom = fig.axes

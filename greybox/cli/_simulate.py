@@ -327,6 +327,11 @@ def _run(args, tick) -> int:
         f"{width:.3g} {first['unit']}"
     )
     print(f"band: {band.kind}")
+    if args.duration_s is None and np.size(getattr(wave, "times_s", (0, 0))) == 1:
+        print(
+            f"note: every input is constant, so the waveform has no length of its own: "
+            f"simulated {t[-1]:g} s; give --duration-s for longer"
+        )
     print(
         f"wrote {Path(args.out)}/ (simulation.csv, simulation.{args.figure_format}, "
         "simulation.json)"

@@ -75,9 +75,13 @@ def _draw_inputs(axes, inputs, t0: float, t1: float, channels) -> None:
 
     tt, vv = _steps(inputs, t0, t1)
     for k, ax in enumerate(axes):
-        label, to_unit, unit = _label(_at(channels, k), k, kind="input")
-        ax.step(tt, to_unit(vv[:, k]), where="post", color="0.3", lw=1.0)
-        _ylabel(ax, label, unit)
+        channel = _at(channels, k)
+        label, to_unit, unit = _label(channel, k, kind="input")
+        ax.step(tt, to_unit(vv[:, k]), where="post", color="0.3", lw=1.0, label=label)
+        # a short panel: the channel's name on the axis, what it is in the legend
+        short = getattr(channel, "name", None) or (label if len(label) <= 12 else f"input {k + 1}")
+        ax.set_ylabel(f"{short} [{unit}]", fontsize=8)
+        ax.legend(loc="best", fontsize=7, frameon=True, framealpha=0.8)
         ax.grid(alpha=0.3)
 
 
@@ -85,13 +89,14 @@ def _n_inputs(inputs) -> int:
     return np.asarray(inputs.values).reshape(np.size(inputs.times_s), -1).shape[1]
 
 
-def _draw_band(ax, t, lo, hi, y, color, label) -> None:
+def _draw_band(ax, t, lo, hi, color, label, unit: str = "") -> None:
     """A band that stays visible when it is narrower than the line: filled, edged with
     dashed lines, and its widest width in the legend."""
     finite = np.isfinite(lo) & np.isfinite(hi)
     lo, hi = np.where(finite, lo, np.nan), np.where(finite, hi, np.nan)
     width = float(np.nanmax(hi - lo)) if finite.any() else float("nan")
-    ax.fill_between(t, lo, hi, color=color, alpha=0.35, lw=0, label=f"{label} (widest {width:.3g})")
+    label = f"{label} (widest {width:.3g} {unit})".replace(" )", ")")
+    ax.fill_between(t, lo, hi, color=color, alpha=0.35, lw=0, label=label)
     ax.plot(t, lo, "--", color=color, lw=0.7)
     ax.plot(t, hi, "--", color=color, lw=0.7)
 
@@ -123,9 +128,9 @@ def plot_simulation(
             t,
             to_unit(lower[:, j]),
             to_unit(upper[:, j]),
-            to_unit(y[:, j]),
             f"C{j}",
             f"{band.level * 100:g} % {kind}",
+            unit,
         )
         ax[j].plot(t, to_unit(y[:, j]), "-", color=f"C{j}", lw=1.3, label="model (simulation)")
         _ylabel(ax[j], label, unit)
@@ -173,8 +178,8 @@ def plot_fit(
         ax[j].plot(t, to_unit(y[:, j]), ".", ms=3, color="0.35", label="measured")
         if lohi is not None:
             _draw_band(
-                ax[j], t, to_unit(lohi[0][:, j]), to_unit(lohi[1][:, j]), None, "C0",
-                "95 % confidence band",
+                ax[j], t, to_unit(lohi[0][:, j]), to_unit(lohi[1][:, j]), "C0",
+                "95 % confidence band", unit,
             )
         ax[j].plot(t, to_unit(model[:, j]), "-", lw=1.3, color="C0", label="model (simulation)")
         _ylabel(ax[j], label, unit)

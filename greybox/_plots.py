@@ -157,7 +157,7 @@ def run_figure(
         fontsize=8,
     )
     if vv.shape[1] > 1:
-        bottom.legend(loc="upper right", fontsize=7)
+        bottom.legend(loc="best", fontsize=7)
     bottom.set_xlabel("time [s]")
     bottom.grid(alpha=0.3)
     bottom.set_xlim(float(t.min()), float(t.max()))

@@ -26,6 +26,11 @@ class Experiment:
     - `sigma`: known measurement noise sd per frame in the units of `y` (SI), shape (N,) (one
       level for every output) or (N, n_y); None when unknown. `fit` then weights each
       reading by it, does not re-estimate the noise, and tests the fit against it.
+
+    `t_s`, `y`, `sigma` and settings may be pint quantities (``Q_(y, "um")``): they are
+    converted to SI base units (um -> m, ms -> s, degC -> K), or refused when
+    dimensionless or of the wrong dimension; numpy alone would strip the unit. A pandas
+    DataFrame is read with `greybox.io.experiment_from_dataframe`.
     """
 
     name: str

@@ -123,5 +123,6 @@ from greybox._waveforms import concatenate as concatenate
 from greybox._waveforms import from_samples as from_samples
 from greybox._waveforms import multilevel_prbs as multilevel_prbs
 from greybox._waveforms import stack_channels as stack_channels
+from greybox import plots as plots  # figures onto your own axes (matplotlib on first use)
 
 __version__ = importlib.metadata.version("greybox")

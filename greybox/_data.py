@@ -26,6 +26,11 @@ class Experiment:
     - `sigma`: known measurement noise sd per frame in the units of `y` (SI), shape (N,) (one
       level for every output) or (N, n_y); None when unknown. `fit` then weights each
       reading by it, does not re-estimate the noise, and tests the fit against it.
+
+    `t_s`, `y`, `sigma` and settings may be pint quantities (``Q_(y, "um")``): they are
+    converted to SI base units (um -> m, ms -> s, degC -> K), or refused when
+    dimensionless or of the wrong dimension; numpy alone would strip the unit. A pandas
+    DataFrame is read with `greybox.io.experiment_from_dataframe`.
     """
 
     name: str
@@ -38,8 +43,23 @@ class Experiment:
     sigma: np.ndarray | None = None
 
     def __post_init__(self):
-        t = check_times(self.t_s, name=f"{self.name}: t_s")
-        y = np.asarray(self.y, dtype=float)
+        from greybox._quantities import si_magnitude
+
+        # pint quantities become SI numbers here (numpy alone would strip the unit)
+        t = check_times(
+            si_magnitude(self.t_s, f"{self.name}: t_s", "[time]"), name=f"{self.name}: t_s"
+        )
+        y = np.asarray(si_magnitude(self.y, f"{self.name}: y"), dtype=float)
+        if self.sigma is not None:
+            object.__setattr__(self, "sigma", si_magnitude(self.sigma, f"{self.name}: sigma"))
+        object.__setattr__(
+            self,
+            "settings",
+            {
+                k: si_magnitude(v, f"{self.name}: setting {k}")
+                for k, v in dict(self.settings).items()
+            },
+        )
         if y.ndim == 1:
             y = y[:, None]
         if y.shape[0] != t.size:

@@ -767,6 +767,26 @@ def _hold_mean(wave: PiecewiseConstant, a: float, b: float) -> float:
     return float(np.sum(np.asarray(wave(ts[:-1])).reshape(-1) * widths) / (b - a))
 
 
+def projected_adam(value_and_grad, x, project, *, step, decay, n_iter, maximise):
+    """Projected gradient steps scaled by Adam's moment estimates (beta 0.9, 0.999): from
+    `x`, `n_iter` steps of size `step * decay**it` up (`maximise`) or down the gradient,
+    each projected back onto the feasible set by `project`. Returns the best finite
+    iterate seen (the objective is not monotone under projection)."""
+    m1, m2 = np.zeros_like(x), np.zeros_like(x)
+    best_x, best_v = x, (-np.inf if maximise else np.inf)
+    for it in range(n_iter):
+        v, g = value_and_grad(jnp.asarray(x))
+        v, g = float(v), np.asarray(g)
+        if np.isfinite(v) and (v > best_v if maximise else v < best_v):
+            best_v, best_x = v, x
+        m1 = 0.9 * m1 + 0.1 * g
+        m2 = 0.999 * m2 + 0.001 * g**2
+        d = (m1 / (1 - 0.9 ** (it + 1))) / (np.sqrt(m2 / (1 - 0.999 ** (it + 1))) + 1e-30)
+        delta = step * d * decay**it
+        x = project(x + delta if maximise else x - delta)
+    return best_x
+
+
 def project_levels(x, lo, hi, mean_max):
     """Euclidean projection of levels `x` (..., K) onto {lo <= x <= hi, mean(x) <= mean_max},
     with `lo` applied to non-zero levels only through the clip (lo = 0 for the off state)."""
@@ -840,18 +860,15 @@ def _design_multilevel(problem, c: LabConstraints, kind, hold_s, n_iter, seed, s
     else:  # given waveforms, averaged over each hold
         x = np.array([[_hold_mean(w, a, a + h) for a in times] for w in starts])
     x = project_levels(x, lo, hi, mean_max)
-    best_x, best_v = x, -np.inf
-    m1, m2 = np.zeros_like(x), np.zeros_like(x)
-    step = 0.03 * (hi - lo)
-    for it in range(n_iter):
-        v, g = value_and_grad(jnp.asarray(x))
-        v, g = float(v), np.asarray(g)
-        if np.isfinite(v) and v > best_v:
-            best_v, best_x = v, x
-        m1 = 0.9 * m1 + 0.1 * g
-        m2 = 0.999 * m2 + 0.001 * g**2
-        d = (m1 / (1 - 0.9 ** (it + 1))) / (np.sqrt(m2 / (1 - 0.999 ** (it + 1))) + 1e-30)
-        x = project_levels(x + step * d * (0.98**it), lo, hi, mean_max)
+    best_x = projected_adam(
+        value_and_grad,
+        x,
+        lambda z: project_levels(z, lo, hi, mean_max),
+        step=0.03 * (hi - lo),
+        decay=0.98,
+        n_iter=n_iter,
+        maximise=True,
+    )
     # lab resolution: 0.01 mW, rounded so the average cap still holds
     x = np.floor(np.asarray(best_x) * 1e5) / 1e5
     x = np.where(x < lo, 0.0, x) if lo > 0 else x
@@ -1070,18 +1087,15 @@ def track_target(
     boost = -tau * math.log(max(1 - stroke_m / y_max, 1e-12))
     x = np.where(times - step_time_s < boost, power_max_W, p_hold)
     x = project_levels(x[None], 0.0, power_max_W, mean_max)[0]
-    m1, m2 = np.zeros_like(x), np.zeros_like(x)
-    best_x, best_v = x, np.inf
-    step = 0.02 * power_max_W
-    for it in range(n_iter):
-        v, g = value_and_grad(jnp.asarray(x))
-        v, g = float(v), np.asarray(g)
-        if v < best_v:
-            best_v, best_x = v, x
-        m1 = 0.9 * m1 + 0.1 * g
-        m2 = 0.999 * m2 + 0.001 * g**2
-        d = (m1 / (1 - 0.9 ** (it + 1))) / (np.sqrt(m2 / (1 - 0.999 ** (it + 1))) + 1e-30)
-        x = project_levels((x - step * d * 0.99**it)[None], 0.0, power_max_W, mean_max)[0]
+    best_x = projected_adam(
+        value_and_grad,
+        x,
+        lambda z: project_levels(z[None], 0.0, power_max_W, mean_max)[0],
+        step=0.02 * power_max_W,
+        decay=0.99,
+        n_iter=n_iter,
+        maximise=False,
+    )
     x = np.round(np.asarray(best_x) * 1e5) / 1e5
     x = project_levels(x[None], 0.0, power_max_W, mean_max)[0]
     levels = np.concatenate([[0.0], x]) if step_time_s > 0 else x

@@ -125,7 +125,10 @@ def run_tasks(
 def start_client(scheduler: str | None = "local", n_workers: int = 2, memory_limit="auto"):
     """(client, cluster or None): a `LocalCluster` of `n_workers` one-thread worker processes
     for "local"/None, else a client of the scheduler at that address."""
+    from greybox._log import route_dask_logs
+
     distributed = _require_distributed()
+    route_dask_logs()  # Dask's logs go to the `greybox.dask` logger, not the terminal
     if scheduler in (None, "local"):
         cluster = distributed.LocalCluster(
             n_workers=int(n_workers),

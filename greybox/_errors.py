@@ -19,7 +19,7 @@ class InputError(ValueError):
         field: str | None = None,
     ):
         self.file = file
-        self.line = line
+        self.line = None if line is None else int(line)  # a numpy index too
         self.field = field
         self.message = message
         where = ""

@@ -1,4 +1,4 @@
-"""PNG figures for fits and simulations (matplotlib, imported lazily inside each function).
+"""Figures for fits and simulations (matplotlib, imported lazily inside each function).
 
 Figures are built with `matplotlib.figure.Figure` directly (no pyplot, no global backend or
 rcParams changes), so importing greybox never imports matplotlib and plotting never touches
@@ -12,9 +12,40 @@ from pathlib import Path
 import numpy as np
 
 from greybox._fit import OUTLIER_SIGMAS
-from greybox._report import display_unit
+from greybox.plots import _label
 
-DPI = 110
+DPI = 200  # raster figures (png); svg and pdf are vector
+
+
+def save_figure(fig, path, fmt: str | None = None):
+    """Save `fig` to `path` in `fmt` (png, svg, pdf; None: the path's suffix) and return the
+    path written (its suffix replaced by the format)."""
+    path = Path(path)
+    if fmt is not None:
+        path = path.with_suffix("." + fmt)
+    fig.savefig(path, dpi=DPI, format=path.suffix.lstrip(".") or "png")
+    return path
+
+
+def axis_unit(channel, file_units=None) -> tuple:
+    """(to_unit: SI -> shown values, unit) for a channel's axis: the unit of the fit's files
+    (params.json "file_units") when known, else the channel's readable or own unit
+    (`greybox._report.channel_unit`): a user's x_mm output is drawn in mm, never um."""
+    from greybox._report import channel_unit
+
+    unit = (file_units or {}).get(channel.name)
+    if isinstance(unit, str):
+        from greybox.io._units import channel_conversion
+
+        try:
+            conv = channel_conversion(channel, unit)
+        except ValueError:
+            conv = None
+        if conv is not None:
+            scale, offset = conv
+            return (lambda v: (np.asarray(v) - offset) / scale), unit
+    factor, unit = channel_unit(channel)
+    return (lambda v: np.asarray(v) * factor), unit
 
 
 def _figure(width: float, height: float):
@@ -54,15 +85,23 @@ def run_figure(
     fit_percent,
     outputs: tuple = (("shuttle displacement", "m"),),
     input_labels: tuple = (("laser power", "W"),),
+    relative_to_rest: bool | None = None,
+    file_units: dict | None = None,
+    fmt: str | None = None,
 ) -> None:
     """Measured vs model for one run, one panel per output, the input waveform(s) beneath.
 
     `y`, `y_model`: readings (N,) or (N, n_y) in SI; `sigma`: noise per output (SI);
     `fit_percent`: simulation fit % per output (a scalar for one output), shown on each panel;
-    `outputs`, `input_labels`: (label, SI unit) per output / input channel. Outputs are shown
+    `outputs`, `input_labels`: the device's `Channel`s (units from them and `file_units`:
+    an x_mm output is drawn in mm) or (label, SI unit) pairs. Outputs are shown
     relative to the model's reading at the first frame (the rest position, which absorbs the
-    camera offset); frames further than the outlier threshold from the model are marked.
+    camera offset) when `relative_to_rest` (None: for position outputs, in m, whose camera
+    offset is arbitrary; other outputs are absolute); frames further than the outlier
+    threshold from the model are marked.
     """
+    import textwrap
+
     t = np.asarray(t_s, dtype=float)
     y, y_model = _columns(y, t.size), _columns(y_model, t.size)
     n_y = y.shape[1]
@@ -71,11 +110,12 @@ def run_figure(
     fig = _figure(9.0, 2.2 + 3.0 * n_y)
     axes = fig.subplots(n_y + 1, 1, sharex=True, height_ratios=[3] * n_y + [1])
     for j, top in enumerate(axes[:-1]):
-        label, unit = outputs[j]
-        fy, uy = display_unit(unit)
-        ref = _rest_reference(y_model[:, j])
-        meas = (y[:, j] - ref) * fy
-        model = (y_model[:, j] - ref) * fy
+        label, to_unit, uy = _label(outputs[j], j, file_units)
+        unit = getattr(outputs[j], "si_unit", None) or outputs[j][1]
+        relative = unit == "m" if relative_to_rest is None else relative_to_rest
+        ref = to_unit(_rest_reference(y_model[:, j])) if relative else 0.0
+        meas = to_unit(y[:, j]) - ref
+        model = to_unit(y_model[:, j]) - ref
         outlier = np.abs(y[:, j] - y_model[:, j]) > OUTLIER_SIGMAS * sig[j]
         top.plot(t, meas, ".", ms=3.5, color="0.35", label="measured")
         top.plot(
@@ -95,8 +135,9 @@ def run_figure(
                 color="C3",
                 label=f"outliers (> {OUTLIER_SIGMAS:g} sigma)",
             )
-        top.set_ylabel(f"{label} [{uy}]\n(relative to rest)")
-        top.legend(loc="upper right", fontsize=8)
+        text = f"{label} [{uy}]" + (" relative to rest" if relative else "")
+        top.set_ylabel("\n".join(textwrap.wrap(text, 28)), fontsize=8)
+        top.legend(loc="best", fontsize=7)
         top.grid(alpha=0.3)
         fit_text = f"simulation fit {pct[j]:.1f} %"
         top.set_title(
@@ -105,28 +146,40 @@ def run_figure(
     bottom = axes[-1]
     tt, vv = _steps(inputs, float(t.min()), float(t.max()))
     for k in range(vv.shape[1]):
-        label, unit = input_labels[min(k, len(input_labels) - 1)]
-        fu, uu = display_unit(unit)
+        label, to_unit, uu = _label(input_labels[min(k, len(input_labels) - 1)], k)
         bottom.step(
-            tt, vv[:, k] * fu, where="post", color=f"C{k + 1}", lw=1.0, label=f"{label} [{uu}]"
+            tt, to_unit(vv[:, k]), where="post", color=f"C{k + 1}", lw=1.0, label=f"{label} [{uu}]"
         )
-    bottom.set_ylabel("input" if vv.shape[1] > 1 else f"{input_labels[0][0]}\n[{uu}]")
+    bottom.set_ylabel(
+        "input"
+        if vv.shape[1] > 1
+        else "\n".join(textwrap.wrap(f"{label} [{uu}]", 28)),
+        fontsize=8,
+    )
     if vv.shape[1] > 1:
-        bottom.legend(loc="upper right", fontsize=7)
+        bottom.legend(loc="best", fontsize=7)
     bottom.set_xlabel("time [s]")
     bottom.grid(alpha=0.3)
     bottom.set_xlim(float(t.min()), float(t.max()))
-    fig.savefig(Path(path), dpi=DPI)
+    save_figure(fig, path, fmt)
 
 
 def residuals_figure(
-    path, runs, *, sigma: float, output: tuple = ("shuttle displacement", "m")
+    path,
+    runs,
+    *,
+    sigma: float,
+    output: tuple = ("shuttle displacement", "m"),
+    file_units: dict | None = None,
+    fmt: str | None = None,
 ) -> None:
     """Residuals (measured - model) of one output per run, with +-sigma and the outlier threshold.
 
-    `runs`: sequence of (name, role, t_s, y, y_model) in SI (one output column each).
+    `runs`: sequence of (name, role, t_s, y, y_model) in SI (one output column each);
+    `output`: the output's `Channel` or (label, SI unit).
     """
-    fy, uy = display_unit(output[1])
+    label, to_unit, uy = _label(output, 0, file_units)
+    fy = float(to_unit(1.0) - to_unit(0.0))  # residuals are differences: the scale only
     n = len(runs)
     cols = 3 if n > 4 else max(n, 1)
     rows = int(np.ceil(n / cols))
@@ -151,14 +204,14 @@ def residuals_figure(
     for ax in axes[::cols]:
         ax.set_ylabel(f"residual [{uy}]", fontsize=8)
     fig.suptitle(
-        f"{output[0]}: residuals, measured - model (dotted: +-sigma = {s:.3g} {uy}; dashed: "
+        f"{label}: residuals, measured - model\n(dotted: +-sigma = {s:.3g} {uy}; dashed: "
         f"outlier threshold {OUTLIER_SIGMAS:g} sigma; clipped at 8 sigma)",
         fontsize=9,
     )
-    fig.savefig(Path(path), dpi=DPI)
+    save_figure(fig, path, fmt)
 
 
-def correlation_figure(path, labels, correlation) -> None:
+def correlation_figure(path, labels, correlation, fmt: str | None = None) -> None:
     """Heatmap of the parameter correlation matrix (raw coordinates), values annotated."""
     corr = np.asarray(correlation, dtype=float)
     k = corr.shape[0]
@@ -183,7 +236,7 @@ def correlation_figure(path, labels, correlation) -> None:
                 )
     fig.colorbar(im, ax=ax, label="correlation (dimensionless, -1 to 1)")
     ax.set_title("Parameter correlation (posterior, transformed coordinates)", fontsize=9)
-    fig.savefig(Path(path), dpi=DPI)
+    save_figure(fig, path, fmt)
 
 
 def band_figure(
@@ -194,91 +247,44 @@ def band_figure(
     title: str = "",
     output_labels: tuple = (("shuttle displacement", "m"),),
     input_labels: tuple = (("laser power", "W"),),
+    output_channels: tuple = (),
+    input_channels: tuple = (),
+    file_units: dict | None = None,
+    fmt: str | None = None,
 ):
     """Simulated response with its band, one panel per output channel (`output_labels`:
     (description, SI unit) per output), and one panel per input channel beneath
-    (`input_labels`). Returns the matplotlib `Figure` (already saved to `path`)."""
-    t = np.asarray(band.t_s)
-    y = _columns(band.y, t.size)
-    lower, upper = _columns(band.lower, t.size), _columns(band.upper, t.size)
-    n_y = y.shape[1]
-    tt, vv = _steps(inputs, float(t.min()), float(t.max()))
-    n_u = vv.shape[1]
-    output_labels = tuple(output_labels) + tuple(
-        (f"output {j + 1}", "") for j in range(len(output_labels), n_y)
-    )
-    input_labels = tuple(input_labels) + tuple(
-        (f"input {k + 1}", "") for k in range(len(input_labels), n_u)
-    )
+    (`input_labels`). With `output_channels` / `input_channels` (the device's `Channel`s)
+    labels and units come from them (and `file_units`). Returns the matplotlib `Figure`
+    (already saved to `path`, in `fmt`)."""
+    from greybox.plots import plot_simulation
+
+    n_y = _columns(band.y, np.size(band.t_s)).shape[1]
+    n_u = np.asarray(inputs.values).reshape(np.size(inputs.times_s), -1).shape[1]
     fig = _figure(9.0, 1.0 + 2.2 * n_y + 1.1 * n_u)
     axes = fig.subplots(n_y + n_u, 1, sharex=True, height_ratios=[3] * n_y + [1] * n_u)
-    axes = np.atleast_1d(axes)
-    kind = "prediction interval" if band.includes_noise else "confidence band"
-    for j in range(n_y):
-        ax = axes[j]
-        fy, uy = display_unit(output_labels[j][1])
-        lo, hi = lower[:, j] * fy, upper[:, j] * fy
-        finite = np.isfinite(lo) & np.isfinite(hi)
-        ax.fill_between(
-            t,
-            np.where(finite, lo, np.nan),
-            np.where(finite, hi, np.nan),
-            color=f"C{j}",
-            alpha=0.25,
-            lw=0,
-            label=f"{band.level * 100:g} % {kind}",
-        )
-        ax.plot(t, y[:, j] * fy, "-", color=f"C{j}", lw=1.3, label="model (simulation)")
-        ax.set_ylabel(f"{output_labels[j][0]}\n[{uy}]", fontsize=8)
-        ax.legend(loc="upper right", fontsize=8)
-        ax.grid(alpha=0.3)
-    axes[0].set_title(title or "Simulated response", fontsize=10)
-    for k in range(n_u):
-        ax = axes[n_y + k]
-        fu, uu = display_unit(input_labels[k][1])
-        ax.step(tt, vv[:, k] * fu, where="post", color="0.3", lw=1.0)
-        ax.set_ylabel(f"{input_labels[k][0]}\n[{uu}]", fontsize=8)
-        ax.grid(alpha=0.3)
-    axes[-1].set_xlabel("time [s]")
-    axes[-1].set_xlim(float(t.min()), float(t.max()))
-    fig.savefig(Path(path), dpi=DPI)
+    plot_simulation(
+        band,
+        inputs,
+        axes=np.atleast_1d(axes),
+        outputs=output_channels or output_labels,
+        input_channels=input_channels or input_labels,
+        file_units=file_units,
+        title=title,
+    )
+    save_figure(fig, path, fmt)
     return fig
 
 
-def residual_correlation_figure(path, analysis, *, outputs=None, input_labels=None) -> None:
+def residual_correlation_figure(
+    path, analysis, *, outputs=None, input_labels=None, fmt: str | None = None
+):
     """Residual tests of a fit (`FitResult.residuals` or `ValidationResult.residuals`), as
     MATLAB `resid`: per output, the autocorrelation of the residuals over lags 0..M frames
     and their cross-correlation with each input (input leading: positive lags), pooled over
-    the runs, with the 99 % band of white noise. The title of each panel carries the
-    Ljung-Box p-value."""
-    a = analysis
-    n_y = a.autocorrelation.shape[0]
-    n_u = a.cross_correlation.shape[1]
-    names = outputs or a.output_names
-    inputs = input_labels or tuple(f"input {k + 1}" for k in range(n_u))
-    fig = _figure(4.2 * (1 + n_u), 2.6 * n_y + 0.4)
-    axes = np.atleast_2d(fig.subplots(n_y, 1 + n_u, squeeze=False))
-    band = a.band()
-    with np.errstate(divide="ignore"):
-        cband = 2.5758293035489004 / np.sqrt(a.cross_pairs)  # z(0.995)
-    for j in range(n_y):
-        ax = axes[j, 0]
-        ax.bar(a.lags[1:], a.autocorrelation[j, 1:], width=0.6, color="C0")
-        ax.fill_between(a.lags[1:], -band[j, 1:], band[j, 1:], color="0.8", zorder=0)
-        p = a.p_value[j]
-        ax.set_title(f"{names[j]}: autocorrelation (Ljung-Box p = {p:.2g})", fontsize=9)
-        ax.set_xlabel("lag [frames]", fontsize=8)
-        ax.grid(alpha=0.3)
-        for k in range(n_u):
-            ax = axes[j, 1 + k]
-            ax.bar(a.cross_lags, a.cross_correlation[j, k], width=0.6, color="C1")
-            ax.fill_between(a.cross_lags, -cband[j], cband[j], color="0.8", zorder=0)
-            ax.set_title(f"{names[j]}: cross-correlation with {inputs[k]}", fontsize=9)
-            ax.set_xlabel("lag [frames] (positive: the input leads)", fontsize=8)
-            ax.grid(alpha=0.3)
-    fig.suptitle(
-        f"Residuals (measured - model): {a.verdict}; grey: 99 % band of white noise "
-        f"(frames of {a.frame_interval_s * 1e3:.3g} ms)",
-        fontsize=8,
-    )
-    fig.savefig(Path(path), dpi=DPI)
+    the runs, with the 99 % band of white noise (`greybox.plots.plot_residual_tests`)."""
+    from greybox.plots import plot_residual_tests
+
+    fig = plot_residual_tests(analysis, outputs=outputs or (), inputs=input_labels or ())
+    save_figure(fig, path, fmt)
+    return fig

@@ -68,6 +68,20 @@ def display_unit(unit: str, value: float | None = None) -> tuple[float, str]:
     return 1.0, unit
 
 
+def channel_unit(channel) -> tuple[float, str]:
+    """(factor from SI, unit) to show a channel's values in: the readable unit (um, mW) when
+    the channel declares it, else the channel's own first declared unit (a heating power
+    declared in W stays in W, a user's x_mm output in mm), else its SI unit."""
+    factor, unit = display_unit(channel.si_unit)
+    units = getattr(channel, "units", None) or {}
+    if unit == channel.si_unit or unit in units or not units:
+        return factor, unit
+    for name, conv in units.items():
+        if conv is not None and conv[1] == 0.0 and conv[0] > 0:
+            return 1.0 / conv[0], name
+    return 1.0, channel.si_unit
+
+
 def _leading_power(unit: str) -> bool:
     """True when the unit's leading factor carries a power (m^2/s) or is not a plain symbol:
     a prefix would then apply to the power (nm^2 is 1e-18 m^2, not 1e-9 m^2)."""
@@ -402,7 +416,7 @@ def fit_report(
         + ".",
         "",
         "**All fit % in this report are free-run simulation**: the model is driven by the "
-        "laser waveform alone from rest and never corrected by the measured positions. They "
+        "inputs alone from its initial state and never corrected by the measured outputs. They "
         "are not one-step-ahead prediction (which re-uses each measured frame and scores far "
         "higher on slow systems). Fit % = 100 (1 - |y - y_model| / |y - mean(y)|), as "
         "MATLAB `compare`; 100 is perfect, 0 is no better than the mean.",
@@ -476,7 +490,7 @@ def fit_report(
         f"model (estimation runs); the {result.loss} loss limits their pull. The headline "
         "fit % counts every valid frame; the column beside it leaves the flagged frames out. "
         "On a validation run, many flagged frames mean the model drifts from the data, not "
-        "that the camera failed.",
+        "that the sensor failed.",
         f"- Frames: {n_frames} in estimation runs, {result.n_data} valid readings fitted; "
         f"{result.n_params} fitted values.",
         f"- Status: **{result.status}**"

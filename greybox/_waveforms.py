@@ -18,7 +18,10 @@ import numpy as np
 
 
 def _check_finite(name: str, values) -> np.ndarray:
-    arr = np.asarray(values, dtype=float)
+    from greybox._quantities import si_magnitude
+
+    dimension = "[time]" if name.endswith("_s") else None
+    arr = np.asarray(si_magnitude(values, name, dimension), dtype=float)
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name}: contains NaN or infinite values; give finite numbers")
     return arr
@@ -52,7 +55,9 @@ class PiecewiseConstant:
             raise ValueError(
                 "times_s: breakpoints must be strictly increasing; sort them and remove duplicates"
             )
-        end = float(self.end_s)
+        from greybox._quantities import si_magnitude
+
+        end = float(si_magnitude(self.end_s, "end_s", "[time]"))
         if not np.isfinite(end) or end < times[-1]:
             raise ValueError(f"end_s: {end} is before the last breakpoint {times[-1]}")
         object.__setattr__(self, "times_s", times)

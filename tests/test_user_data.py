@@ -368,9 +368,19 @@ def test_simulate_figure_has_a_panel_per_output_and_input(tmp_path):
     axes = fig.axes
     assert len(axes) == 5
     for j, ax in enumerate(axes[:3]):
-        assert len(ax.lines) == 1 and len(ax.collections) == 1  # model line and its band
+        # the model line, and its band: filled and edged by two dashed lines (visible even
+        # when narrower than the line)
+        assert len(ax.lines) == 3 and len(ax.collections) == 1
         assert outputs[j][0] in ax.get_ylabel()
-        np.testing.assert_allclose(ax.lines[0].get_ydata(), y[:, j] * (1.0 if j < 2 else 1e6))
+        scale = 1.0 if j < 2 else 1e6
+        model = [ln for ln in ax.lines if ln.get_label() == "model (simulation)"]
+        assert len(model) == 1
+        np.testing.assert_allclose(model[0].get_ydata(), y[:, j] * scale)
+        edges = sorted(
+            (ln for ln in ax.lines if ln.get_linestyle() == "--"), key=lambda ln: ln.get_ydata()[0]
+        )
+        np.testing.assert_allclose(edges[0].get_ydata(), (y[:, j] - 1.0) * scale)
+        np.testing.assert_allclose(edges[1].get_ydata(), (y[:, j] + 1.0) * scale)
     for k, ax in enumerate(axes[3:]):
         assert len(ax.lines) == 1 and inputs[k][0] in ax.get_ylabel()
         assert max(ax.lines[0].get_ydata()) == [1.0, 2.0][k]  # each input's own level

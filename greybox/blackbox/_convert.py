@@ -135,32 +135,29 @@ def _tf_from_ss(A, B, C, D):
 
 
 def _expm(M):
-    """Matrix exponential by scaling and squaring of a Taylor series (numpy only)."""
-    norm = np.linalg.norm(M, 1)
-    s = max(0, int(np.ceil(np.log2(norm / 0.25))) if norm > 0 else 0)
-    X = M / 2**s
-    E = np.eye(len(M))
-    term = np.eye(len(M))
-    for k in range(1, 25):
-        term = term @ X / k
-        E = E + term
-    for _ in range(s):
-        E = E @ E
-    return E
+    import scipy.linalg
+
+    return scipy.linalg.expm(M)
 
 
 def _logm_real(M):
-    w, V = np.linalg.eig(M)
+    """The real matrix logarithm of the ZOH block matrix (scipy's Schur-Pade `logm`, which
+    handles repeated poles such as 1/(s+1)^2), or an error when none exists."""
+    import scipy.linalg
+
+    w = np.linalg.eigvals(M)
     if np.any(np.abs(w) < 1e-12) or np.any((np.abs(w.imag) < 1e-12) & (w.real < 0)):
         raise ValueError(
             "model: a pole at z = 0 or on the negative real axis has no real ZOH continuous "
             "equivalent; use method='tustin' or a lower order"
         )
-    L = V @ np.diag(np.log(w)) @ np.linalg.inv(V)
-    if np.max(np.abs(L.imag)) > 1e-8 * max(1.0, np.max(np.abs(L))) or not np.allclose(
-        _expm(L.real), M, atol=1e-9
+    L = np.asarray(scipy.linalg.logm(M))
+    if np.max(np.abs(L.imag), initial=0.0) > 1e-8 * max(1.0, np.max(np.abs(L))) or not (
+        np.allclose(scipy.linalg.expm(L.real), M, atol=1e-9)
     ):
-        raise ValueError("model: ZOH inversion failed (repeated poles?); use method='tustin'")
+        raise ValueError(
+            "model: the ZOH inversion has no accurate real logarithm; use method='tustin'"
+        )
     return L.real
 
 

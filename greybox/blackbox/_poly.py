@@ -61,28 +61,33 @@ class Polynomials:
 
 
 def lfilter(b, a, x) -> np.ndarray:
-    """y = b(q)/a(q) x with zero initial conditions, a[0] = 1, along axis 0 of 1-D x."""
-    b = np.asarray(b, dtype=float)
-    a = np.asarray(a, dtype=float)
-    x = np.asarray(x, dtype=float)
-    w = np.convolve(x, b)[: len(x)]
-    return _ar_recursion(a, w, np.zeros(len(a) - 1), 0)
+    """y = b(q)/a(q) x with zero initial conditions, a[0] = 1, along axis 0 of 1-D x
+    (`scipy.signal.lfilter`)."""
+    from scipy import signal
+
+    return signal.lfilter(
+        np.asarray(b, dtype=float), np.asarray(a, dtype=float), np.asarray(x, dtype=float)
+    )
 
 
 def _ar_recursion(a, w, y, start):
-    """y(t) = w(t) - sum_{j>=1} a_j y(t-j) for t >= start; y[:start] given (initial values)."""
+    """y(t) = w(t) - sum_{j>=1} a_j y(t-j) for t >= start; y[:start] given (initial values,
+    zeros before index 0). `scipy.signal.lfilter` with the state set from those values."""
+    from scipy import signal
+
+    a = np.asarray(a, dtype=float)
+    w = np.asarray(w, dtype=float)
     n = len(a) - 1
     out = np.empty(len(w))
     out[:start] = y[:start]
+    if start >= len(w):
+        return out
     if n == 0:
         out[start:] = w[start:]
         return out
-    ar = -a[1:][::-1]  # so that dot(ar, out[t-n:t]) = -sum a_j y(t-j)
-    hist = list(np.concatenate([np.zeros(max(0, n - start)), out[max(0, start - n) : start]]))
-    for t in range(start, len(w)):
-        v = w[t] + float(np.dot(ar, hist[-n:]))
-        out[t] = v
-        hist.append(v)
+    past = np.concatenate([np.zeros(max(0, n - start)), out[max(0, start - n) : start]])
+    zi = signal.lfiltic([1.0], a, past[::-1])  # most recent output first
+    out[start:] = signal.lfilter([1.0], a, w[start:], zi=zi)[0]
     return out
 
 

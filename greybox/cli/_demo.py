@@ -94,11 +94,18 @@ def truth_rows(outcome, truth: dict) -> tuple[list[str], bool]:
 def run(args) -> int:
     import jax
 
-    from greybox._errors import InputError
-    from greybox.cli._fit import Progress, fit_experiment_dir, fit_lines
+    from greybox.cli._fit import Progress
+    from greybox.cli._ticker import Ticker
 
     jax.config.update("jax_enable_x64", True)
-    say = Progress(args.quiet)
+    with Ticker(Progress(args.quiet)) as say:  # a line at least every 5 s, in every phase
+        return _run(args, say)
+
+
+def _run(args, say) -> int:
+    from greybox._errors import InputError
+    from greybox.cli._fit import fit_experiment_dir, fit_lines
+
     data = embedded_dir()
     if not (data / "experiment.toml").is_file():
         raise InputError(

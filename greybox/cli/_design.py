@@ -108,6 +108,14 @@ def _input_error(err: ValueError):
 
 
 def run(args) -> int:
+    from greybox.cli._ticker import Ticker, to_stderr
+
+    with Ticker(to_stderr) as tick:  # a line after every 5 s of silence (the optimisation)
+        tick.phase_is("designing (compiling the information matrix, then optimising)")
+        return _run(args)
+
+
+def _run(args) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)

@@ -1,4 +1,4 @@
-"""`greybox simulate`: fitted params.json + a new laser waveform -> CSV and PNG with a 95 % band."""
+"""`greybox simulate`: fitted params.json + a new input waveform -> CSV and figure, 95 % band."""
 
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ Output (in --out, written atomically):
                    per input <name>_<unit> (e.g. y_um, ..., laser_mW; T1_K, ..., H1_pct)
                    (from the model's initial state: per-run camera offsets belong to the
                    recorded runs and are not part of a new waveform)
-  simulation.png   the first output with its band, the first input beneath
+  simulation.png   each output with its band, the inputs beneath (--figure-format for svg/pdf)
   simulation.json  what the band is (confidence band or prediction interval), the
                    waveform, the columns, the params file used
 --out must be absent, empty or an earlier greybox result (it holds a .greybox-result
@@ -40,6 +40,12 @@ marker); any other folder is refused before any work unless --force. A response 
 that is not finite (an overflowing waveform, a damaged params.json) is refused, not
 written. Exit status: 0 done; 2 bad input (one line); 3 a bug (traceback; please report
 it); 130 interrupted; 143 terminated.
+--duration-s S simulates from 0 to S seconds (by default to the waveform's end; a constant
+input has no end of its own: give --duration-s). --initial-state PATH=VALUE (repeatable;
+SI units) sets a parameter that fixes the device's state at t = 0, e.g.
+initial_T1_K=300 for tclab; `greybox describe DEVICE` lists them.
+Units: every column is in the unit of the fit's files (params.json) or the channel's own
+declared unit (a power declared in W is written in W).
 By default the band is a 95 % confidence band of the model response (parameter
 uncertainty only); --noise adds the fitted measurement noise sigma, giving a 95 %
 prediction interval for new readings.
@@ -49,7 +55,7 @@ prediction interval for new readings.
 def add_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "simulate",
-        help="simulate a new laser waveform with fitted params.json (95 %% band)",
+        help="simulate a new input waveform with fitted params.json (95 %% band)",
         description=HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -81,10 +87,28 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="output time step in ms (default 1, or the waveform's length / 5000 when longer)",
     )
     p.add_argument(
+        "--duration-s",
+        type=float,
+        default=None,
+        metavar="S",
+        help="simulate from 0 to S seconds (default: the waveform's end)",
+    )
+    p.add_argument(
+        "--initial-state",
+        action="append",
+        default=[],
+        metavar="PATH=VALUE",
+        help="a parameter that sets the state at t = 0, in SI (e.g. initial_T1_K=300); "
+        "repeatable",
+    )
+    p.add_argument(
         "--force",
         action="store_true",
         help="replace --out even if it is a non-empty folder greybox did not write",
     )
+    from greybox.cli._figures import add_figure_format
+
+    add_figure_format(p)
     p.add_argument(
         "--noise",
         action="store_true",
@@ -137,12 +161,15 @@ def read_waveform(specs, inputs):
     return (*waveform_from_csv(csvs[0], inputs), specs)
 
 
-def sample_times(wave, dt_ms, *, n_default: int, n_max: int) -> np.ndarray:
-    """Output times [s] from 0 to the waveform's end: every `dt_ms`, by default 1 ms or the
-    length / `n_default` when longer; more than `n_max` samples is refused."""
+def sample_times(
+    wave, dt_ms, *, n_default: int, n_max: int, duration_s: float | None = None
+) -> np.ndarray:
+    """Output times [s] from 0 to the waveform's end (or `duration_s`): every `dt_ms`, by
+    default 1 ms or the length / `n_default` when longer; more than `n_max` samples is
+    refused."""
     from greybox._errors import InputError
 
-    end = float(wave.end_s)
+    end = float(wave.end_s) if duration_s is None else float(duration_s)
     dt = dt_ms * 1e-3 if dt_ms is not None else max(1e-3, end / n_default)
     n = int(math.floor(end / dt + 1e-9)) + 1
     if n > n_max:
@@ -154,7 +181,7 @@ def simulation_columns(outputs, inputs, file_units, t, arrays, wave):
     """(header, columns, descriptions, peaks) of simulation.csv: time, then per output the
     response and its band (`arrays` = (y, lo, hi), SI) in the fit's file unit, then each
     input in its display unit."""
-    from greybox._report import display_unit
+    from greybox._report import channel_unit
 
     y, lo, hi = arrays
     header, cols, described = ["t_s"], [t], {"t_s": "time [s]"}
@@ -162,7 +189,7 @@ def simulation_columns(outputs, inputs, file_units, t, arrays, wave):
     for j, ch in enumerate(outputs):
         conv = _file_unit(ch, file_units.get(ch.name))
         if conv is None:
-            f, u = display_unit(ch.si_unit)
+            f, u = channel_unit(ch)
             conv = (u, (1.0 / f, 0.0))
         u, (scale, offset) = conv
         u = _column_unit(u)
@@ -175,7 +202,7 @@ def simulation_columns(outputs, inputs, file_units, t, arrays, wave):
         peaks[ch.name] = {"y": float(np.max(cols[-3])), "unit": u}
     levels = np.asarray(wave(t)).reshape(t.size, -1)
     for k, ch in enumerate(inputs):
-        f, u = display_unit(ch.si_unit)
+        f, u = channel_unit(ch)
         u = _column_unit(u)
         header.append(f"{ch.name}_{u}")
         cols.append(levels[:, k] * f)
@@ -183,8 +210,10 @@ def simulation_columns(outputs, inputs, file_units, t, arrays, wave):
     return header, cols, described, peaks
 
 
-def write_simulation(out, force, header, cols, meta, band, wave, device, text, outputs, inputs):
-    """simulation.csv, simulation.json and simulation.png, written atomically to `out`."""
+def write_simulation(
+    out, force, header, cols, meta, band, wave, device, text, outputs, inputs, fmt="png"
+):
+    """simulation.csv, simulation.json and simulation.<fmt>, written atomically to `out`."""
     from greybox import _plots as plots
     from greybox.cli._fit import usual_permissions
     from greybox.io._atomic import atomic_output_dir
@@ -198,16 +227,26 @@ def write_simulation(out, force, header, cols, meta, band, wave, device, text, o
         (tmp / "simulation.csv").write_text("\n".join(rows) + "\n")
         (tmp / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
         plots.band_figure(
-            tmp / "simulation.png",
+            tmp / f"simulation.{fmt}",
             band,
             wave,
             title=f"{device}: {text}"[:200],
             output_labels=tuple((c.description or c.name, c.si_unit) for c in outputs),
             input_labels=tuple((c.description or c.name, c.si_unit) for c in inputs),
+            output_channels=outputs,
+            input_channels=inputs,
+            file_units=meta.get("file_units") or {},
         )
 
 
 def run(args) -> int:
+    from greybox.cli._ticker import Ticker, to_stderr
+
+    with Ticker(to_stderr) as tick:  # speaks only after 5 s of silence (compile, writing)
+        return _run(args, tick)
+
+
+def _run(args, tick) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -222,11 +261,18 @@ def run(args) -> int:
 
     if _fit_process.is_process_params(args.params):  # a process-noise fit: sample paths
         return _fit_process.simulate_process(args)
-    fitted = load_params(args.params)
+    if args.duration_s is not None and not (math.isfinite(args.duration_s) and args.duration_s > 0):
+        raise InputError(
+            f"must be a positive number of seconds, got {args.duration_s}", field="--duration-s"
+        )
+    fitted = with_initial_state(load_params(args.params), args.initial_state)
     inputs, outputs = tuple(fitted.spec.inputs), tuple(fitted.spec.outputs)
     wave, text, specs = read_waveform(args.waveform, inputs)
-    t = sample_times(wave, args.dt_ms, n_default=5000, n_max=2_000_000)
+    t = sample_times(
+        wave, args.dt_ms, n_default=5000, n_max=2_000_000, duration_s=args.duration_s
+    )
     n = t.size
+    tick.phase_is("computing the response and its band (compiling the model first)")
     band = fitted.posterior.band(wave, t, noise=args.noise)
     y, lo, hi = (np.asarray(a).reshape(n, -1) for a in (band.y, band.lower, band.upper))
     for name, arr in (("response", y), ("band", lo), ("band", hi)):
@@ -257,7 +303,10 @@ def run(args) -> int:
         "columns": described,
         "peak": first,
         "peaks": peaks,
+        "initial_state": dict(_initial_values(args.initial_state)),
+        "file_units": file_units,
     }
+    tick.phase_is(f"writing {args.out}")
     write_simulation(
         args.out,
         args.force,
@@ -270,6 +319,7 @@ def run(args) -> int:
         text,
         outputs,
         inputs,
+        args.figure_format,
     )
     width = float(np.nanmax(cols[3] - cols[2]))
     print(
@@ -277,5 +327,64 @@ def run(args) -> int:
         f"{width:.3g} {first['unit']}"
     )
     print(f"band: {band.kind}")
-    print(f"wrote {Path(args.out)}/ (simulation.csv, simulation.png, simulation.json)")
+    if args.duration_s is None and np.size(getattr(wave, "times_s", (0, 0))) == 1:
+        print(
+            f"note: every input is constant, so the waveform has no length of its own: "
+            f"simulated {t[-1]:g} s; give --duration-s for longer"
+        )
+    print(
+        f"wrote {Path(args.out)}/ (simulation.csv, simulation.{args.figure_format}, "
+        "simulation.json)"
+    )
     return 0
+
+
+def _initial_values(specs) -> list:
+    """[(path, SI value)] from --initial-state PATH=VALUE."""
+    from greybox._errors import InputError
+
+    out = []
+    for spec in specs:
+        path, sep, value = spec.partition("=")
+        try:
+            v = float(value)
+        except ValueError:
+            v = math.nan
+        if not sep or not path.strip() or not math.isfinite(v):
+            raise InputError(
+                f"{spec!r}: give PATH=VALUE with a finite number in SI units, e.g. "
+                "initial_T1_K=300",
+                field="--initial-state",
+            )
+        out.append((path.strip(), v))
+    return out
+
+
+def with_initial_state(fitted, specs):
+    """`fitted` with its model's initial-state parameters set from --initial-state."""
+    import dataclasses
+
+    from greybox._errors import InputError
+    from greybox._parameters import set_values
+
+    values = _initial_values(specs)
+    if not values:
+        return fitted
+    table = fitted.spec.parameter_table(fitted.options)
+    allowed = [p.path for p in table if "initial" in p.path]
+    fitted_paths = {p.path for p in fitted.free if not p.per_experiment}
+    for path, _ in values:
+        if path not in allowed:
+            raise InputError(
+                f"{path!r} is not an initial-state parameter of {fitted.device_name}; "
+                + (f"use one of {', '.join(allowed)}" if allowed else "it has none"),
+                field="--initial-state",
+            )
+        if path in fitted_paths:
+            raise InputError(
+                f"{path!r} was fitted (params.json holds its estimate and uncertainty); a new "
+                "initial state needs a fit that did not estimate it",
+                field="--initial-state",
+            )
+    model = set_values(fitted.model, [p for p, _ in values], [v for _, v in values])
+    return dataclasses.replace(fitted, model=model)

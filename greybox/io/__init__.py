@@ -8,6 +8,10 @@
 
 from greybox.io._atomic import atomic_output_dir as atomic_output_dir
 from greybox.io._atomic import atomic_output_file as atomic_output_file
+from greybox.io._csv import CsvTable as CsvTable
+from greybox.io._csv import read_csv as read_csv
+from greybox.io._dataframe import experiment_from_dataframe as experiment_from_dataframe
+from greybox.io._dataframe import experiment_to_dataframe as experiment_to_dataframe
 from greybox.io._design_file import experiment_toml as experiment_toml
 from greybox.io._experiment_set import ExperimentSet as ExperimentSet
 from greybox.io._experiment_set import InputErrors as InputErrors

@@ -30,6 +30,7 @@ from greybox.io._csv import (
     CsvTable,
     channel_numbers,
     check_increasing,
+    excerpt,
     find_column,
     read_csv,
     time_column,
@@ -49,6 +50,9 @@ MAX_PROBLEM_BYTES = 4e9  # estimated working memory of a fit (GREYBOX_MAX_PROBLE
 _TOP_KEYS = {"experiment", "model", "camera", "fit", "runs", "columns", "data", "candidates"}
 _TOP_KEYS |= {"noise"}  # [noise]: the process-noise structure (greybox/cli/_fit_process.py)
 _TOP_KEYS |= {"physical_ranges"}  # overrides of the device's physical ranges (_plausibility)
+_TOP_KEYS |= {"csv"}  # [csv] delimiter: the cell separator of every run file (else detected)
+# the delimiter as written in [csv] (a tab may be spelled out: TOML's "\t" or "tab")
+_DELIMITER_SPELLINGS = {",": ",", ";": ";", "\t": "\t", "comma": ",", "semicolon": ";", "tab": "\t"}
 _CANDIDATE_KEYS = {"name", "model", "free"}
 # how a run's file is read and its clock and inputs interpreted: [data] for every run, or
 # the same keys in a [[runs]] table for that run (a run's `columns` mapping is merged
@@ -384,7 +388,7 @@ def _read_noise(table: CsvTable, outputs, refs, camera: dict) -> np.ndarray | No
     missing = [j for j in with_data if cols[j] is None]
     if missing:
         return _mixed_noise(table, outputs[missing[0]])
-    n = len(table.rows)
+    n = table.n_rows
     return np.column_stack([c if c is not None else np.full(n, np.nan) for c in cols])
 
 
@@ -449,7 +453,7 @@ def _read_outputs(
             choose_hint=f' with y_column = "..." in run {run!r} of {doc.file}',
         )
         if ref is None:
-            ys.append(np.full(len(table.rows), np.nan))
+            ys.append(np.full(table.n_rows, np.nan))
             refs.append(None)
             continue
         v = table.numbers(ref.column, allow_missing=True, what=f"{ch.name} reading in {ref.unit}")
@@ -794,6 +798,7 @@ def _data_rules(doc: TomlDocument, table: dict, spec, base: dict | None, *path) 
             "input_delay_s": 0.0,
             "input_applied": "at_reading",
             "constant_inputs": {},
+            "delimiter": None,
         }
     )
     if "header" in table:
@@ -874,6 +879,11 @@ def _data_rules(doc: TomlDocument, table: dict, spec, base: dict | None, *path) 
     return rules
 
 
+def _quoted_path(rel: str, limit: int = 200) -> str:
+    """A file name for a message: whole when it is printable and not absurdly long."""
+    return repr(rel) if len(rel) <= limit else excerpt(rel, limit)
+
+
 def _time_origin(table: CsvTable, t: np.ndarray, tref, rule, where: str) -> float:
     """File time [s] of the run's t = 0; refuses a clock far from 0 without a declared rule."""
     if rule == "first_row":
@@ -935,8 +945,10 @@ def _load_run(
         ) from None
     if not csv_path.is_relative_to(directory.resolve()):
         raise doc.error(
-            f"{repr(rel)[:60]} lies outside the experiment folder; copy the run's CSV into the "
-            "folder and name it relative to it (links that leave the folder are refused too)",
+            f"{_quoted_path(rel)} lies outside the experiment folder ({directory.resolve()}); "
+            "a run's CSV must be inside the folder that holds experiment.toml (or a subfolder "
+            "of it): copy the file into the folder and name it relative to it (links that "
+            "leave the folder are refused too)",
             *path,
             "file",
         )
@@ -952,9 +964,13 @@ def _load_run(
     y_choice = doc.string(entry, "y_column", *path)
     rules = _data_rules(doc, entry, spec, data_rules, *path)
 
-    table = read_csv(csv_path, names=None if rules["header"] else rules["names"])
+    table = read_csv(
+        directory / rel,  # as the user named it (messages), checked above to lie inside
+        names=None if rules["header"] else rules["names"],
+        delimiter=rules["delimiter"],
+    )
     t, tref = time_column(table, rules["columns"].get("time"))
-    check_increasing(table, t)
+    check_increasing(table, t, tref.column)
     shift = _time_origin(
         table, t, tref, rules["time_origin"], f"{doc.file}:{doc.where.line(*path)}"
     )
@@ -1001,7 +1017,7 @@ def _load_run(
         str(csv_path),
         ",".join(r.column for r in refs if r is not None),
         t.size,
-        int(np.all(np.isfinite(y), axis=1).sum()),
+        int(np.any(np.isfinite(y), axis=1).sum()),  # a frame with any valid reading counts
         text,
         source,
         output_columns=tuple(None if r is None else (r.column, r.unit) for r in refs),
@@ -1149,6 +1165,11 @@ def _all_data_rules(doc: TomlDocument, data: dict, spec) -> dict:
         )
     if "columns" in data:
         data_rules["columns"] = _column_mapping(doc, data["columns"], spec, "columns")
+    csv_table = doc.table(data, "csv", required=False)
+    doc.check_keys(csv_table, {"delimiter"}, "csv")
+    if "delimiter" in csv_table:
+        spelled = doc.string(csv_table, "delimiter", "csv", choices=tuple(_DELIMITER_SPELLINGS))
+        data_rules["delimiter"] = _DELIMITER_SPELLINGS[spelled]
     if not data_rules["header"] and data_rules["names"] is None:
         raise doc.error(
             'a header-less file needs its column names: columns = ["t_s", ...] in file order',
@@ -1278,7 +1299,9 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
     _raise_collected(errors)
     estimation = tuple(e for e in experiments if e.role == "estimation")
     validation = tuple(e for e in experiments if e.role == "validation")
-    if not estimation or sum(int(e.mask.all(axis=1).sum()) for e in estimation) == 0:
+    # a frame counts when any output has a valid reading (a one-sensor log of a two-sensor
+    # board is a run: the missing output is masked out of the fit)
+    if not estimation or sum(int(e.mask.any(axis=1).sum()) for e in estimation) == 0:
         raise doc.error(
             "the estimation set has zero frames: no run has role = "
             '"estimation" (with tracked frames); mark at least one run for '

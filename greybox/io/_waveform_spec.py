@@ -247,8 +247,8 @@ def waveform_from_csv(path, channel):
     one must be a column; the waveform then has one level per channel)."""
     channels = (channel,) if isinstance(channel, Channel) else tuple(channel)
     table = read_csv(path, example="t_s," + ",".join(c.column_names()[0] for c in channels))
-    t, _ = time_column(table)
-    check_increasing(table, t)
+    t, tref = time_column(table)
+    check_increasing(table, t, tref.column)
     end = t[-1] + (float(np.median(np.diff(t))) if t.size > 1 else 0.0)
     waves, units = [], []
     for ch in channels:

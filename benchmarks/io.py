@@ -1,0 +1,140 @@
+"""What a user waits for outside the fit itself: reading a large run CSV, `greybox --help`,
+and the longest silence of `greybox demo` (seconds between two lines it prints).
+
+- CSV: 300,000 rows x 5 columns (a TCLab-style log at 6 significant digits, some empty
+  cells), read by greybox's run-CSV reader (values and line numbers) and by pandas.read_csv
+  (the reference), best of 5 each in the same process; the ratio is greybox / pandas.
+- `greybox --help`: wall time of a fresh `python -m greybox --help` process, best of 3.
+- `greybox demo`: the whole command in a subprocess; every stdout/stderr line is time-stamped
+  on arrival, and the longest gap (start to first line, between lines, last line to exit)
+  is reported. Skip it with --no-demo (it fits the demo data: a minute or more).
+- The process-noise fit's longest silence is not measured here (no command runs one on the
+  demo data within a benchmark's time): reported as null.
+
+Run: .venv/bin/python benchmarks/io.py [--no-demo]     (needs pandas: the dataframe extra)
+Last line: one JSON object.
+"""
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+# the script's own folder would put this file first as `io`: the repository root instead
+sys.path[0] = str(ROOT)
+
+N_ROWS = 300_000
+
+
+def write_log(path: Path) -> None:
+    rng = np.random.default_rng(0)
+    t = np.arange(N_ROWS) * 1.0
+    cols = [t, 21 + rng.standard_normal(N_ROWS), 22 + rng.standard_normal(N_ROWS)]
+    cols += [rng.uniform(0, 100, N_ROWS), rng.uniform(0, 100, N_ROWS)]
+    lines = ["t_s,T1_degC,T2_degC,H1_pct,H2_pct"]
+    for k, row in enumerate(zip(*cols)):
+        cells = [f"{v:.6g}" for v in row]
+        if k % 997 == 5:
+            cells[1] = ""  # a dropped reading
+        lines.append(",".join(cells))
+    path.write_text("\n".join(lines) + "\n")
+
+
+def best_of(fn, n: int) -> float:
+    best = np.inf
+    for _ in range(n):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return float(best)
+
+
+def csv_read(folder: Path) -> dict:
+    import pandas as pd
+
+    from greybox.io import read_csv  # the run-CSV reader `greybox fit` uses
+
+    path = folder / "log.csv"
+    write_log(path)
+    table = read_csv(path)
+    ref = pd.read_csv(path).to_numpy(dtype=float)
+    assert np.array_equal(table.values, ref, equal_nan=True), "greybox and pandas disagree"
+    g = best_of(lambda: read_csv(path), 5)
+    p = best_of(lambda: pd.read_csv(path), 5)
+    print(f"CSV {N_ROWS} rows: greybox {g * 1e3:.0f} ms, pandas {p * 1e3:.0f} ms, {g / p:.1f}x")
+    return {"rows": N_ROWS, "greybox_s": g, "pandas_s": p, "ratio": g / p}
+
+
+def help_time() -> float:
+    cmd = [sys.executable, "-m", "greybox", "--help"]
+    t = best_of(lambda: subprocess.run(cmd, cwd=ROOT, capture_output=True, check=True), 3)
+    print(f"greybox --help: {t:.2f} s")
+    return t
+
+
+def longest_silence(cmd, cwd) -> dict:
+    """Run `cmd`; the longest time [s] without a line on stdout or stderr."""
+    stamps = []
+    lock = threading.Lock()
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def pump(stream):
+        for _ in stream:
+            with lock:
+                stamps.append(time.perf_counter() - t0)
+
+    threads = [threading.Thread(target=pump, args=(s,)) for s in (proc.stdout, proc.stderr)]
+    for th in threads:
+        th.start()
+    rc = proc.wait()
+    for th in threads:
+        th.join()
+    end = time.perf_counter() - t0
+    times = np.array([0.0, *sorted(stamps), end])
+    gaps = np.diff(times)
+    k = int(np.argmax(gaps))
+    return {
+        "exit_status": rc,
+        "total_s": end,
+        "lines": len(stamps),
+        "longest_gap_s": float(gaps[k]),
+        "gap_ends_at_s": float(times[k + 1]),
+        # the start-up (Python, `import greybox`) before the first line, and the rest
+        "first_line_s": float(times[1]),
+        "longest_gap_after_first_line_s": float(gaps[1:].max()) if gaps.size > 1 else 0.0,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--no-demo", action="store_true", help="skip the demo's silence")
+    args = parser.parse_args()
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        out["csv_read"] = csv_read(Path(tmp))
+        out["help_s"] = help_time()
+        if args.no_demo:
+            out["demo_silence"] = None
+        else:
+            cmd = [sys.executable, "-m", "greybox", "demo", "--out", str(Path(tmp) / "demo")]
+            out["demo_silence"] = longest_silence(cmd, ROOT)
+            d = out["demo_silence"]
+            print(
+                f"greybox demo: longest silence {d['longest_gap_s']:.1f} s (first line after "
+                f"{d['first_line_s']:.1f} s; longest after it "
+                f"{d['longest_gap_after_first_line_s']:.1f} s)"
+            )
+    out["process_fit_silence"] = None  # not measured (see the docstring)
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()

@@ -3,17 +3,21 @@
 Each subcommand lives in its own module `greybox.cli._<name>` exposing
 ``add_parser(subparsers)`` (which sets ``func`` on its parser). Bad input raises
 `greybox._errors.InputError`; `main` turns it into one line on stderr and exit status 2.
-Any other exception is a bug in greybox: `main` prints its traceback, asks for a report and
-returns 3. SIGTERM is handled like Ctrl-C (message, no partial result, exit 143).
+An exception (or ``sys.exit``) raised by a user's own device code is the user's error: one
+line naming their file and line, exit 2. Any other exception is a bug in greybox: `main`
+prints its traceback, asks for a report and returns 3. SIGINT and SIGTERM are handled the
+same way by every command (`greybox.io._atomic.interrupted`: no partial result, exit 130 or
+143), and a program run from the command line then ends without the interpreter's teardown,
+which could crash (SIGSEGV) while compiled JAX work was still in flight.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import signal
 import sys
-import threading
 import traceback
 
 SUBCOMMANDS = ("fit", "compare", "simulate", "describe", "demo", "track", "design", "fit-many")
@@ -37,12 +41,7 @@ leaves no partial result and an earlier result unchanged.
 """
 
 
-class Terminated(BaseException):
-    """Raised in the main thread when the process receives SIGTERM (handled like Ctrl-C)."""
-
-
-def _on_sigterm(signum, frame):
-    raise Terminated
+from greybox.io._atomic import Terminated, received_signal, signal_handlers
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -72,13 +71,44 @@ def main(argv=None) -> int:
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 2
-    from greybox._errors import InputError
+    code = _run(args)
+    if argv is None and code in (130, 143):  # the program itself, not a caller in Python
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
-    previous = None
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+
+def _run(args) -> int:
+    from greybox._errors import InputError
+    from greybox._usercode import blame_user
+
+    with signal_handlers():
+        try:
+            code = int(args.func(args) or 0)
+        except BaseException as err:
+            code = _failure(args, err, InputError, blame_user)
+    late = received_signal()
+    if late is not None and code not in (130, 143):  # a signal some code swallowed
+        print(
+            f"greybox {args.command}: {'terminated' if late == signal.SIGTERM else 'interrupted'}"
+            " (the signal came after the result was complete)",
+            file=sys.stderr,
+        )
+        return 143 if late == signal.SIGTERM else 130
+    return code
+
+
+def _failure(args, err, InputError, blame_user) -> int:
+    """The exit status of a command that raised `err` (after saying why on stderr)."""
+    if isinstance(err, (Exception, SystemExit)) and not isinstance(err, InputError):
+        blamed = blame_user(err)  # the user's device code, not greybox, failed
+        if blamed is not None:
+            err = blamed
+        elif isinstance(err, SystemExit):
+            raise err
     try:
-        return int(args.func(args) or 0)
+        raise err
     except InputError as err:
         message = " ".join(str(err).split())  # one line, whatever the message held
         print(f"greybox {args.command}: error: {message}", file=sys.stderr)
@@ -108,9 +138,6 @@ def main(argv=None) -> int:
             file=sys.stderr,
         )
         return 3
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
 
 
 def _version() -> str:

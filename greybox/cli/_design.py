@@ -7,6 +7,8 @@ import json
 import math
 from pathlib import Path
 
+from greybox.cli._trust import add_trust_device_option
+
 HELP = """\
 Design the next experiment: choose laser waveforms (one per run) that maximise the Fisher
 information of the parameters of interest (D-optimal by default), under the lab's
@@ -93,6 +95,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "--baseline", metavar="EXPERIMENT_TOML", help="compare with these estimation runs"
     )
     p.add_argument("--out", metavar="DIR", default="results/design", help="output folder")
+    add_trust_device_option(p)
     p.set_defaults(func=run)
     return p
 
@@ -125,9 +128,11 @@ def run(args) -> int:
         if not math.isfinite(v):
             raise InputError(f"{v} is not a finite number", field="--" + name.replace("_", "-"))
     if args.params:
+        from greybox._usercode import trusted_devices
         from greybox.io._params_file import load_params
 
-        fitted = load_params(args.params)
+        with trusted_devices(args.params, args.trust_device):
+            fitted = load_params(args.params)
         spec, model, free = fitted.spec, fitted.model, tuple(fitted.free)
         raw, cov, method = fitted.raw, fitted.covariance_raw, fitted.method
         sigma = fitted.sigma if args.noise_um is None else args.noise_um * 1e-6

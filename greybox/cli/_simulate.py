@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from greybox.cli._trust import add_trust_device_option
+
 HELP = """\
 Simulate new input waveforms with a fitted model (the params.json written by
 `greybox fit`; the data are not needed) and write the response of every output with a
@@ -85,6 +87,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         action="store_true",
         help="replace --out even if it is a non-empty folder greybox did not write",
     )
+    add_trust_device_option(p)
     p.add_argument(
         "--noise",
         action="store_true",
@@ -220,9 +223,12 @@ def run(args) -> int:
     check_output_dir(args.out, force=args.force, inputs=[args.params])
     from greybox.cli import _fit_process
 
-    if _fit_process.is_process_params(args.params):  # a process-noise fit: sample paths
-        return _fit_process.simulate_process(args)
-    fitted = load_params(args.params)
+    from greybox._usercode import trusted_devices
+
+    with trusted_devices(args.params, args.trust_device):
+        if _fit_process.is_process_params(args.params):  # a process-noise fit: sample paths
+            return _fit_process.simulate_process(args)
+        fitted = load_params(args.params)
     inputs, outputs = tuple(fitted.spec.inputs), tuple(fitted.spec.outputs)
     wave, text, specs = read_waveform(args.waveform, inputs)
     t = sample_times(wave, args.dt_ms, n_default=5000, n_max=2_000_000)

@@ -13,6 +13,9 @@ The output contract of every command that writes a result folder (`greybox fit`,
   falls back to two renames and `recover` undoes a crash between them (the old result is
   kept under ``.NAME.old-PID`` until the new one is in place, and the next run puts it
   back). A crash at any instant therefore leaves the old result or the new one.
+- SIGINT and SIGTERM (`signal_handlers`, installed by the CLI for every command) raise
+  `KeyboardInterrupt` / `Terminated` in the main thread and are remembered: a result is
+  never swapped in after a signal, even one that some code caught and swallowed.
 - Leftovers of killed runs (``.NAME.partial-PID-*``, ``.NAME.old-PID``) are removed by the
   next run once their process is gone. Writers of the same folder take an `fcntl.flock` on
   its parent folder while they clean up and swap, so concurrent runs never collide (the
@@ -30,7 +33,9 @@ import json
 import os
 import re
 import shutil
+import signal
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -39,6 +44,46 @@ from greybox._errors import InputError
 MARKER = ".greybox-result"
 _RENAME_EXCHANGE = 2
 _AT_FDCWD = -100
+
+
+class Terminated(BaseException):
+    """Raised in the main thread when the process receives SIGTERM (handled like Ctrl-C)."""
+
+
+_RECEIVED: list[int] = []  # the signals received while `signal_handlers` was active
+
+
+def _on_signal(signum, frame):
+    _RECEIVED.append(signum)
+    raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+
+def received_signal() -> int | None:
+    """The first SIGINT/SIGTERM received under `signal_handlers`, or None."""
+    return _RECEIVED[0] if _RECEIVED else None
+
+
+def _check_not_interrupted() -> None:
+    """Raise again a signal that arrived (and was swallowed by some code) before the commit."""
+    if _RECEIVED:
+        raise Terminated if _RECEIVED[0] == signal.SIGTERM else KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def signal_handlers() -> Iterator[None]:
+    """SIGINT -> KeyboardInterrupt, SIGTERM -> `Terminated`, both remembered (main thread only;
+    the handlers are Python functions, so they run between bytecodes of the main thread and
+    never inside compiled code or another thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _RECEIVED.clear()
+    previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def _libc():
@@ -216,6 +261,7 @@ def atomic_output_dir(
         yield tmp
         _write_marker(tmp, kind)
         with _locked(out.parent):
+            _check_not_interrupted()
             recover(out)
             if out.exists():
                 if not (out.is_dir() and (is_result(out) or force or not any(out.iterdir()))):
@@ -260,6 +306,7 @@ def atomic_output_file(path: str | os.PathLike, mode: str = "w") -> Iterator:
     try:
         with os.fdopen(fd, mode) as fh:
             yield fh
+        _check_not_interrupted()
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)

@@ -166,6 +166,23 @@ class ExperimentSet:
         return self.device.spec.name
 
 
+def build_device(spec, options: dict):
+    """`spec.model(options)`, bounded in time; a failure in the device's own code is the
+    user's (`greybox._usercode.UserCodeError`, naming their file and line)."""
+    from greybox._usercode import UserCodeError, blame_user, time_limit
+
+    try:
+        with time_limit(f"building device {spec.name!r} with {options}"):
+            return spec.model(options)
+    except UserCodeError:
+        raise
+    except Exception as err:
+        blamed = blame_user(err, f"building device {spec.name!r} with options {options}")
+        if blamed is None:
+            raise
+        raise blamed from None
+
+
 def configure_model(spec, options: dict, camera: dict, fixed: dict):
     """`spec`'s model built with `options`, the given camera settings and fixed values applied.
 
@@ -174,7 +191,9 @@ def configure_model(spec, options: dict, camera: dict, fixed: dict):
     from greybox._parameters import set_values
 
     model = with_camera(
-        spec.model(options), exposure_s=camera.get("exposure_s"), m_per_px=camera.get("m_per_px")
+        build_device(spec, options),
+        exposure_s=camera.get("exposure_s"),
+        m_per_px=camera.get("m_per_px"),
     )
     return set_values(model, list(fixed), [float(v) for v in fixed.values()])
 
@@ -1065,6 +1084,8 @@ def _options(doc: TomlDocument, spec, model_table: dict) -> dict:
 def _base_model(doc: TomlDocument, spec, options: dict, camera: dict):
     try:
         return configure_model(spec, options, camera, {})
+    except InputError:  # the device's own code failed: its file and line, not the toml's
+        raise
     except ValueError as err:
         raise doc.error(f"cannot build the model ({err})", "model") from None
 

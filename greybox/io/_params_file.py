@@ -411,10 +411,9 @@ def load_params(path) -> FittedModel:
     location = need(dev, "location", str, "device.")
     source = need(dev, "source", str, "device.")
     given_options = need(dev, "options", dict, "device.")
-    # a device file is found where it was fitted, else beside params.json (a moved result)
-    candidates = [location] if source == "file" else [ref]
-    if source == "file":
-        candidates.append(str(path.parent / Path(location).name))
+    # a device file beside params.json (copied with the result) first, else where it was
+    # fitted; greybox._usercode.trusted_devices decides which folders may supply code
+    candidates = [str(path.parent / Path(location).name), location] if source == "file" else [ref]
     device, last_err = None, None
     for candidate in candidates:
         try:

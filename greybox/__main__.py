@@ -1,0 +1,7 @@
+"""``python -m greybox``: the `greybox` command."""
+
+import sys
+
+from greybox.cli import main
+
+sys.exit(main())

@@ -41,7 +41,7 @@ leaves no partial result and an earlier result unchanged.
 """
 
 
-from greybox.io._atomic import Terminated, received_signal, signal_handlers
+from greybox.io._atomic import Terminated, committed, received_signal, signal_handlers
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -71,15 +71,26 @@ def main(argv=None) -> int:
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 2
-    code = _run(args)
-    if argv is None and code in (130, 143):  # the program itself, not a caller in Python
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code)
+    code = _run(args, program=argv is None)
+    if argv is None:  # the program itself, not a caller in Python: end it here
+        _exit_now(code)
     return code
 
 
-def _run(args) -> int:
+def _exit_now(code: int) -> None:
+    """Exit with `code` without the interpreter's teardown. Everything greybox writes is
+    closed and renamed by now; what is left is JAX's atexit clean-up and the destruction of
+    its runtime, which a late SIGINT/SIGTERM turned into a swallowed signal (exit 0) or a
+    SIGSEGV after the message. (`_run` has blocked both signals.)"""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe: nothing more can be said
+            pass
+    os._exit(code)
+
+
+def _run(args, *, program: bool = False) -> int:
     from greybox._errors import InputError
     from greybox._usercode import blame_user
 
@@ -88,13 +99,12 @@ def _run(args) -> int:
             code = int(args.func(args) or 0)
         except BaseException as err:
             code = _failure(args, err, InputError, blame_user)
+        if program:  # no signal may land between here and the exit
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     late = received_signal()
     if late is not None and code not in (130, 143):  # a signal some code swallowed
-        print(
-            f"greybox {args.command}: {'terminated' if late == signal.SIGTERM else 'interrupted'}"
-            " (the signal came after the result was complete)",
-            file=sys.stderr,
-        )
+        what = "terminated" if late == signal.SIGTERM else "interrupted"
+        print(f"greybox {args.command}: {what} (after the command had finished)", file=sys.stderr)
         return 143 if late == signal.SIGTERM else 130
     return code
 
@@ -113,15 +123,15 @@ def _failure(args, err, InputError, blame_user) -> int:
         message = " ".join(str(err).split())  # one line, whatever the message held
         print(f"greybox {args.command}: error: {message}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"greybox {args.command}: interrupted; no result was written", file=sys.stderr)
-        return 130
-    except Terminated:
-        print(
-            f"greybox {args.command}: terminated (SIGTERM); no result was written",
-            file=sys.stderr,
-        )
-        return 143
+    except (KeyboardInterrupt, Terminated) as stop:
+        what = "interrupted" if isinstance(stop, KeyboardInterrupt) else "terminated (SIGTERM)"
+        done = committed()
+        if done:  # the signal came after the swap: say so, the result is whole
+            written = ", ".join(str(p) for p in done)
+            print(f"greybox {args.command}: {what} after {written} was written", file=sys.stderr)
+        else:
+            print(f"greybox {args.command}: {what}; no result was written", file=sys.stderr)
+        return 130 if isinstance(stop, KeyboardInterrupt) else 143
     except MemoryError:
         print(
             f"greybox {args.command}: error: out of memory; the problem is too large for "

@@ -51,6 +51,8 @@ class Terminated(BaseException):
 
 
 _RECEIVED: list[int] = []  # the signals received while `signal_handlers` was active
+_COMMITTED: list[Path] = []  # results swapped in under `signal_handlers` (what a late signal
+# interrupts is then the report after the result, not the result)
 
 
 def _on_signal(signum, frame):
@@ -61,6 +63,11 @@ def _on_signal(signum, frame):
 def received_signal() -> int | None:
     """The first SIGINT/SIGTERM received under `signal_handlers`, or None."""
     return _RECEIVED[0] if _RECEIVED else None
+
+
+def committed() -> list[Path]:
+    """The result folders and files completed under the current `signal_handlers`."""
+    return list(_COMMITTED)
 
 
 def _check_not_interrupted() -> None:
@@ -78,6 +85,7 @@ def signal_handlers() -> Iterator[None]:
         yield
         return
     _RECEIVED.clear()
+    _COMMITTED.clear()
     previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
@@ -272,14 +280,17 @@ def atomic_output_dir(
                         field="--out",
                     )
                 if _exchange(tmp, out):
+                    _COMMITTED.append(out)
                     shutil.rmtree(tmp, ignore_errors=True)  # tmp now holds the old result
                     return
                 old = out.with_name(f".{out.name}.old-{os.getpid()}")
                 os.replace(out, old)  # a crash here: `recover` renames old back
                 os.replace(tmp, out)
+                _COMMITTED.append(out)
                 shutil.rmtree(old, ignore_errors=True)
             else:
                 os.replace(tmp, out)
+                _COMMITTED.append(out)
     except OSError as err:
         shutil.rmtree(tmp, ignore_errors=True)
         raise _write_error(out, err) from None
@@ -312,3 +323,4 @@ def atomic_output_file(path: str | os.PathLike, mode: str = "w") -> Iterator:
             os.unlink(tmp)
         raise
     os.replace(tmp, path)
+    _COMMITTED.append(path)

@@ -362,7 +362,9 @@ def test_simulate_refuses_a_non_finite_response(tmp_path, capsys):
     wave = "pulse:power_mW=1e300,period_ms=100,duty=0.5,n=2"
     assert main(["simulate", "--params", str(params), "--waveform", wave, "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert "not finite" in err and "--waveform" in err
+    # refused before simulating: 1e297 W is beyond any physical input (the response it would
+    # give is not finite either)
+    assert "beyond any physical input" in err and "--waveform" in err
     assert not out.exists()
 
 
@@ -401,3 +403,79 @@ def test_truncated_video_is_reported(tmp_path, capsys):
         )
         == 0
     )
+
+
+# ---- non-finite numbers, zero-length pulses, absurd levels (issue 27) ----------------------
+
+
+@pytest.mark.parametrize(
+    "value, said",
+    [("nan", "nan is not finite"), ("inf", "inf is not finite"),
+     ("-inf", "-inf is not finite"), ("1e300", "1e+300 is too large")],
+)  # fmt: skip
+def test_non_finite_numbers_are_named_as_what_they_are(folder, value, said):
+    _toml(folder, "fps = 30", f"fps = {value}")
+    err = _refused(folder, field="fps", line=5, match=said)
+    if value != "inf":
+        assert "inf is not finite" not in str(err).replace("-inf", "")
+
+
+def test_a_nan_option_fails_its_check():
+    from greybox._spec import Option
+
+    opt = Option("mass_kg", 1.0, "moving mass", minimum=0.0, maximum=10.0)
+    for bad, said in ((float("nan"), "nan is not finite"), (float("inf"), "inf is not finite")):
+        with pytest.raises(ValueError, match=said):
+            opt.check(bad)
+    assert opt.check(2) == 2.0
+
+
+@pytest.mark.parametrize(
+    "old, new, field",
+    [("period_ms = 400", "period_ms = 400, duty = 1e-300", "duty"),
+     ("period_ms = 400", "period_ms = 1e-15", "period_ms"),
+     ("power_mW = 20", "power_mW = 1e300", "power_mW")],
+)  # fmt: skip
+def test_zero_length_pulses_and_absurd_power_are_located(folder, old, new, field):
+    _toml(folder, old, new)
+    _refused(folder, field=field, line=12)
+
+
+@pytest.mark.parametrize("spec", ["pulse:power_mW=25,period_ms=300,n=3,duty=1e-300",
+                                  "pulse:power_mW=25,period_ms=1e-15,n=3",
+                                  "pulse:power_mW=1e300,period_ms=300,n=3"])  # fmt: skip
+def test_command_line_pulses_are_checked_the_same_way(spec):
+    ch = resolve("chevron_laser").spec.inputs[0]
+    with pytest.raises(InputError) as info:
+        parse_waveform_spec(spec, ch)
+    assert info.value.field == "--waveform"
+    assert "pulses and gaps must last" in str(info.value) or "physical" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "extra, field",
+    [(["--runs", "100000"], "--runs"), (["--lead-ms", "nan"], "--lead-ms"),
+     (["--runs", "50", "--run-duration-s", "1e5"], "--run-duration-s")],
+)  # fmt: skip
+def test_design_bounds_its_work_before_doing_it(tmp_path, capsys, extra, field):
+    from greybox.cli import main
+
+    t0 = time.perf_counter()
+    argv = ["design", "--device", "chevron_laser", "--power-max-mW", "30",
+            "--run-duration-s", "10", "--out", str(tmp_path / "d"), *extra]  # fmt: skip
+    assert main(argv) == 2
+    assert time.perf_counter() - t0 < 10 and not (tmp_path / "d").exists()
+    assert f"{field}:" in capsys.readouterr().err
+
+
+def test_design_checks_out_before_the_work(tmp_path, capsys):
+    from greybox.cli import main
+
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    argv = ["design", "--device", "chevron_laser", "--power-max-mW", "30",
+            "--run-duration-s", "10", "--out", str(mine)]  # fmt: skip
+    t0 = time.perf_counter()
+    assert main(argv) == 2 and time.perf_counter() - t0 < 10
+    assert (mine / "notes.txt").read_text() == "keep" and "--out" in capsys.readouterr().err

@@ -123,10 +123,21 @@ def run(args) -> int:
     from greybox.io._atomic import atomic_output_dir
     from greybox.io._design_file import experiment_toml
 
-    for name in ("power_max_mW", "run_duration_s", "min_pulse_ms", "fps", "exposure_ms"):
-        v = getattr(args, name)
-        if not math.isfinite(v):
-            raise InputError(f"{v} is not a finite number", field="--" + name.replace("_", "-"))
+    from greybox.io._atomic import check_output_dir
+    from greybox.io._toml import non_finite
+
+    for name, v in vars(args).items():  # every numeric option: NaN and infinities by name
+        if isinstance(v, float) and non_finite(v):
+            raise InputError(non_finite(v), field="--" + name.replace("_", "-"))
+    if args.runs < 1 or args.runs > D.MAX_DESIGN_RUNS:
+        raise InputError(
+            f"{args.runs} runs; give 1 to {D.MAX_DESIGN_RUNS} (design larger campaigns in parts)",
+            field="--runs",
+        )
+    if args.bayesian_draws < 0 or args.bayesian_draws > D.MAX_DRAWS:
+        raise InputError(f"give 0 to {D.MAX_DRAWS} draws", field="--bayesian-draws")
+    inputs = [args.params] if args.params else []
+    check_output_dir(args.out, inputs=inputs)  # before the work, like every command
     if args.params:
         from greybox._usercode import trusted_devices
         from greybox.io._params_file import load_params

@@ -308,19 +308,61 @@ def _write_error(out: Path, err: OSError) -> InputError:
     )
 
 
+def check_output_file(path, *, ours, force: bool = False, field: str = "--out") -> Path:
+    """The output-file contract (before any work): `path` is absent, or a file `ours(first
+    line)` recognises as an earlier greybox result, or `force` is given; never a folder; its
+    nearest existing parent is writable. Raises `InputError` naming `field`."""
+    given = str(path)
+    path = Path(os.path.abspath(path))
+    if path.is_dir():
+        raise InputError("is a folder; give the path of a file to write", file=given, field=field)
+    if path.exists() or path.is_symlink():
+        if not path.is_file() or path.is_symlink():
+            raise InputError("exists and is not a plain file; give a new name", file=given,
+                             field=field)  # fmt: skip
+        try:
+            with open(path, encoding="utf-8", errors="replace") as fh:
+                first = fh.readline(10_000).rstrip("\r\n")
+        except OSError as err:
+            raise InputError(f"cannot be read ({err.strerror})", file=given, field=field) from None
+        if not ours(first) and not force:
+            raise InputError(
+                "exists and was not written by greybox; nothing was changed. Give a new file "
+                "name, or pass --force to replace it",
+                file=given,
+                field=field,
+            )
+    base = _nearest_existing(path.parent)
+    if not base.is_dir() or not os.access(base, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write into {base}; choose a writable folder", file=given,
+                         field=field)  # fmt: skip
+    return path
+
+
 @contextlib.contextmanager
 def atomic_output_file(path: str | os.PathLike, mode: str = "w") -> Iterator:
-    """Open a temporary file beside `path`; it is renamed onto `path` only if the block succeeds."""
+    """Open a temporary file beside `path`; it is renamed onto `path` only if the block
+    succeeds. Whatever fails (the block, a signal, a full disk, a folder that appeared at
+    `path`), the temporary file is removed; an `OSError` becomes an `InputError` on --out."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.partial-", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.partial-", dir=path.parent)
+    except OSError as err:
+        raise _write_error(path, err) from None
     try:
         with os.fdopen(fd, mode) as fh:
             yield fh
         _check_not_interrupted()
+        if path.is_dir():
+            raise IsADirectoryError(errno.EISDIR, "a folder appeared there", str(path))
+        os.replace(tmp, path)
+    except OSError as err:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise _write_error(path, err) from None
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
-    os.replace(tmp, path)
     _COMMITTED.append(path)

@@ -33,7 +33,7 @@ from greybox.io._csv import (
     read_csv,
     time_column,
 )
-from greybox.io._toml import TOML_NAME, TomlDocument
+from greybox.io._toml import TOML_NAME, TomlDocument, excerpt
 from greybox.io._waveform_spec import (
     WAVEFORM_TYPES,
     check_log_against_description,
@@ -415,6 +415,18 @@ def _known_noise(doc: TomlDocument, spec, camera: dict, fit_options: dict, exper
             "camera",
             "noise_um",
         )
+    spread = max(
+        (float(np.nanmax(e.y) - np.nanmin(e.y)) for e in experiments if np.isfinite(e.y).any()),
+        default=0.0,
+    )
+    if spread > 0 and camera["noise_m"] > NOISE_OVER_SPREAD * spread:
+        raise doc.error(
+            f"{camera['noise_m'] * 1e6:g} um is {camera['noise_m'] / spread:.3g} x the whole "
+            f"range of the readings ({spread * 1e6:.4g} um): with that noise the data would say "
+            "nothing. Give the tracker's per-frame noise (typically 0.01 to 1 px), in um",
+            "camera",
+            "noise_um",
+        )
     fit_options["sigma"] = camera["noise_m"]
 
 
@@ -601,6 +613,13 @@ def _read_inputs(
     end = t[-1] + step
     if kind is None or kind == "logged":
         delay, before = rules["input_delay_s"], rules["input_applied"] == "before_reading"
+        if delay >= end - t[0]:  # every input level would act after the last reading
+            raise doc.error(
+                f"{delay:g} s is not shorter than the record ({end - t[0]:g} s): no reading "
+                "would see any input; give the delay in s (e.g. 0.05)",
+                *path,
+                "input_delay_s",
+            )
         waves = []
         for ch in inputs:
             if ch.name in constants:
@@ -643,6 +662,10 @@ def _read_inputs(
     return wave, text, "described (log checked)"
 
 
+NOISE_OVER_SPREAD = 100.0  # a declared noise this many times the data's range is a unit slip
+NEAR_CONSTANT = 1e-9  # relative spread of an output below which it is rounding, not signal
+
+
 def _check_run_consistency(doc, table, path, t, y, refs, valid, wave, t_start) -> None:
     """Frames against the waveform's extent and t_start_s; outputs that never vary."""
     if t[-1] < 0:
@@ -678,11 +701,14 @@ def _check_run_consistency(doc, table, path, t, y, refs, valid, wave, t_start) -
             continue
         col = ref.column
         v = y[:, j][np.isfinite(y[:, j])]
-        if v.size >= 2 and float(np.ptp(v)) == 0.0:
+        spread = float(np.ptp(v)) if v.size >= 2 else None
+        # a spread within the rounding of the readings themselves is no signal either
+        if spread is not None and spread <= NEAR_CONSTANT * float(np.max(np.abs(v))):
+            what = "is" if spread == 0.0 else f"stays within {spread:.3g} of"
             raise InputError(
-                f"every valid reading is {v[0]:g} ({v.size} frames): the output never "
-                "varies, so nothing in it can be fitted (check the tracker output, the "
-                "column and the laser)",
+                f"every valid reading {what} {v[0]:g} ({v.size} frames): the output never "
+                f"varies beyond {NEAR_CONSTANT:g} of its size (rounding), so nothing in it can "
+                "be fitted (check the tracker output, the column and the laser)",
                 file=table.file,
                 line=table.lines[0],
                 field=col,
@@ -772,6 +798,13 @@ def _column_mapping(doc: TomlDocument, table, spec, *path) -> dict:
                 '{ column = "...", unit = "..." }',
                 *where,
             )
+        for other, (taken, _, _) in out.items():
+            if taken.strip() == col.strip():
+                raise doc.error(
+                    f"column {excerpt(col)} is already the {other!r} signal; two signals "
+                    "cannot be read from one column",
+                    *where,
+                )
         out[key] = (col, unit, f"{doc.file}:{doc.where.line(*where)}")
     return out
 

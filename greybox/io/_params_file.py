@@ -358,6 +358,7 @@ def load_params(path) -> FittedModel:
     from greybox._registry import DeviceNotFound, resolve
     from greybox._spec import DeviceSpecError
     from greybox.io._experiment_set import configure_model
+    from greybox.io._params_checks import check_params_plausible
 
     path = Path(path)
     file = str(path)
@@ -481,6 +482,7 @@ def load_params(path) -> FittedModel:
 
         for fp in free:  # every free path must name a value of this device
             check_scalar_path(model, fp.path)
+        check_params_plausible(free, raw, fitted, camera, file)
     except InputError:
         raise
     except (TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError) as err:

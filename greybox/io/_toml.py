@@ -259,12 +259,17 @@ class TomlDocument:
             raise self.error(f"{value:g} must be >= 0{f' {unit}' if unit else ''}", *path, key)
         return value
 
-    def integer(self, table: dict, key: str, *path, default=None, minimum: int = 1):
+    def integer(
+        self, table: dict, key: str, *path, default=None, minimum: int = 1, maximum=None
+    ):
         if key not in table:
             return default
         value = table[key]
         if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
             raise self.error(f"{excerpt(value)} must be a whole number >= {minimum}", *path, key)
+        if maximum is not None and value > maximum:
+            raise self.error(f"{excerpt(value)} is above the largest allowed, {maximum}", *path,
+                             key)  # fmt: skip
         return value
 
     def string(

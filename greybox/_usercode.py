@@ -165,6 +165,17 @@ def trusted_devices(params_path, trust=()):
         _TRUST.reset(token)
 
 
+@contextlib.contextmanager
+def params_trust(params_path, trust=()):
+    """`trusted_devices(params_path, trust)` unless a command already set the trust (with its
+    --trust-device paths): loading a params.json is never consent by itself."""
+    if _TRUST.get() is not None:
+        yield
+        return
+    with trusted_devices(params_path, trust):
+        yield
+
+
 def _refuse(what: str) -> None:
     params, _ = _TRUST.get()
     raise UntrustedDevice(

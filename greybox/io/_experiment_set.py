@@ -732,35 +732,52 @@ def _check_ranges(doc: TomlDocument, ranges: dict, settings: dict, *path) -> Non
             )
 
 
-def check_problem_size(fs, max_bytes: float | None = None) -> None:
-    """Estimate a fit's working memory before anything is compiled; refuse one too large.
+def fit_memory_estimate(fs) -> float:
+    """Estimated peak resident bytes of fitting `fs` (`greybox._memory`: base + one solve of
+    the runs padded to the longest; every start and the noise re-fit reuse it)."""
+    from greybox import _memory
 
-    Runs are padded to the longest, and the Levenberg-Marquardt Jacobian carries one
-    column per raw parameter through every state of every frame:
-    ~ 8 B x runs x longest run x (states + outputs) x (raw parameters + 1) x 4.
-    """
-    import os
-
-    if max_bytes is None:
-        env = os.environ.get("GREYBOX_MAX_PROBLEM_GB")
-        try:
-            max_bytes = float(env) * 1e9 if env else MAX_PROBLEM_BYTES
-        except ValueError:
-            max_bytes = MAX_PROBLEM_BYTES
     runs = list(fs.estimation) + list(fs.validation)
-    longest = max(e.n_frames for e in runs)
     try:
         n_states = int(fs.model.n_states)
-    except Exception:
+    except Exception:  # a device that only knows its size once built for a run
         n_states = 8
-    n_out = len(fs.spec.outputs)
-    n_raw = sum(len(fs.estimation) if p.per_experiment else 1 for p in fs.free)
-    need = 8.0 * len(runs) * longest * (n_states + n_out) * (n_raw + 1) * 4
+    working = _memory.solve_bytes(
+        runs=len(runs),
+        frames=max(e.n_frames for e in runs),
+        states=n_states,
+        outputs=len(fs.spec.outputs),
+        inputs=len(fs.spec.inputs),
+        raw=sum(len(fs.estimation) if p.per_experiment else 1 for p in fs.free),
+    )
+    return _memory.peak_bytes(working)
+
+
+def max_problem_bytes() -> float:
+    """The memory a fit may need: GREYBOX_MAX_PROBLEM_GB, else `MAX_PROBLEM_BYTES`."""
+    import os
+
+    env = os.environ.get("GREYBOX_MAX_PROBLEM_GB")
+    try:
+        value = float(env) * 1e9 if env else MAX_PROBLEM_BYTES
+    except ValueError:
+        return MAX_PROBLEM_BYTES
+    return value if math.isfinite(value) and value > 0 else MAX_PROBLEM_BYTES
+
+
+def check_problem_size(fs, max_bytes: float | None = None) -> None:
+    """Estimate a fit's peak memory before anything is compiled (`fit_memory_estimate`, the
+    model `greybox._memory` shares with compare, fit-many and design); refuse one too large."""
+    if max_bytes is None:
+        max_bytes = max_problem_bytes()
+    need = fit_memory_estimate(fs)
     if need > max_bytes:
-        longest_run = max(runs, key=lambda e: e.n_frames).name
+        runs = list(fs.estimation) + list(fs.validation)
+        longest = max(runs, key=lambda e: e.n_frames)
+        n_raw = sum(len(fs.estimation) if p.per_experiment else 1 for p in fs.free)
         raise InputError(
             f"the fit would need about {need / 1e9:.1f} GB ({len(runs)} runs padded to the "
-            f"longest, {longest} frames in run {longest_run!r}, {n_states} states, "
+            f"longest, {longest.n_frames} frames in run {longest.name!r}, "
             f"{n_raw} fitted values); the limit is {max_bytes / 1e9:.1f} GB. Decimate the "
             "long runs (keep every k-th frame), split them into shorter runs, or fit fewer "
             "runs or per-run parameters (GREYBOX_MAX_PROBLEM_GB raises the limit)",

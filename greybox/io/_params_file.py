@@ -352,11 +352,14 @@ def _check_covariance(cov: np.ndarray, file: str) -> None:
         )
 
 
-def load_params(path) -> FittedModel:
-    """Read `params.json` and rebuild the fitted model. Raises `InputError` naming the field."""
+def load_params(path, trust_device=()) -> FittedModel:
+    """Read `params.json` and rebuild the fitted model. Raises `InputError` naming the field.
+    A device file it names is imported only from its own folder or from `trust_device`
+    paths (files or folders; README, "A params.json is data")."""
     from greybox._parameters import set_values
     from greybox._registry import DeviceNotFound, resolve
     from greybox._spec import DeviceSpecError
+    from greybox._usercode import params_trust
     from greybox.io._experiment_set import configure_model
     from greybox.io._params_checks import check_params_plausible
 
@@ -418,9 +421,12 @@ def load_params(path) -> FittedModel:
     device, last_err = None, None
     for candidate in candidates:
         try:
-            device = resolve(
-                candidate if source != "file" else f"{candidate}:{ref.partition(':')[2] or 'SPEC'}"
-            )
+            with params_trust(path, trust_device):
+                device = resolve(
+                    candidate
+                    if source != "file"
+                    else f"{candidate}:{ref.partition(':')[2] or 'SPEC'}"
+                )
             break
         except (DeviceNotFound, DeviceSpecError) as err:
             last_err = err

@@ -88,8 +88,8 @@ def measure(d: Path, out: Path) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", nargs="+", default=["2000x1", "8000x1", "16000x2", "30000x2",
-                                                   "40000x3"], help="FRAMESxRUNS")  # fmt: skip
+    ap.add_argument("--sizes", nargs="+", default=["2000x1", "20000x1", "50000x2", "100000x2",
+                                                   "150000x2"], help="FRAMESxRUNS")  # fmt: skip
     ap.add_argument("--max-steps", type=int, default=2)
     args = ap.parse_args()
     rows = []

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import math
 
-BASE_BYTES = 0.55e9  # peak RSS of a tiny fit: Python, NumPy, JAX/XLA and the compiled solver
-FACTOR = 3.0  # XLA temporaries and copies per byte of the formula (benchmarks/memory.py)
+BASE_BYTES = 0.64e9  # peak RSS of a tiny fit: Python, NumPy, JAX/XLA and the compiled solver
+FACTOR = 3.45  # XLA temporaries and copies per byte of the formula (benchmarks/memory.py)
 INTERVALS_PER_FRAME = 2  # ZOH intervals per frame when only the frame count is known
 
 

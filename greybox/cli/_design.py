@@ -216,6 +216,7 @@ def run(args) -> int:
             exposure_s=constraints.exposure_s,
             method=method,
         )
+        _check_design_memory(args, spec, model, free, constraints)
         print(f"designing {args.runs} run(s) of {args.run_duration_s:g} s for {source} ...")
         design = D.design_experiment(
             problem, constraints, family=args.family, criterion=args.criterion
@@ -279,6 +280,31 @@ def run(args) -> int:
     print(report)
     print(f"wrote {Path(args.out)}/ (experiment.toml, design.txt, design.json)")
     return 0
+
+
+def _check_design_memory(args, spec, model, free, constraints) -> None:
+    """The memory model of every fitting command (`greybox._memory`): the sensitivities of
+    all runs at once, once per posterior draw, against the same limit as `greybox fit`."""
+    from greybox import _memory
+    from greybox._errors import InputError
+    from greybox.io._experiment_set import max_problem_bytes
+
+    constraints.check()
+    working = _memory.solve_bytes(
+        runs=args.runs,
+        frames=int(constraints.run_duration_s * constraints.fps) + 1,
+        states=int(model.n_states),
+        outputs=len(spec.outputs),
+        inputs=len(spec.inputs),
+        raw=len(free),
+    )
+    need = _memory.peak_bytes(working, items=max(1, args.bayesian_draws))
+    if need > max_problem_bytes():
+        raise InputError(
+            f"the design would need about {_memory.format_gb(need)} (limit "
+            f"{_memory.format_gb(max_problem_bytes())}); fewer or shorter runs, or fewer draws",
+            field="--runs",
+        )
 
 
 def info_value(model, path):

@@ -1074,12 +1074,29 @@ def _candidate(doc: TomlDocument, data: dict, index: int) -> tuple[dict, object]
     return model, entry.get("free")
 
 
+MAX_CANDIDATES = 32
+
+
+def check_candidates(directory) -> list[str]:
+    """Before the first fit of `greybox compare`: every candidate loads and fits in memory
+    (one bad candidate must not surface after the others ran). Returns the names."""
+    names = candidate_names(directory)
+    for i in range(len(names)):
+        check_problem_size(load_experiment_set(directory, candidate=i))
+    return names
+
+
 def candidate_names(directory) -> list[str]:
     """Names of the ``[[candidates]]`` structures of an experiment folder (loader-checked)."""
     doc = TomlDocument(Path(directory) / TOML_NAME)
     entries = doc.data.get("candidates")
     if not isinstance(entries, list) or not entries:
         _candidate(doc, doc.data, 0)  # raises the located "no candidates" error
+    if len(entries) > MAX_CANDIDATES:  # each candidate is a whole fit
+        raise doc.error(
+            f"{len(entries)} candidates; compare at most {MAX_CANDIDATES} structures at once",
+            "candidates",
+        )
     names = []
     for i in range(len(entries)):
         _candidate(doc, doc.data, i)  # checks the entry, name included

@@ -22,6 +22,7 @@ import importlib.metadata
 import math
 import os
 import signal
+import sys
 import threading
 import traceback
 from pathlib import Path
@@ -39,12 +40,26 @@ def register_user_code(location: str | os.PathLike) -> None:
     _USER_ROOTS.add(Path(location).resolve())
 
 
+# never the user's, even when a device folder holds them (a device file at a checkout's root)
+_NOT_USERS = (Path(__file__).resolve().parent, Path(sys.prefix).resolve(),
+              Path(sys.base_prefix).resolve())  # fmt: skip
+
+
 def _in_user_code(filename: str) -> bool:
     try:
         p = Path(filename).resolve()
     except (OSError, ValueError):
         return False
-    return any(p == r or r in p.parents for r in _USER_ROOTS)
+
+    def inside(a: Path, b: Path) -> bool:
+        return a == b or b in a.parents
+
+    for root in _USER_ROOTS:
+        # greybox itself and the environment stay greybox's even under a user's folder,
+        # unless the user's device is itself installed there (a device package)
+        if inside(p, root) and not any(inside(p, q) and not inside(root, q) for q in _NOT_USERS):
+            return True
+    return False
 
 
 def user_frame(err: BaseException) -> tuple[str, int] | None:

@@ -197,3 +197,11 @@ def test_a_device_that_hangs_at_import_is_stopped(tmp_path):
     )  # fmt: skip
     assert proc.returncode == 2, proc.stderr
     assert "did not finish in 2 s" in proc.stderr and str(exp / "msd.py") in proc.stderr
+
+
+def test_describe_a_params_json_needs_the_same_consent(lab, capsys):
+    params, device, marker = lab
+    assert main(["describe", str(params)]) == 2 and not marker.exists()
+    assert main(["describe", str(params), "--trust-device", str(device.parent)]) == 0
+    out = capsys.readouterr().out
+    assert "device mass_spring_damper" in out and marker.exists()

@@ -11,8 +11,12 @@ parameters with unit, nominal value, bounds and what the data can identify, the 
 free parameters, and the simulation path its capability allows.
 
 DEVICE is a built-in or installed name, or a file `path/to/device.py[:SPEC]` (relative to the
-current folder). Without DEVICE, lists the built-in and installed devices.
+current folder), or a params.json written by `greybox fit` (its device with the fitted options;
+a device file it names outside its own folder is imported only with --trust-device PATH).
+Without DEVICE, lists the built-in and installed devices.
 """
+
+from greybox.cli._trust import add_trust_device_option
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -22,7 +26,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description=HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("device", metavar="DEVICE", nargs="?", help="device name or file.py:SPEC")
+    p.add_argument(
+        "device", metavar="DEVICE", nargs="?", help="device name, file.py:SPEC or params.json"
+    )
+    add_trust_device_option(p)
     p.set_defaults(func=run)
     return p
 
@@ -81,10 +88,19 @@ def run(args) -> int:
         for name in available():
             print(f"{name}: {' '.join(resolve(name).spec.description.split())[:100]}")
         return 0
-    try:
-        device = resolve(args.device)
-    except (DeviceNotFound, DeviceSpecError) as err:
-        raise InputError(str(err), field="DEVICE") from None
-    print("\n".join(describe_lines(device.spec)))
+    options = None
+    if args.device.endswith(".json"):  # a fit's params.json: its device, its options
+        from greybox._usercode import trusted_devices
+        from greybox.io._params_file import load_params
+
+        with trusted_devices(args.device, args.trust_device):
+            fitted = load_params(args.device)
+        device, options = fitted.device, fitted.options
+    else:
+        try:
+            device = resolve(args.device)
+        except (DeviceNotFound, DeviceSpecError) as err:
+            raise InputError(str(err), field="DEVICE") from None
+    print("\n".join(describe_lines(device.spec, options)))
     print(f"source: {device.source} ({device.location})")
     return 0

@@ -93,3 +93,26 @@ def test_a_signal_at_any_moment_exits_cleanly(folder, cache, tmp_path, line, del
     assert not [p for p in tmp_path.iterdir() if ".partial-" in p.name or ".old-" in p.name]
     if out.exists():  # the signal came after the result was swapped in: it is complete
         assert {"compare.md", "compare.json", ".greybox-result"} <= {p.name for p in out.iterdir()}
+
+
+def test_fit_started_with_sigint_ignored_still_stops_on_sigint(folder, cache, tmp_path):
+    """A background job of a non-interactive shell starts with SIGINT ignored; once the
+    command runs, SIGINT stops it like Ctrl-C (it was swallowed: exit 0 after the fit)."""
+    out = tmp_path / "fit"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), **cache}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "greybox", "fit", str(folder), "--out", str(out)],
+        stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True, env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )  # fmt: skip
+    try:
+        for text in proc.stderr:
+            if "start 1/1" in text:
+                proc.send_signal(signal.SIGINT)
+                break
+        rest = proc.stderr.read()
+        rc = proc.wait(timeout=120)
+    finally:
+        proc.kill()
+    assert rc == 130, rest
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if ".partial-" in p.name]

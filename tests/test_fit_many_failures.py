@@ -47,7 +47,7 @@ def _folder(root: Path, name: str, y, free='["stiffness_N_per_m", "damping_N_s_p
     )
     (d / "experiment.toml").write_text(
         f'[experiment]\ndevice = "{device}"\n\n'
-        f"[fit]\nfree = {free}\nn_starts = 1\n\n"
+        f"[fit]\nfree = {free}\nn_starts = 1\nmax_steps = 60\n\n"
         '[[runs]]\nname = "run0"\nfile = "run0.csv"\nrole = "estimation"\n'
         'waveform = { type = "steps", times_s = [0.0], F_N = [1.0], end_s = 2.0 }\n'
     )

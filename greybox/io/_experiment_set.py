@@ -662,7 +662,7 @@ def _read_inputs(
     return wave, text, "described (log checked)"
 
 
-NOISE_OVER_SPREAD = 100.0  # a declared noise this many times the data's range is a unit slip
+NOISE_OVER_SPREAD = 1.0  # readings whose whole range is below one noise sd carry no signal
 NEAR_CONSTANT = 1e-9  # relative spread of an output below which it is rounding, not signal
 
 

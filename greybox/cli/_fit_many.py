@@ -190,7 +190,8 @@ def fit_devices(loaded, args, say):
                     failed[member[0]] = _why(one)
     for name, r in list(results.items()):  # a NaN fit is a failure, never a figure
         if not _finite_result(r):
-            failed[name] = f"the fit gave non-finite values (cost {float(r.cost):g}); check its data"
+            cost = float(r.cost)
+            failed[name] = f"the fit gave non-finite values (cost {cost:g}); check its data"
             del results[name]
     return results, failed
 

@@ -131,7 +131,7 @@ def non_finite(value) -> str | None:
     if isinstance(value, int) and not isinstance(value, bool):
         if abs(value) < MAX_ABS_NUMBER:
             return None
-        return f"{excerpt(value)} is too large (|value| >= {MAX_ABS_NUMBER:g}); give a finite number"
+        return f"{excerpt(value)} is too large (|value| >= {MAX_ABS_NUMBER:g}); give a smaller one"
     value = float(value)
     if math.isnan(value):
         return "nan is not finite; give a number"

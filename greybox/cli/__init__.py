@@ -34,8 +34,8 @@ simulation or one-step prediction.
 
 EXIT_STATUS = """\
 Exit status (every command): 0 done; 1 written but not trustworthy (the fit did not
-converge, see report.md); 2 bad input or output location (one line naming the file, line
-and field, nothing written); 3 a bug in greybox (a traceback follows; please report it);
+converge, see report.md); 2 bad input or output location, or an error in your own device
+code (one line naming the file, line and field, nothing written); 3 a bug in greybox (a traceback follows; please report it);
 130 interrupted (Ctrl-C); 143 terminated (SIGTERM). An interrupted or terminated run
 leaves no partial result and an earlier result unchanged.
 """

@@ -3,7 +3,8 @@
 Four folders of one user device (the DEVELOPING.md mass-spring-damper), three with data from
 scipy's `lsim` of known stiffness and damping and one whose copy of the device outputs NaN:
 the three are written and recover their spring constants, the fourth is reported by
-name, exit 1, and no figure is drawn from a NaN. Mixed free lists, bad Dask settings and a
+name, exit 1, and no figure is drawn from a NaN; a device whose `linear_dynamics` raises is
+reported at its file and line while the others are written. Mixed free lists, bad Dask settings and a
 missing ``distributed`` extra are refused before any fit (exit 2, nothing written).
 """
 
@@ -143,3 +144,21 @@ def test_a_missing_extra_names_the_pip_install(lab, tmp_path, capsys, monkeypatc
     argv = ["fit-many", str(folders[0]), "--out", str(tmp_path / "o"), "--scheduler", "local"]
     err = _refused(argv, capsys, "--scheduler")
     assert 'pip install "greybox[distributed]"' in err
+
+
+def test_a_device_whose_code_raises_does_not_lose_the_batch(lab, tmp_path, capsys):
+    root, folders = lab
+    raiser = _folder(tmp_path, "raiser", lambda t: _truth(t, 40.0), device="msd.py:SPEC")
+    text = _example().replace(
+        "        m, k, c = self.mass_kg,", "        raise RuntimeError('no dynamics today')\n"
+        "        m, k, c = self.mass_kg,"
+    )  # fmt: skip
+    (raiser / "msd.py").write_text(text)
+    out = tmp_path / "out"
+    argv = ["fit-many", str(folders[0]), str(raiser), str(folders[1]), "--out", str(out),
+            "--quiet", "--no-device-figures", "--no-validate"]  # fmt: skip
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    line = text.splitlines().index("        raise RuntimeError('no dynamics today')") + 1
+    assert "device raiser failed" in err and f"{raiser / 'msd.py'}:{line}" in err, err
+    assert sorted(p.name for p in (out / "devices").iterdir()) == ["d1", "d2"]

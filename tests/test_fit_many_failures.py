@@ -4,8 +4,9 @@ Four folders of one user device (the DEVELOPING.md mass-spring-damper), three wi
 scipy's `lsim` of known stiffness and damping and one whose copy of the device outputs NaN:
 the three are written and recover their spring constants, the fourth is reported by
 name, exit 1, and no figure is drawn from a NaN; a device whose `linear_dynamics` raises is
-reported at its file and line while the others are written. Mixed free lists, bad Dask settings and a
-missing ``distributed`` extra are refused before any fit (exit 2, nothing written).
+reported at its file and line while the others are written. Mixed free lists, bad Dask
+settings and a missing ``distributed`` extra are refused before any fit (exit 2, nothing
+written).
 """
 
 import json

@@ -3,7 +3,7 @@
 `greybox compare` (two candidates of a small linear device, so each run is short) is sent a
 signal at several moments, found from its own progress lines: while loading, while compiling,
 while solving, between candidates and while writing. Every time the exit status is 130
-(SIGINT) or 143 (SIGTERM) -- never a crash (SIGSEGV) or a swallowed signal -- and the output
+(SIGINT) or 143 (SIGTERM) -- never a swallowed signal or a crash -- and the output
 folder is either absent or a complete result, with no ``.partial-*`` folder beside it. (At
 the last moment the run may have ended before the signal is sent: exit 0, complete result.)
 """

@@ -6,9 +6,9 @@ Each subcommand lives in its own module `greybox.cli._<name>` exposing
 An exception (or ``sys.exit``) raised by a user's own device code is the user's error: one
 line naming their file and line, exit 2. Any other exception is a bug in greybox: `main`
 prints its traceback, asks for a report and returns 3. SIGINT and SIGTERM are handled the
-same way by every command (`greybox.io._atomic.interrupted`: no partial result, exit 130 or
-143), and a program run from the command line then ends without the interpreter's teardown,
-which could crash (SIGSEGV) while compiled JAX work was still in flight.
+same way by every command (`greybox.io._atomic.signal_handlers`: no partial result, exit 130
+or 143), and a program run from the command line then ends without the interpreter's
+teardown (JAX's atexit clean-up swallowed a late signal into exit 0).
 """
 
 from __future__ import annotations
@@ -80,8 +80,8 @@ def main(argv=None) -> int:
 def _exit_now(code: int) -> None:
     """Exit with `code` without the interpreter's teardown. Everything greybox writes is
     closed and renamed by now; what is left is JAX's atexit clean-up and the destruction of
-    its runtime, which a late SIGINT/SIGTERM turned into a swallowed signal (exit 0) or a
-    SIGSEGV after the message. (`_run` has blocked both signals.)"""
+    its runtime, which a late SIGINT/SIGTERM turned into a swallowed signal (exit 0, the
+    KeyboardInterrupt landed in jax's `clean_up`). (`_run` has blocked both signals.)"""
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()

@@ -141,25 +141,24 @@ def batch_table(results: Mapping) -> list[dict]:
 
 
 def bytes_per_item(problem) -> int:
-    """Estimated peak bytes of one solve (one device, one start) inside a vmapped call.
+    """Estimated peak working bytes of one solve (one device, one start) inside a vmapped
+    call: `greybox._memory.solve_bytes` (the model shared with `greybox fit`'s pre-check)."""
+    from greybox import _memory
 
-    Frames x runs x (states, outputs, quadrature) x (parameters + 1) tangents (the forward-mode
-    Jacobian carries one tangent per raw parameter through the whole simulation), plus the
-    Jacobian itself, LM's QR copy of it and the ZOH grid (transition matrices per interval),
-    times a safety factor of 3 for XLA temporaries.
-    """
     n_exp, n_frames, n_y = problem.y.shape
-    n_int = problem.sched["dt"].shape[1]
-    n_eval = problem.sched["eval_t"].shape[1]
-    n_u = problem.sched["u_grid"].shape[-1]
-    n_x = int(problem.model.n_states)
-    p = problem.n_raw
-    rows = n_exp * n_frames * n_y + len(problem.priors)
-    sim = n_exp * (n_int * (n_x * n_x + n_x * n_u + n_x + n_u) + n_eval * (n_x + n_y))
-    if zoh_scan_kind(n_int) == "associative":  # its up- and down-sweep keep ~2 more copies
-        sim += n_exp * n_int * 2 * (n_x * n_x + n_x)
-    jac = rows * p
-    return int(8 * 3 * ((p + 1) * sim + 3 * jac + 4 * rows))
+    return int(
+        _memory.solve_bytes(
+            runs=n_exp,
+            frames=n_frames,
+            states=int(problem.model.n_states),
+            outputs=n_y,
+            inputs=problem.sched["u_grid"].shape[-1],
+            raw=problem.n_raw,
+            intervals=problem.sched["dt"].shape[1],
+            priors=len(problem.priors),
+            associative_scan=zoh_scan_kind(problem.sched["dt"].shape[1]) == "associative",
+        )
+    )
 
 
 def chunk_size_for(bytes_item: int, budget: float, n_items: int, max_chunk=MAX_CHUNK) -> int:

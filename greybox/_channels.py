@@ -12,6 +12,9 @@ import dataclasses
 PIXELS = "px"
 
 
+MAX_MAGNITUDE_SI = 1e12  # no input level of a lab device reaches 1e12 SI units (1 TW, 1e12 K)
+
+
 @dataclasses.dataclass(frozen=True)
 class Channel:
     """- `name`: signal name used in column headers (``laser``, ``y``, ``T1``).
@@ -36,6 +39,11 @@ class Channel:
 
         v = np.asarray(values_si, dtype=float)
         v = v[np.isfinite(v)]
+        if v.size and np.max(np.abs(v)) > MAX_MAGNITUDE_SI:  # overflows the model's arithmetic
+            return (
+                f"{v[np.argmax(np.abs(v))]:g} {self.si_unit} is beyond any physical input "
+                f"(|value| > {MAX_MAGNITUDE_SI:g} {self.si_unit}); check the unit"
+            )
         if self.minimum is not None and v.size and v.min() < self.minimum:
             return f"{v.min():g} {self.si_unit} is below {self.minimum:g} {self.si_unit}"
         if self.maximum is not None and v.size and v.max() > self.maximum:

@@ -70,6 +70,10 @@ FAMILIES = ("pulse_train", "multilevel")
 # --------------------------------------------------------------------------- constraints
 
 
+MAX_DESIGN_RUNS = 100  # runs chosen jointly (greedy + exchange: cost grows as runs^2)
+MAX_DESIGN_FRAMES = 2e6  # frames of all runs: the sensitivities of every frame are held
+MAX_DRAWS = 1000  # posterior draws of a Bayesian design (each one a full information matrix)
+
 @dataclasses.dataclass(frozen=True)
 class LabConstraints:
     """What the lab can do, in SI units.
@@ -103,7 +107,8 @@ class LabConstraints:
         def bad(field, msg):
             raise ValueError(f"{field}: {msg}")
 
-        for name in ("power_max_W", "run_duration_s", "min_pulse_s", "fps", "power_min_W"):
+        for name in ("power_max_W", "run_duration_s", "min_pulse_s", "fps", "power_min_W",
+                     "exposure_s", "lead_s"):  # fmt: skip
             v = getattr(self, name)
             if not (isinstance(v, (int, float, np.floating)) and math.isfinite(v)):
                 bad(name, f"{v!r} is not a finite number")
@@ -113,6 +118,8 @@ class LabConstraints:
             bad("power_min_W", f"{self.power_min_W} W must lie in [0, power_max_W]")
         if int(self.n_runs) != self.n_runs or self.n_runs < 1:
             bad("n_runs", f"{self.n_runs!r} must be a whole number >= 1")
+        if self.n_runs > MAX_DESIGN_RUNS:  # each run is one more exchange pass over all runs
+            bad("n_runs", f"{self.n_runs} runs; design at most {MAX_DESIGN_RUNS} at a time")
         if not self.fps > 0:
             bad("fps", f"{self.fps} must be > 0 frames/s")
         if not 0 <= self.exposure_s <= 1.0 / self.fps:
@@ -121,6 +128,14 @@ class LabConstraints:
             bad("min_pulse_s", f"{self.min_pulse_s} s must be > 0")
         if not self.lead_s >= 3.0 / self.fps:
             bad("lead_s", f"{self.lead_s} s leaves fewer than 3 laser-off frames at the start")
+        frames = self.run_duration_s * self.fps * self.n_runs
+        if frames > MAX_DESIGN_FRAMES:
+            bad(
+                "run_duration_s",
+                f"{self.n_runs} runs x {self.run_duration_s:g} s x {self.fps:g} frames/s = "
+                f"{frames:.3g} frames to evaluate per candidate; at most {MAX_DESIGN_FRAMES:g} "
+                "(shorter or fewer runs)",
+            )
         if not self.run_duration_s > self.lead_s + 2 * self.min_pulse_s:
             bad(
                 "run_duration_s",
@@ -253,6 +268,8 @@ def design_problem(
         prior = prior + np.linalg.pinv((cov + cov.T) / 2, hermitian=True)
     draws = np.zeros((0, ns))
     if n_draws:
+        if not 0 < n_draws <= MAX_DRAWS:
+            raise ValueError(f"n_draws: {n_draws} draws; give 1 to {MAX_DRAWS}")
         if covariance_raw is None:
             raise ValueError("n_draws: a Bayesian design needs covariance_raw (a fitted posterior)")
         draws = raw_draws(np.append(raw_shared, []), covariance_raw, shared, n_draws, seed=seed)

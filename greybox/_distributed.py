@@ -122,6 +122,39 @@ def run_tasks(
     return [got[i] for i in range(len(payloads))]
 
 
+def check_scheduler(scheduler: str, timeout_s: float = 5.0) -> None:
+    """Before any work: the `distributed` extra is installed, and a scheduler address is
+    well formed and accepts a connection within `timeout_s` (else an `InputError` naming
+    --scheduler, instead of a 30 s wait and a traceback)."""
+    import socket
+    from urllib.parse import urlsplit
+
+    from greybox._errors import InputError
+    from greybox._extras import require_extra
+
+    require_extra("distributed", field="--scheduler", what="--scheduler")
+    if scheduler == "local":
+        return
+    parts = urlsplit(scheduler if "://" in scheduler else f"tcp://{scheduler}")
+    try:
+        host, port = parts.hostname, parts.port
+    except ValueError:
+        host = port = None
+    if parts.scheme not in ("tcp", "tls") or not host or not port:
+        raise InputError(
+            f"{scheduler!r} is not a scheduler address; give local or tcp://HOST:PORT",
+            field="--scheduler",
+        )
+    try:
+        socket.create_connection((host, port), timeout=timeout_s).close()
+    except OSError as err:
+        raise InputError(
+            f"cannot reach the Dask scheduler at {host}:{port} ({err.strerror or err}); start "
+            "it (dask scheduler) or use --scheduler local",
+            field="--scheduler",
+        ) from None
+
+
 def start_client(scheduler: str | None = "local", n_workers: int = 2, memory_limit="auto"):
     """(client, cluster or None): a `LocalCluster` of `n_workers` one-thread worker processes
     for "local"/None, else a client of the scheduler at that address."""
@@ -139,7 +172,7 @@ def start_client(scheduler: str | None = "local", n_workers: int = 2, memory_lim
             silence_logs=logging.ERROR,
         )
         return distributed.Client(cluster), cluster
-    return distributed.Client(scheduler), None
+    return distributed.Client(scheduler, timeout="10s"), None
 
 
 def plan(devices, free, *, n_workers: int, chunk_size=None, memory_budget_bytes=None, **kw):

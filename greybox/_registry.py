@@ -10,11 +10,14 @@ A device reference is one of
   may import its neighbours with relative imports (``from ._common import ...``);
 - ``package.module:SPEC``: an importable module.
 
-Every spec is checked once (`DeviceSpec.check`) when it is first loaded.
+Every spec is checked once (`DeviceSpec.check`) when it is first loaded. Importing and
+checking a user's code is bounded in time, its failures are reported at the user's own file
+and line, and while a params.json is loaded only trusted code is imported (`greybox._usercode`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import importlib
@@ -24,6 +27,7 @@ import sys
 import types
 from pathlib import Path
 
+from greybox import _usercode
 from greybox._spec import DeviceSpec, DeviceSpecError
 
 ENTRY_POINT_GROUP = "greybox.devices"
@@ -81,6 +85,36 @@ def _spec_of(module, attr: str, ref: str) -> DeviceSpec:
     return spec
 
 
+def _register_module(module) -> None:
+    """A device module of another package is its author's code (not greybox's)."""
+    file = getattr(module, "__file__", None)
+    if file and Path(__file__).resolve().parent not in Path(file).resolve().parents:
+        _usercode.register_user_code(Path(file).parent)
+
+
+@contextlib.contextmanager
+def _users_code(what: str, path: Path | None):
+    """Run a user's import/check bounded in time; their failure becomes a `UserCodeError`
+    at their line (a spec mistake stays a `DeviceSpecError`)."""
+    try:
+        with _usercode.time_limit(what, None if path is None else str(path)):
+            yield
+    except (KeyboardInterrupt, _usercode.UserCodeError):
+        raise
+    except DeviceSpecError as err:
+        blamed = _usercode.blame_user(err.__cause__, what) if err.__cause__ else None
+        if blamed is None:
+            raise
+        raise blamed from None
+    except BaseException as err:
+        if type(err).__name__ == "Terminated":  # the CLI's SIGTERM: not the user's error
+            raise
+        blamed = _usercode.blame_user(err, what)
+        if blamed is None:
+            raise
+        raise blamed from None
+
+
 def builtin_names() -> list[str]:
     folder = _builtin_dir()
     return sorted(p.stem for p in folder.glob("*.py") if not p.stem.startswith("_") and p.is_file())
@@ -111,9 +145,13 @@ def resolve(ref: str, base_dir: str | Path | None = None) -> ResolvedDevice:
         if not path.is_absolute():
             path = Path(base_dir or ".") / path
         path = path.resolve()
+        _usercode.check_device_file(path)
         key = ("file", str(path), attr, path.stat().st_mtime_ns if path.is_file() else None)
     else:
         key = ("name", path_part, attr)
+        if path_part not in builtin_names() and path_part not in _entry_points():
+            if "." in path_part:
+                _usercode.check_device_module(path_part)
     if key not in _CACHE:
         _CACHE[key] = _load(ref, path_part, attr, path if is_file else None)
     return _CACHE[key]
@@ -130,28 +168,39 @@ def _load(ref: str, name: str, attr: str, path: Path | None) -> ResolvedDevice:
         pkg = _folder_package(path.parent, f"{_USER_PACKAGE}_{digest}")
         modname = f"{pkg}.{path.stem}"
         sys.modules.pop(modname, None)  # a changed file is re-read
-        module = importlib.import_module(modname)
-        return ResolvedDevice(_spec_of(module, attr, ref).check(), ref, "file", str(path), module)
+        _usercode.register_user_code(path.parent)  # its neighbours are the user's code too
+        with _users_code(f"importing device file {path.name}", path):
+            module = importlib.import_module(modname)
+            spec = _spec_of(module, attr, ref).check()
+        return ResolvedDevice(spec, ref, "file", str(path), module)
     if name in builtin_names():
         pkg = _folder_package(_builtin_dir(), _BUILTIN_PACKAGE)
         module = importlib.import_module(f"{pkg}.{name}")
         return ResolvedDevice(_spec_of(module, attr, ref).check(), ref, "builtin", name, module)
     eps = _entry_points()
     if name in eps:
-        spec = eps[name].load()
+        with _users_code(f"loading device {name!r}", None):
+            spec = eps[name].load()
         if not isinstance(spec, DeviceSpec):
             raise DeviceSpecError(f"device {name!r}: entry point gives {type(spec).__name__}")
         module = sys.modules.get(eps[name].module)
-        return ResolvedDevice(spec.check(), ref, "entry point", eps[name].value, module)
+        _register_module(module)
+        with _users_code(f"checking device {name!r}", None):
+            spec = spec.check()
+        return ResolvedDevice(spec, ref, "entry point", eps[name].value, module)
     if "." in name:
         try:
-            module = importlib.import_module(name)
+            with _users_code(f"importing device module {name!r}", None):
+                module = importlib.import_module(name)
         except ModuleNotFoundError as err:
             raise DeviceNotFound(
                 f"device module {name!r} cannot be imported ({err}); install it or give a "
                 "file path (my_devices/device.py:SPEC)"
             ) from None
-        return ResolvedDevice(_spec_of(module, attr, ref).check(), ref, "module", name, module)
+        _register_module(module)
+        with _users_code(f"checking device module {name!r}", None):
+            spec = _spec_of(module, attr, ref).check()
+        return ResolvedDevice(spec, ref, "module", name, module)
     raise DeviceNotFound(
         f"unknown device {name!r}; built-in and installed: {', '.join(available())}; or "
         'name your own file as device = "my_device.py:SPEC" (relative to the experiment '

@@ -11,6 +11,7 @@ error deep inside a fit.
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 from collections.abc import Callable, Mapping, Sequence
 
@@ -58,6 +59,8 @@ class Option:
             value, ok = float(value), True
         if not ok:
             raise ValueError(f"{value!r} must be a {kind.__name__} ({self.meaning})")
+        if kind is float and not math.isfinite(value):  # NaN passes every comparison below
+            raise ValueError(f"{value!r} is not finite; give a finite number ({self.meaning})")
         if self.choices and value not in self.choices:
             allowed = ", ".join(repr(c) for c in self.choices)
             raise ValueError(f"{value!r} is not allowed; use one of {allowed}")

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from greybox._errors import InputError
 from greybox._registry import resolve
 from greybox.io._csv import read_csv
-from greybox.io._experiment_set import load_experiment_set
+from greybox.io._experiment_set import candidate_names, load_experiment_set
 from greybox.io._params_file import SCHEMA, load_params
 from greybox.io._waveform_spec import parse_waveform_spec
 
@@ -214,7 +214,7 @@ GOOD = {
     "model": {"camera": {"m_per_px": 6.45e-7, "exposure_s": 0.01}, "fixed": {},
               "fitted": {"absorptance": 0.55}, "method": "zoh"},
     "free": [{"path": "absorptance", "unit": "1", "lower": 0.4, "upper": 0.7}],
-    "raw": [0.1],
+    "raw": [0.0],  # logit((0.55 - 0.4) / 0.3): the fitted value, raw
     "covariance_raw": [[0.01]],
     "sigma": {"value": [1e-7]},
 }  # fmt: skip
@@ -226,7 +226,10 @@ GOOD = {
         [("schema",), ("device", "name"), ("device", "options"), ("model", "camera"),
          ("model", "fitted"), ("model", "fixed"), ("model", "method"), ("free",), ("raw",),
          ("covariance_raw",), ("sigma", "value"), ("sigma",), ("null_directions_raw",),
-         ("free", 0, "path"), ("free", 0, "lower"), ("covariance_raw", 0, 0), ("raw", 0)]
+         ("free", 0, "path"), ("free", 0, "lower"), ("covariance_raw", 0, 0), ("raw", 0),
+         ("device", "ref"), ("device", "source"), ("device", "location"),
+         ("model", "camera", "exposure_s"), ("model", "camera", "fps"),
+         ("model", "fitted", "absorptance"), ("free", 0, "per_experiment")]
     ),
     value=json_values,
     whole=st.booleans(),
@@ -251,3 +254,140 @@ def test_params_json_loads_or_raises_input_error(tmp_path_factory, path, value, 
         assert np.linalg.eigvalsh(fitted.covariance_raw).min() >= -1e-8 * max(
             1.0, np.abs(fitted.covariance_raw).max()
         )
+
+
+# ---- issue 27: [[candidates]], [columns], [noise], design constraints -------------------
+
+FEW = settings(FUZZ, max_examples=_N or 25)
+BASE = (
+    '[experiment]\ndevice = "chevron_laser"\n[camera]\nfps = 30\nexposure_ms = 10\n'
+    '[[runs]]\nname = "est"\nfile = "est.csv"\nrole = "estimation"\n'
+    'waveform = { type = "pulse_train", power_mW = 20, period_ms = 400, n_pulses = 3, '
+    "delay_ms = 200 }\n"
+)
+GOOD_CSV = "t_s,y_um\n" + "".join(
+    f"{(k + 0.5) / 30:.6f},{200 + 1.5 * (np.sin(2 * np.pi * (k + 0.5) / 12) > 0):.4f}\n"
+    for k in range(42)
+)
+option_values = st.one_of(
+    scalars, st.sampled_from(["exact", "linear", 1, 2, 0, True, 3500.0, float("nan")])
+)
+option_names = st.sampled_from(
+    ["kinematics", "thermal_nodes", "elongation_lag", "beam_length_um", "angle_deg", "zz"]
+)
+
+
+def _folder(tmp_path_factory, toml: str, csv_text: str = GOOD_CSV):
+    folder = tmp_path_factory.mktemp("exp")
+    (folder / "experiment.toml").write_text(toml, encoding="utf-8", errors="surrogatepass")
+    (folder / "est.csv").write_text(csv_text)
+    return folder
+
+
+@FEW
+@given(
+    candidates=st.lists(
+        st.fixed_dictionaries(
+            {},
+            optional={
+                "name": st.text(max_size=12) | scalars,
+                "model": st.dictionaries(option_names, option_values, max_size=3) | scalars,
+                "free": st.lists(st.sampled_from(["absorptance", "thermal.tau_s", "zz", ""]),
+                                 max_size=3) | scalars,
+                "zz": scalars,
+            },
+        ),
+        min_size=1,
+        max_size=3,
+    )
+)  # fmt: skip
+def test_candidates_load_or_raise_input_error(tmp_path_factory, candidates):
+    toml = BASE + "".join(
+        "[[candidates]]\n" + "".join(f"{k} = {_toml_value(v)}\n" for k, v in c.items())
+        for c in candidates
+    )
+    folder = _folder(tmp_path_factory, toml)
+    try:
+        names = candidate_names(folder)
+        for i in range(len(names)):
+            fs = load_experiment_set(folder, candidate=i)
+            assert all(v == v for v in fs.options.values())  # a NaN option never loads
+    except InputError as err:
+        _check(err)
+
+
+units = st.sampled_from(["um", "px", "m", "mW", "W", "degC", "delta_degC", "year", "min", "s",
+                         "ms", "zz", "", MARK])  # fmt: skip
+
+
+@FEW
+@given(
+    columns=st.dictionaries(
+        st.sampled_from(["time", "y", "laser", "zz"]),
+        st.sampled_from(["t_s", "y_um", "laser_mW", "T", ""])
+        | st.fixed_dictionaries({"column": st.sampled_from(["t_s", "y_um", "zz"])},
+                                optional={"unit": units})
+        | scalars,
+        max_size=3,
+    ),
+    data=st.dictionaries(
+        st.sampled_from(["input_delay_s", "header", "time_origin", "zz"]), scalars, max_size=2
+    ),
+)  # fmt: skip
+def test_columns_and_data_rules_load_or_raise_input_error(tmp_path_factory, columns, data):
+    head = "[data]\n" + "".join(f"{k} = {_toml_value(v)}\n" for k, v in data.items())
+    head += "[columns]\n" + "".join(f"{k} = {_toml_value(v)}\n" for k, v in columns.items())
+    folder = _folder(tmp_path_factory, head + BASE)
+    try:
+        fs = load_experiment_set(folder)
+    except InputError as err:
+        _check(err)
+    else:
+        assert all(np.isfinite(e.t_s).all() for e in fs.estimation)
+
+
+@FEW
+@given(
+    noise=st.dictionaries(
+        st.sampled_from(["process", "disturbances", "walk_initial_sd", "filter", "k_step",
+                         "priors", "zz"]),
+        values | st.sampled_from(["all", "ekf", "ukf", 10, 1e10]),
+        max_size=3,
+    )
+)  # fmt: skip
+def test_noise_tables_parse_or_raise_input_error(tmp_path_factory, noise):
+    from greybox.cli._fit_process import parse_noise
+    from greybox.io._toml import TomlDocument
+
+    toml = '[fit]\nnoise_model = "process"\n[noise]\n' + "".join(
+        f"{k} = {_toml_value(v)}\n" for k, v in noise.items()
+    )
+    path = tmp_path_factory.mktemp("noise") / "experiment.toml"
+    path.write_text(toml)
+    spec = resolve("chevron_laser").spec
+    try:
+        doc = TomlDocument(path)
+        parse_noise(doc, doc.data, spec.model(), spec)
+    except InputError as err:
+        _check(err)
+
+
+@FEW
+@given(
+    c=st.fixed_dictionaries(
+        {"power_max_W": st.floats() | st.just(0.03), "run_duration_s": st.floats() | st.just(5.0),
+         "n_runs": st.integers(-3, 10**6), "fps": st.floats() | st.just(30.0),
+         "min_pulse_s": st.floats() | st.just(0.02), "exposure_s": st.floats() | st.just(0.01),
+         "lead_s": st.floats() | st.just(0.3), "power_min_W": st.floats() | st.just(0.0)}
+    )
+)  # fmt: skip
+def test_design_constraints_check_or_raise_a_named_value_error(c):
+    from greybox._design import MAX_DESIGN_FRAMES, LabConstraints
+
+    try:
+        LabConstraints(**c).check()
+    except ValueError as err:
+        assert str(err).split(":")[0] in c or str(err).startswith("average_power"), str(err)
+    else:  # accepted constraints are finite and bounded work
+        assert all(np.isfinite(v) for k, v in c.items() if k != "n_runs")
+        assert c["n_runs"] * c["run_duration_s"] * c["fps"] <= MAX_DESIGN_FRAMES

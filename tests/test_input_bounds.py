@@ -272,6 +272,10 @@ def test_symlink_inside_the_folder_is_allowed(folder):
 # ---- params.json: schema, device, finite values, a positive semi-definite covariance -----
 
 
+def _logit(p: float) -> float:
+    return float(np.log(p / (1 - p)))
+
+
 def _params(tmp_path, **changes) -> Path:
     doc = {
         "schema": SCHEMA,
@@ -292,7 +296,7 @@ def _params(tmp_path, **changes) -> Path:
             {"path": "absorptance", "unit": "1", "lower": 0.4, "upper": 0.7},
             {"path": "thermal.tau_s", "unit": "s", "lower": 0.001, "upper": 0.2},
         ],
-        "raw": [0.1, -0.2],
+        "raw": [0.0, _logit((0.03 - 0.001) / (0.2 - 0.001))],  # the fitted values, raw
         "covariance_raw": [[0.01, 0.0], [0.0, 0.02]],
         "null_directions_raw": [],
         "sigma": {"value": [1e-7], "estimated": True},
@@ -362,7 +366,9 @@ def test_simulate_refuses_a_non_finite_response(tmp_path, capsys):
     wave = "pulse:power_mW=1e300,period_ms=100,duty=0.5,n=2"
     assert main(["simulate", "--params", str(params), "--waveform", wave, "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert "not finite" in err and "--waveform" in err
+    # refused before simulating: 1e297 W is beyond any physical input (the response it would
+    # give is not finite either)
+    assert "beyond any physical input" in err and "--waveform" in err
     assert not out.exists()
 
 
@@ -401,3 +407,153 @@ def test_truncated_video_is_reported(tmp_path, capsys):
         )
         == 0
     )
+
+
+# ---- non-finite numbers, zero-length pulses, absurd levels (issue 27) ----------------------
+
+
+@pytest.mark.parametrize(
+    "value, said",
+    [("nan", "nan is not finite"), ("inf", "inf is not finite"),
+     ("-inf", "-inf is not finite"), ("1e300", "1e+300 is too large")],
+)  # fmt: skip
+def test_non_finite_numbers_are_named_as_what_they_are(folder, value, said):
+    _toml(folder, "fps = 30", f"fps = {value}")
+    err = _refused(folder, field="fps", line=5, match=said)
+    if value != "inf":
+        assert "inf is not finite" not in str(err).replace("-inf", "")
+
+
+def test_a_nan_option_fails_its_check():
+    from greybox._spec import Option
+
+    opt = Option("mass_kg", 1.0, "moving mass", minimum=0.0, maximum=10.0)
+    for bad, said in ((float("nan"), "nan is not finite"), (float("inf"), "inf is not finite")):
+        with pytest.raises(ValueError, match=said):
+            opt.check(bad)
+    assert opt.check(2) == 2.0
+
+
+@pytest.mark.parametrize(
+    "old, new, field",
+    [("period_ms = 400", "period_ms = 400, duty = 1e-300", "duty"),
+     ("period_ms = 400", "period_ms = 1e-15", "period_ms"),
+     ("power_mW = 20", "power_mW = 1e300", "power_mW")],
+)  # fmt: skip
+def test_zero_length_pulses_and_absurd_power_are_located(folder, old, new, field):
+    _toml(folder, old, new)
+    _refused(folder, field=field, line=12)
+
+
+@pytest.mark.parametrize("spec", ["pulse:power_mW=25,period_ms=300,n=3,duty=1e-300",
+                                  "pulse:power_mW=25,period_ms=1e-15,n=3",
+                                  "pulse:power_mW=1e300,period_ms=300,n=3"])  # fmt: skip
+def test_command_line_pulses_are_checked_the_same_way(spec):
+    ch = resolve("chevron_laser").spec.inputs[0]
+    with pytest.raises(InputError) as info:
+        parse_waveform_spec(spec, ch)
+    assert info.value.field == "--waveform"
+    assert "pulses and gaps must last" in str(info.value) or "physical" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    "extra, field",
+    [(["--runs", "100000"], "--runs"), (["--lead-ms", "nan"], "--lead-ms"),
+     (["--runs", "50", "--run-duration-s", "1e5"], "--run-duration-s")],
+)  # fmt: skip
+def test_design_bounds_its_work_before_doing_it(tmp_path, capsys, extra, field):
+    from greybox.cli import main
+
+    t0 = time.perf_counter()
+    argv = ["design", "--device", "chevron_laser", "--power-max-mW", "30",
+            "--run-duration-s", "10", "--out", str(tmp_path / "d"), *extra]  # fmt: skip
+    assert main(argv) == 2
+    assert time.perf_counter() - t0 < 10 and not (tmp_path / "d").exists()
+    assert f"{field}:" in capsys.readouterr().err
+
+
+def test_design_checks_out_before_the_work(tmp_path, capsys):
+    from greybox.cli import main
+
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    argv = ["design", "--device", "chevron_laser", "--power-max-mW", "30",
+            "--run-duration-s", "10", "--out", str(mine)]  # fmt: skip
+    t0 = time.perf_counter()
+    assert main(argv) == 2 and time.perf_counter() - t0 < 10
+    assert (mine / "notes.txt").read_text() == "keep" and "--out" in capsys.readouterr().err
+
+
+# ---- plausibility at the boundary (issue 27) ---------------------------------------------
+
+
+def test_a_temperature_difference_unit_on_absolute_readings_is_refused():
+    from greybox.io._units import conversion
+
+    with pytest.raises(ValueError, match="temperature differences"):
+        conversion("delta_degC", "K")
+    assert conversion("degC", "K") == pytest.approx((1.0, 273.15))  # absolute: the offset
+
+
+@pytest.mark.parametrize("unit", ["year", "week"])
+def test_times_in_years_are_refused(unit):
+    from greybox.io._units import time_conversion
+
+    with pytest.raises(ValueError, match="at most a day"):
+        time_conversion(unit)
+    assert time_conversion("min") == 60.0 and time_conversion("h") == 3600.0
+
+
+def _logged_folder(folder, extra_data="", columns=None):
+    t, y = _frames()
+    laser = 20.0 * (np.sin(2 * np.pi * t / 0.4) > 0)
+    (folder / "est.csv").write_text(
+        "t_s,y_um,laser_mW\n" + "".join(f"{a:.6f},{b:.4f},{c:g}\n" for a, b, c in zip(t, y, laser))
+    )
+    _toml(folder, WAVE, 'waveform = { type = "logged" }')
+    text = (folder / "experiment.toml").read_text()
+    head = f"[data]\n{extra_data}\n" if extra_data else ""
+    if columns:
+        head += f"[columns]\n{columns}\n"
+    (folder / "experiment.toml").write_text(text.replace("[camera]", head + "\n[camera]", 1))
+
+
+def test_the_logged_folder_loads(folder):
+    _logged_folder(folder, "input_delay_s = 0.05")
+    assert load_experiment_set(folder).estimation[0].n_frames == 42
+
+
+def test_an_input_delay_longer_than_the_record_is_refused(folder):
+    _logged_folder(folder, "input_delay_s = 1e9")
+    _refused(folder, field="input_delay_s", match="not shorter than the record")
+
+
+def test_two_signals_on_one_column_are_refused(folder):
+    _logged_folder(folder, columns='y = { column = "y_um", unit = "um" }\n'
+                   'laser = { column = "y_um", unit = "mW" }')  # fmt: skip
+    _refused(folder, field="laser", match="two signals")
+
+
+def test_a_near_constant_output_is_refused_like_a_constant_one(folder):
+    t, _ = _frames()
+    (folder / "est.csv").write_text(
+        "t_s,y_um\n" + "".join(f"{a:.6f},{200 + 1e-9 * k:.15f}\n" for k, a in enumerate(t))
+    )
+    _refused(folder, field="y_um", line=2, file="est.csv", match="never varies")
+
+
+def test_declared_noise_far_beyond_the_data_is_refused(folder):
+    _toml(folder, "exposure_ms = 10", "exposure_ms = 10\nnoise_um = 1e200")
+    _refused(folder, field="noise_um", match="the data would say nothing")
+
+
+@pytest.mark.parametrize(
+    "changes, field",
+    [({"model__fitted__absorptance": 0.6}, "model.fitted.absorptance"),
+     ({"model__camera__exposure_s": 1e9}, "model.camera.exposure_s")],
+)  # fmt: skip
+def test_params_that_disagree_with_themselves_are_refused(tmp_path, changes, field):
+    with pytest.raises(InputError) as info:
+        load_params(_params(tmp_path, **changes))
+    assert info.value.field == field

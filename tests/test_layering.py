@@ -9,8 +9,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 EDGE = {"greybox.io", "greybox.cli", "greybox._plots", "greybox._report", "greybox._registry",
-        "greybox.video"}  # fmt: skip
-EDGE_MODULES = {"_plots.py", "_report.py", "_registry.py", "video.py", "__init__.py", "__main__.py"}
+        "greybox._usercode", "greybox.video"}  # fmt: skip
+EDGE_MODULES = {"_plots.py", "_report.py", "_registry.py", "_usercode.py", "video.py", "__init__.py", "__main__.py"}
 
 
 def _imports(path: Path) -> set[str]:

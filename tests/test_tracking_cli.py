@@ -224,3 +224,30 @@ def test_prefetch_keeps_order_reraises_and_stops_early():
     gen.close()
     assert closed.is_set()
     assert not any(t.name == "greybox-prefetch" for t in threading.enumerate())
+
+
+def test_out_obeys_the_output_contract(tmp_path, shuttle, capsys):
+    """A user's file is never overwritten (unless --force), a folder is refused before any
+    decoding, nothing partial is left, and an earlier track CSV is replaced."""
+    src = str(write_video(tmp_path / "run.avi", shuttle.frames[:8], fps=10.0))
+    argv = ["track", src, "--roi", "32,16,64,64", "--out"]
+    mine = tmp_path / "notes.csv"
+    mine.write_text("t_s,y_um\n0,1\n")
+    assert main([*argv, str(mine)]) == 2
+    assert mine.read_text() == "t_s,y_um\n0,1\n" and "--force" in capsys.readouterr().err
+    folder = tmp_path / "results"
+    folder.mkdir()
+    assert main([*argv, str(folder)]) == 2 and not any(folder.iterdir())
+    assert main([*argv, str(mine), "--force"]) == 0
+    assert mine.read_text().startswith("t_s,y_px,quality")
+    assert main([*argv, str(mine)]) == 0  # an earlier track result is ours to replace
+    assert not list(tmp_path.glob(".*partial*"))
+
+
+def test_a_missing_video_extra_names_the_pip_install(tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # as if not installed
+    rc = main(["track", str(tmp_path / "v.avi"), "--roi", "1,1,8,8"])
+    err = capsys.readouterr().err
+    assert rc == 2 and 'pip install "greybox[video]"' in err and "Traceback" not in err

@@ -4,7 +4,8 @@ The device file is the example in DEVELOPING.md ("Adding a device"), extracted v
 documentation cannot drift from what runs. Its data come from scipy.signal.lsim (an
 independent simulator of m x'' + c x' + k x = F with zero-order-hold input), and the fit must
 recover the spring and damper within 3 standard errors; `greybox simulate --params` must then
-rebuild the same model (mass option included) from params.json alone.
+rebuild the same model (mass option included) from params.json alone, once the user trusts the
+device file (it lives outside the result folder).
 """
 
 import json
@@ -92,8 +93,11 @@ def test_simulate_rebuilds_the_fitted_user_model(lab, tmp_path):
     wave = tmp_path / "force.csv"
     wave.write_text("t_s,F_N\n" + "\n".join(f"{a:.4f},{b:g}" for a, b in zip(t, force)) + "\n")
     sim = tmp_path / "sim"
-    rc = main(["simulate", "--params", str(out / "params.json"), "--waveform", str(wave),
-               "--out", str(sim), "--dt-ms", "5"])  # fmt: skip
+    argv = ["simulate", "--params", str(out / "params.json"), "--waveform", str(wave),
+            "--out", str(sim), "--dt-ms", "5"]  # fmt: skip
+    # the device file lives outside the result folder: running it needs the user's consent
+    assert main(argv) == 2 and not sim.exists()
+    rc = main([*argv, "--trust-device", str(root / "my_devices")])
     assert rc == 0
     table = np.genfromtxt(sim / "simulation.csv", delimiter=",", names=True)
     y_mm = table[table.dtype.names[1]]

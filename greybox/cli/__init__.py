@@ -3,17 +3,21 @@
 Each subcommand lives in its own module `greybox.cli._<name>` exposing
 ``add_parser(subparsers)`` (which sets ``func`` on its parser). Bad input raises
 `greybox._errors.InputError`; `main` turns it into one line on stderr and exit status 2.
-Any other exception is a bug in greybox: `main` prints its traceback, asks for a report and
-returns 3. SIGTERM is handled like Ctrl-C (message, no partial result, exit 143).
+An exception (or ``sys.exit``) raised by a user's own device code is the user's error: one
+line naming their file and line, exit 2. Any other exception is a bug in greybox: `main`
+prints its traceback, asks for a report and returns 3. SIGINT and SIGTERM are handled the
+same way by every command (`greybox.io._atomic.signal_handlers`: no partial result, exit 130
+or 143), and a program run from the command line then ends without the interpreter's
+teardown (JAX's atexit clean-up swallowed a late signal into exit 0).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import signal
 import sys
-import threading
 import traceback
 
 SUBCOMMANDS = ("fit", "compare", "simulate", "describe", "demo", "track", "design", "fit-many")
@@ -30,19 +34,14 @@ simulation or one-step prediction.
 
 EXIT_STATUS = """\
 Exit status (every command): 0 done; 1 written but not trustworthy (the fit did not
-converge, see report.md); 2 bad input or output location (one line naming the file, line
-and field, nothing written); 3 a bug in greybox (a traceback follows; please report it);
+converge, see report.md); 2 bad input or output location, or an error in your own device
+code (one line naming the file, line and field, nothing written); 3 a bug in greybox (a traceback follows; please report it);
 130 interrupted (Ctrl-C); 143 terminated (SIGTERM). An interrupted or terminated run
 leaves no partial result and an earlier result unchanged.
 """
 
 
-class Terminated(BaseException):
-    """Raised in the main thread when the process receives SIGTERM (handled like Ctrl-C)."""
-
-
-def _on_sigterm(signum, frame):
-    raise Terminated
+from greybox.io._atomic import Terminated, committed, received_signal, signal_handlers
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -72,26 +71,67 @@ def main(argv=None) -> int:
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 2
-    from greybox._errors import InputError
+    code = _run(args, program=argv is None)
+    if argv is None:  # the program itself, not a caller in Python: end it here
+        _exit_now(code)
+    return code
 
-    previous = None
-    if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+
+def _exit_now(code: int) -> None:
+    """Exit with `code` without the interpreter's teardown. Everything greybox writes is
+    closed and renamed by now; what is left is JAX's atexit clean-up and the destruction of
+    its runtime, which a late SIGINT/SIGTERM turned into a swallowed signal (exit 0, the
+    KeyboardInterrupt landed in jax's `clean_up`). (`_run` has blocked both signals.)"""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe: nothing more can be said
+            pass
+    os._exit(code)
+
+
+def _run(args, *, program: bool = False) -> int:
+    from greybox._errors import InputError
+    from greybox._usercode import blame_user
+
+    with signal_handlers():
+        try:
+            code = int(args.func(args) or 0)
+        except BaseException as err:
+            code = _failure(args, err, InputError, blame_user)
+        if program:  # no signal may land between here and the exit
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    late = received_signal()
+    if late is not None and code not in (130, 143):  # a signal some code swallowed
+        what = "terminated" if late == signal.SIGTERM else "interrupted"
+        print(f"greybox {args.command}: {what} (after the command had finished)", file=sys.stderr)
+        return 143 if late == signal.SIGTERM else 130
+    return code
+
+
+def _failure(args, err, InputError, blame_user) -> int:
+    """The exit status of a command that raised `err` (after saying why on stderr)."""
+    if isinstance(err, (Exception, SystemExit)) and not isinstance(err, InputError):
+        blamed = blame_user(err)  # the user's device code, not greybox, failed
+        if blamed is not None:
+            err = blamed
+        elif isinstance(err, SystemExit):
+            raise err
     try:
-        return int(args.func(args) or 0)
+        raise err
     except InputError as err:
         message = " ".join(str(err).split())  # one line, whatever the message held
         print(f"greybox {args.command}: error: {message}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"greybox {args.command}: interrupted; no result was written", file=sys.stderr)
-        return 130
-    except Terminated:
-        print(
-            f"greybox {args.command}: terminated (SIGTERM); no result was written",
-            file=sys.stderr,
-        )
-        return 143
+    except (KeyboardInterrupt, Terminated) as stop:
+        what = "interrupted" if isinstance(stop, KeyboardInterrupt) else "terminated (SIGTERM)"
+        done = committed()
+        if done:  # the signal came after the swap: say so, the result is whole
+            written = ", ".join(str(p) for p in done)
+            print(f"greybox {args.command}: {what} after {written} was written", file=sys.stderr)
+        else:
+            print(f"greybox {args.command}: {what}; no result was written", file=sys.stderr)
+        return 130 if isinstance(stop, KeyboardInterrupt) else 143
     except MemoryError:
         print(
             f"greybox {args.command}: error: out of memory; the problem is too large for "
@@ -108,9 +148,6 @@ def main(argv=None) -> int:
             file=sys.stderr,
         )
         return 3
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
 
 
 def _version() -> str:

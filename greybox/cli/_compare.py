@@ -190,6 +190,9 @@ def run(args) -> int:
     say = Progress(args.quiet)
     out = Path(args.out or Path("results") / f"{Path(args.experiment_dir).resolve().name}-compare")
     out = check_output_dir(out, force=args.force, inputs=[args.experiment_dir])
+    from greybox.io._experiment_set import check_candidates
+
+    check_candidates(args.experiment_dir)  # all load and fit in memory, before any fit
     scores, best = compare_experiment_dir(args.experiment_dir, say, rule=args.rule)
     lines = report_lines(args.experiment_dir, scores, best, args.rule)
     doc = {

@@ -13,11 +13,15 @@ it) and what the data can identify, the standard fit's free parameters, and the 
 path its capability allows.
 
 DEVICE is a built-in or installed name, or a file `path/to/device.py[:SPEC]` (relative to the
-current folder). Without DEVICE, lists the built-in and installed devices. The parameters
+current folder), or a params.json written by `greybox fit` (its device with the fitted options;
+a device file it names outside its own folder is imported only with --trust-device PATH).
+Without DEVICE, lists the built-in and installed devices. The parameters
 depend on the structure: --option key=value (repeatable, as in [model]) shows those of
 another structure, e.g. `greybox describe chevron_laser --option thermal_nodes=3 --option
 elongation_lag=true`.
 """
+
+from greybox.cli._trust import add_trust_device_option
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -27,7 +31,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         description=HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("device", metavar="DEVICE", nargs="?", help="device name or file.py:SPEC")
+    p.add_argument(
+        "device", metavar="DEVICE", nargs="?", help="device name, file.py:SPEC or params.json"
+    )
     p.add_argument(
         "--option",
         action="append",
@@ -36,6 +42,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="a structural option, as in [model] (TOML value: 2, true, 1.5, \"linear\" or "
         "linear); repeat for several",
     )
+    add_trust_device_option(p)
     p.set_defaults(func=run)
     return p
 
@@ -117,12 +124,21 @@ def run(args) -> int:
         for name in available():
             print(f"{name}: {' '.join(resolve(name).spec.description.split())[:100]}")
         return 0
+    fitted_options = {}
+    if args.device.endswith(".json"):  # a fit's params.json: its device, its options
+        from greybox._usercode import trusted_devices
+        from greybox.io._params_file import load_params
+
+        with trusted_devices(args.device, args.trust_device):
+            fitted = load_params(args.device)
+        device, fitted_options = fitted.device, dict(fitted.options or {})
+    else:
+        try:
+            device = resolve(args.device)
+        except (DeviceNotFound, DeviceSpecError) as err:
+            raise InputError(str(err), field="DEVICE") from None
     try:
-        device = resolve(args.device)
-    except (DeviceNotFound, DeviceSpecError) as err:
-        raise InputError(str(err), field="DEVICE") from None
-    try:
-        options = device.spec.resolve_options(parse_options(args.option))
+        options = device.spec.resolve_options({**fitted_options, **parse_options(args.option)})
     except ValueError as err:
         raise InputError(f"{err} (the options are listed without --option)", field="--option")
     chosen = ", ".join(f"{k} = {v!r}" for k, v in options.items())

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
+
+from greybox.cli._trust import add_trust_device_option
 
 HELP = """\
 Design the next experiment: choose laser waveforms (one per run) that maximise the Fisher
@@ -93,6 +94,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "--baseline", metavar="EXPERIMENT_TOML", help="compare with these estimation runs"
     )
     p.add_argument("--out", metavar="DIR", default="results/design", help="output folder")
+    add_trust_device_option(p)
     p.set_defaults(func=run)
     return p
 
@@ -128,14 +130,27 @@ def _run(args) -> int:
     from greybox.io._atomic import atomic_output_dir
     from greybox.io._design_file import experiment_toml
 
-    for name in ("power_max_mW", "run_duration_s", "min_pulse_ms", "fps", "exposure_ms"):
-        v = getattr(args, name)
-        if not math.isfinite(v):
-            raise InputError(f"{v} is not a finite number", field="--" + name.replace("_", "-"))
+    from greybox.io._atomic import check_output_dir
+    from greybox.io._toml import non_finite
+
+    for name, v in vars(args).items():  # every numeric option: NaN and infinities by name
+        if isinstance(v, float) and non_finite(v):
+            raise InputError(non_finite(v), field="--" + name.replace("_", "-"))
+    if args.runs < 1 or args.runs > D.MAX_DESIGN_RUNS:
+        raise InputError(
+            f"{args.runs} runs; give 1 to {D.MAX_DESIGN_RUNS} (design larger campaigns in parts)",
+            field="--runs",
+        )
+    if args.bayesian_draws < 0 or args.bayesian_draws > D.MAX_DRAWS:
+        raise InputError(f"give 0 to {D.MAX_DRAWS} draws", field="--bayesian-draws")
+    inputs = [args.params] if args.params else []
+    check_output_dir(args.out, inputs=inputs)  # before the work, like every command
     if args.params:
+        from greybox._usercode import trusted_devices
         from greybox.io._params_file import load_params
 
-        fitted = load_params(args.params)
+        with trusted_devices(args.params, args.trust_device):
+            fitted = load_params(args.params)
         spec, model, free = fitted.spec, fitted.model, tuple(fitted.free)
         raw, cov, method = fitted.raw, fitted.covariance_raw, fitted.method
         sigma = fitted.sigma if args.noise_um is None else args.noise_um * 1e-6
@@ -208,6 +223,7 @@ def _run(args) -> int:
             exposure_s=constraints.exposure_s,
             method=method,
         )
+        _check_design_memory(args, spec, model, free, constraints)
         print(f"designing {args.runs} run(s) of {args.run_duration_s:g} s for {source} ...")
         design = D.design_experiment(
             problem, constraints, family=args.family, criterion=args.criterion
@@ -271,6 +287,31 @@ def _run(args) -> int:
     print(report)
     print(f"wrote {Path(args.out)}/ (experiment.toml, design.txt, design.json)")
     return 0
+
+
+def _check_design_memory(args, spec, model, free, constraints) -> None:
+    """The memory model of every fitting command (`greybox._memory`): the sensitivities of
+    all runs at once, once per posterior draw, against the same limit as `greybox fit`."""
+    from greybox import _memory
+    from greybox._errors import InputError
+    from greybox.io._experiment_set import max_problem_bytes
+
+    constraints.check()
+    working = _memory.solve_bytes(
+        runs=args.runs,
+        frames=int(constraints.run_duration_s * constraints.fps) + 1,
+        states=int(model.n_states),
+        outputs=len(spec.outputs),
+        inputs=len(spec.inputs),
+        raw=len(free),
+    )
+    need = _memory.peak_bytes(working, items=max(1, args.bayesian_draws))
+    if need > max_problem_bytes():
+        raise InputError(
+            f"the design would need about {_memory.format_gb(need)} (limit "
+            f"{_memory.format_gb(max_problem_bytes())}); fewer or shorter runs, or fewer draws",
+            field="--runs",
+        )
 
 
 def info_value(model, path):

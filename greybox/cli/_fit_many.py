@@ -8,6 +8,7 @@ import csv
 import io
 import json
 import math
+import sys
 from pathlib import Path
 
 HELP = """\
@@ -98,54 +99,132 @@ def _device_name(folder, seen) -> str:
 
 
 def load_devices(folders, say):
-    """[(name, ExperimentSet)] per folder, and the fit options they share (one `fit_batch`
-    per distinct set of options)."""
+    """([(name, ExperimentSet)] of the folders that load, {name: why} of those that do not).
+    One bad folder does not lose the batch: it gets a failure line."""
+    from greybox._errors import InputError
     from greybox.io._experiment_set import check_problem_size, load_experiment_set
 
-    out, seen = [], set()
+    out, failed, seen = [], {}, set()
     for folder in folders:
-        fs = load_experiment_set(folder)
-        check_problem_size(fs)
-        out.append((_device_name(folder, seen), fs))
-    say(f"loaded {len(out)} device folders")
-    return out
+        name = _device_name(folder, seen)
+        try:
+            fs = load_experiment_set(folder)
+            check_problem_size(fs)
+        except InputError as err:
+            failed[name] = " ".join(str(err).split())
+            say(f"device {name}: not loaded: {failed[name]}")
+            continue
+        out.append((name, fs))
+    say(f"loaded {len(out)} of {len(folders)} device folders")
+    return out, failed
+
+
+def _structure(fs) -> tuple:
+    """What one compiled solver needs to be the same for every device: the device, its
+    options and the free list (paths, per-run flags, bounds)."""
+    free = tuple((p.path, p.per_experiment, p.lower, p.upper) for p in fs.free)
+    return fs.spec.name, json.dumps(fs.options, sort_keys=True, default=repr), free
+
+
+def check_same_structure(loaded) -> None:
+    """Refuse, by device name and before any fit, a batch whose devices differ in device,
+    options or free list (fit each structure in its own `greybox fit-many`)."""
+    from greybox._errors import InputError
+
+    groups: dict = {}
+    for name, fs in loaded:
+        groups.setdefault(_structure(fs), []).append(name)
+    if len(groups) <= 1:
+        return
+    parts = []
+    for (device, options, free), names in groups.items():
+        shown = ", ".join(names[:5]) + (f" and {len(names) - 5} more" if len(names) > 5 else "")
+        parts.append(f"{shown}: {device} {options} free [{', '.join(f[0] for f in free)}]")
+    raise InputError(
+        f"the devices differ in structure ({'; '.join(parts)}); one batch fits one structure: "
+        "give the same device, [model] options and [fit] free list, or run fit-many once per "
+        "structure. Nothing was fitted",
+        field="FOLDER",
+    )
 
 
 def _option_key(fs) -> str:
     return json.dumps({k: repr(v) for k, v in sorted(fs.fit_options.items())})
 
 
+def _why(err: BaseException) -> str:
+    """One line saying why a device's fit failed (the user's file and line when theirs)."""
+    from greybox._usercode import blame_user
+
+    blamed = blame_user(err)
+    text = str(blamed) if blamed is not None else f"{type(err).__name__}: {err}"
+    return " ".join(text.split())[:400]
+
+
 def fit_devices(loaded, args, say):
-    """{name: FitResult} for every device, batched per distinct fit options."""
-    from greybox._batch import Device, fit_batch
+    """({name: FitResult}, {name: why}) for every device, batched per distinct fit options.
+    A batch that raises is fitted again device by device, so one device whose code fails
+    (e.g. its `linear_dynamics` raises for its values) loses only itself."""
+    from greybox._errors import InputError
 
     by_options: dict = {}
     for name, fs in loaded:
         by_options.setdefault(_option_key(fs), []).append((name, fs))
-    results = {}
-    budget = None if args.memory_budget_mb is None else args.memory_budget_mb * 1e6
+    results, failed = {}, {}
     for members in by_options.values():
-        opts = dict(members[0][1].fit_options)
-        opts.pop("progress", None)
-        devices = [Device(n, fs.model, fs.estimation, free=fs.free) for n, fs in members]
-        free = members[0][1].free
-        if args.scheduler:
-            from greybox._distributed import fit_distributed
+        try:
+            results.update(_fit_group(members, args, say))
+        except (InputError, KeyboardInterrupt):
+            raise
+        except Exception as err:
+            if len(members) == 1:
+                failed[members[0][0]] = _why(err)
+                continue
+            say(f"the batch of {len(members)} devices failed ({_why(err)}); fitting one by one")
+            for member in members:
+                try:
+                    results.update(_fit_group([member], args, say))
+                except (InputError, KeyboardInterrupt):
+                    raise
+                except Exception as one:
+                    failed[member[0]] = _why(one)
+    for name, r in list(results.items()):  # a NaN fit is a failure, never a figure
+        if not _finite_result(r):
+            cost = float(r.cost)
+            failed[name] = f"the fit gave non-finite values (cost {cost:g}); check its data"
+            del results[name]
+    return results, failed
 
-            out = fit_distributed(
-                devices,
-                free,
-                scheduler=args.scheduler,
-                n_workers=args.workers,
-                memory_budget_bytes=budget,
-                progress=say,
-                **opts,
-            )
-        else:
-            extra = {} if budget is None else {"memory_budget_bytes": budget}
-            out = fit_batch(devices, free, progress=say, **opts, **extra)
-        results.update(out.results)
-    return results
+
+def _finite_result(r) -> bool:
+    values = [float(r.cost)] + [float(p.value) for p in r.parameters]
+    return all(math.isfinite(v) for v in values)
+
+
+def _fit_group(members, args, say) -> dict:
+    from greybox._batch import Device, fit_batch
+
+    budget = None if args.memory_budget_mb is None else args.memory_budget_mb * 1e6
+    opts = dict(members[0][1].fit_options)
+    opts.pop("progress", None)
+    devices = [Device(n, fs.model, fs.estimation, free=fs.free) for n, fs in members]
+    free = members[0][1].free
+    if args.scheduler:
+        from greybox._distributed import fit_distributed
+
+        out = fit_distributed(
+            devices,
+            free,
+            scheduler=args.scheduler,
+            n_workers=args.workers,
+            memory_budget_bytes=budget,
+            progress=say,
+            **opts,
+        )
+    else:
+        extra = {} if budget is None else {"memory_budget_bytes": budget}
+        out = fit_batch(devices, free, progress=say, **opts, **extra)
+    return dict(out.results)
 
 
 def write_device(folder: Path, fs, result, validation, figures: bool) -> None:
@@ -292,17 +371,27 @@ def run(args) -> int:
     from greybox.io._atomic import atomic_output_dir, check_output_dir
 
     say = Progress(args.quiet)
+    check_settings(args)
     out = check_output_dir(args.out, force=args.force, inputs=list(args.folders))
-    loaded = load_devices(args.folders, say)
+    loaded, failed = load_devices(args.folders, say)
+    if not loaded:
+        raise InputError(f"no device folder loads: {'; '.join(failed.values())}", field="FOLDER")
+    check_same_structure(loaded)
     kinds = {**{p: "random" for p in args.random}, **{p: "shared" for p in args.shared}}
     for path in kinds:
         for name, fs in loaded:
             if path not in {p.path for p in fs.free if not p.per_experiment}:
                 raise InputError(f"--random/--shared {path}: not a shared free parameter of {name}")
     say(f"fitting {len(loaded)} devices")
-    results = fit_devices(loaded, args, say)
+    results, failed_fits = fit_devices(loaded, args, say)
+    failed.update(failed_fits)
+    if not results:
+        raise InputError(
+            f"no device could be fitted: {'; '.join(f'{k}: {v}' for k, v in failed.items())}",
+            field="FOLDER",
+        )
     population = None
-    if kinds:
+    if kinds and len(results) >= 2:
         from greybox._population import population_from_batch
 
         population = population_from_batch(results, kinds)
@@ -320,10 +409,14 @@ def run(args) -> int:
 
                 validation = validate(r, fs.validation)
             write_device(tmp / "devices" / name, fs, r, validation, not args.no_device_figures)
-        (tmp / "batch.csv").write_text(batch_csv(batch_table(results)))
+        rows = batch_table(results) + [
+            {"device": k, "status": "failed", "valid": False, "error": v} for k, v in failed.items()
+        ]
+        (tmp / "batch.csv").write_text(batch_csv(rows))
         write_figures(tmp, results)
         (tmp / "batch.md").write_text(
             batch_markdown(results, population)
+            + failures_markdown(failed)
             + "\n![histograms](figures/histograms.png)\n"
             + (
                 "\n![scatter](figures/scatter.png)\n"
@@ -336,9 +429,46 @@ def run(args) -> int:
             (tmp / "population.json").write_text(
                 json.dumps(_population_document(population), indent=2, allow_nan=False) + "\n"
             )
+    for name, why in failed.items():
+        print(f"greybox fit-many: device {name} failed: {why}", file=sys.stderr)
     n_bad = sum(not r.valid for r in results.values())
-    print(f"wrote {out}/ ({len(results)} devices; {n_bad} not valid) in {say.elapsed:.1f} s")
-    return 1 if n_bad else 0
+    print(
+        f"wrote {out}/ ({len(results)} devices; {n_bad} not valid; {len(failed)} failed) in "
+        f"{say.elapsed:.1f} s"
+    )
+    return 1 if n_bad or failed else 0
+
+
+def failures_markdown(failed) -> str:
+    if not failed:
+        return ""
+    lines = ["", f"## Devices that failed ({len(failed)})", ""]
+    lines += [f"- {name}: {why}" for name, why in failed.items()]
+    return "\n".join(lines) + "\n"
+
+
+MAX_WORKERS = 256  # a local cluster of more processes than this only thrashes
+
+
+def check_settings(args) -> None:
+    """Dask and memory settings, checked before any work: workers, budget, the scheduler
+    (installed, and reachable when an address) -- each a located exit 2."""
+    from greybox._errors import InputError
+    from greybox.io._toml import non_finite
+
+    if args.memory_budget_mb is not None:
+        problem = non_finite(args.memory_budget_mb)
+        if problem or args.memory_budget_mb <= 0:
+            raise InputError(
+                problem or f"{args.memory_budget_mb:g} MB must be > 0", field="--memory-budget-mb"
+            )
+    if not 1 <= args.workers <= MAX_WORKERS:
+        raise InputError(f"{args.workers} workers; give 1 to {MAX_WORKERS}", field="--workers")
+    if args.scheduler is None:
+        return
+    from greybox._distributed import check_scheduler
+
+    check_scheduler(args.scheduler)
 
 
 def _population_document(pop) -> dict:

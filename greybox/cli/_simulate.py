@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from greybox.cli._trust import add_trust_device_option
+
 HELP = """\
 Simulate new input waveforms with a fitted model (the params.json written by
 `greybox fit`; the data are not needed) and write the response of every output with a
@@ -109,6 +111,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     from greybox.cli._figures import add_figure_format
 
     add_figure_format(p)
+    add_trust_device_option(p)
     p.add_argument(
         "--noise",
         action="store_true",
@@ -259,13 +262,19 @@ def _run(args, tick) -> int:
     check_output_dir(args.out, force=args.force, inputs=[args.params])
     from greybox.cli import _fit_process
 
-    if _fit_process.is_process_params(args.params):  # a process-noise fit: sample paths
-        return _fit_process.simulate_process(args)
-    if args.duration_s is not None and not (math.isfinite(args.duration_s) and args.duration_s > 0):
-        raise InputError(
-            f"must be a positive number of seconds, got {args.duration_s}", field="--duration-s"
-        )
-    fitted = with_initial_state(load_params(args.params), args.initial_state)
+    from greybox._usercode import trusted_devices
+
+    with trusted_devices(args.params, args.trust_device):
+        if _fit_process.is_process_params(args.params):  # a process-noise fit: sample paths
+            return _fit_process.simulate_process(args)
+        if args.duration_s is not None and not (
+            math.isfinite(args.duration_s) and args.duration_s > 0
+        ):
+            raise InputError(
+                f"must be a positive number of seconds, got {args.duration_s}",
+                field="--duration-s",
+            )
+        fitted = with_initial_state(load_params(args.params), args.initial_state)
     inputs, outputs = tuple(fitted.spec.inputs), tuple(fitted.spec.outputs)
     wave, text, specs = read_waveform(args.waveform, inputs)
     t = sample_times(

@@ -87,6 +87,11 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--out", metavar="CSV", help="output run CSV (default runs/<VIDEO stem>.csv)")
     p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace --out even if it is a file greybox did not write",
+    )
+    p.add_argument(
         "--allow-short",
         action="store_true",
         help="write the CSV even when fewer frames decode than the container declares "
@@ -137,8 +142,17 @@ def _fmt(v: float, digits: int) -> str:
     return "nan" if not np.isfinite(v) else f"{v:.{digits}f}"
 
 
+def is_track_csv(first_line: str) -> bool:
+    """Whether a CSV's header is one `greybox track` writes (an earlier result to replace)."""
+    cols = first_line.split(",")
+    return cols[:1] == ["t_s"] and {"quality", "reason", "sigma_px"} <= set(cols)
+
+
 def run(args) -> int:
     from greybox._errors import InputError
+    from greybox._extras import require_extra
+
+    require_extra("video", what="greybox track")
     from greybox._tracking import (
         FeatureTracker,
         measure_sequence,
@@ -148,7 +162,7 @@ def run(args) -> int:
         search_crop,
         shuttle_track,
     )
-    from greybox.io._atomic import atomic_output_file
+    from greybox.io._atomic import atomic_output_file, check_output_file
     from greybox.io._video import frame_shortfall, iter_frames, prefetch, probe
 
     # Cheap checks first, so bad options fail before any decoding.
@@ -163,6 +177,9 @@ def run(args) -> int:
         rois.append(_parse_roi(args.roi2, "--roi2"))
     video = args.video
     out = Path(args.out) if args.out else Path("runs") / f"{Path(video).stem}.csv"
+    if Path(video).exists() and out.resolve() == Path(video).resolve():
+        raise InputError("is the input video; give another file", file=str(out), field="--out")
+    check_output_file(out, ours=is_track_csv, force=args.force)
 
     info = probe(video)
     for roi, field in zip(rois, ("--roi", "--roi2")):

@@ -18,6 +18,7 @@ from greybox.io._experiment_set import InputErrors as InputErrors
 from greybox.io._experiment_set import RunInfo as RunInfo
 from greybox.io._experiment_set import candidate_names as candidate_names
 from greybox.io._experiment_set import configure_model as configure_model
+from greybox.io._experiment_set import fit_memory_estimate as fit_memory_estimate
 from greybox.io._experiment_set import load_experiment_set as load_experiment_set
 from greybox.io._experiment_writer import format_number as format_number
 from greybox.io._experiment_writer import inline_table as inline_table

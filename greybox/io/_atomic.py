@@ -13,6 +13,9 @@ The output contract of every command that writes a result folder (`greybox fit`,
   falls back to two renames and `recover` undoes a crash between them (the old result is
   kept under ``.NAME.old-PID`` until the new one is in place, and the next run puts it
   back). A crash at any instant therefore leaves the old result or the new one.
+- SIGINT and SIGTERM (`signal_handlers`, installed by the CLI for every command) raise
+  `KeyboardInterrupt` / `Terminated` in the main thread and are remembered: a result is
+  never swapped in after a signal, even one that some code caught and swallowed.
 - Leftovers of killed runs (``.NAME.partial-PID-*``, ``.NAME.old-PID``) are removed by the
   next run once their process is gone. Writers of the same folder take an `fcntl.flock` on
   its parent folder while they clean up and swap, so concurrent runs never collide (the
@@ -30,7 +33,9 @@ import json
 import os
 import re
 import shutil
+import signal
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -39,6 +44,54 @@ from greybox._errors import InputError
 MARKER = ".greybox-result"
 _RENAME_EXCHANGE = 2
 _AT_FDCWD = -100
+
+
+class Terminated(BaseException):
+    """Raised in the main thread when the process receives SIGTERM (handled like Ctrl-C)."""
+
+
+_RECEIVED: list[int] = []  # the signals received while `signal_handlers` was active
+_COMMITTED: list[Path] = []  # results swapped in under `signal_handlers` (what a late signal
+# interrupts is then the report after the result, not the result)
+
+
+def _on_signal(signum, frame):
+    _RECEIVED.append(signum)
+    raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+
+def received_signal() -> int | None:
+    """The first SIGINT/SIGTERM received under `signal_handlers`, or None."""
+    return _RECEIVED[0] if _RECEIVED else None
+
+
+def committed() -> list[Path]:
+    """The result folders and files completed under the current `signal_handlers`."""
+    return list(_COMMITTED)
+
+
+def _check_not_interrupted() -> None:
+    """Raise again a signal that arrived (and was swallowed by some code) before the commit."""
+    if _RECEIVED:
+        raise Terminated if _RECEIVED[0] == signal.SIGTERM else KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def signal_handlers() -> Iterator[None]:
+    """SIGINT -> KeyboardInterrupt, SIGTERM -> `Terminated`, both remembered (main thread only;
+    the handlers are Python functions, so they run between bytecodes of the main thread and
+    never inside compiled code or another thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _RECEIVED.clear()
+    _COMMITTED.clear()
+    previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def _libc():
@@ -216,6 +269,7 @@ def atomic_output_dir(
         yield tmp
         _write_marker(tmp, kind)
         with _locked(out.parent):
+            _check_not_interrupted()
             recover(out)
             if out.exists():
                 if not (out.is_dir() and (is_result(out) or force or not any(out.iterdir()))):
@@ -226,14 +280,17 @@ def atomic_output_dir(
                         field="--out",
                     )
                 if _exchange(tmp, out):
+                    _COMMITTED.append(out)
                     shutil.rmtree(tmp, ignore_errors=True)  # tmp now holds the old result
                     return
                 old = out.with_name(f".{out.name}.old-{os.getpid()}")
                 os.replace(out, old)  # a crash here: `recover` renames old back
                 os.replace(tmp, out)
+                _COMMITTED.append(out)
                 shutil.rmtree(old, ignore_errors=True)
             else:
                 os.replace(tmp, out)
+                _COMMITTED.append(out)
     except OSError as err:
         shutil.rmtree(tmp, ignore_errors=True)
         raise _write_error(out, err) from None
@@ -251,17 +308,61 @@ def _write_error(out: Path, err: OSError) -> InputError:
     )
 
 
+def check_output_file(path, *, ours, force: bool = False, field: str = "--out") -> Path:
+    """The output-file contract (before any work): `path` is absent, or a file `ours(first
+    line)` recognises as an earlier greybox result, or `force` is given; never a folder; its
+    nearest existing parent is writable. Raises `InputError` naming `field`."""
+    given = str(path)
+    path = Path(os.path.abspath(path))
+    if path.is_dir():
+        raise InputError("is a folder; give the path of a file to write", file=given, field=field)
+    if path.exists() or path.is_symlink():
+        if not path.is_file() or path.is_symlink():
+            raise InputError("exists and is not a plain file; give a new name", file=given,
+                             field=field)  # fmt: skip
+        try:
+            with open(path, encoding="utf-8", errors="replace") as fh:
+                first = fh.readline(10_000).rstrip("\r\n")
+        except OSError as err:
+            raise InputError(f"cannot be read ({err.strerror})", file=given, field=field) from None
+        if not ours(first) and not force:
+            raise InputError(
+                "exists and was not written by greybox; nothing was changed. Give a new file "
+                "name, or pass --force to replace it",
+                file=given,
+                field=field,
+            )
+    base = _nearest_existing(path.parent)
+    if not base.is_dir() or not os.access(base, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write into {base}; choose a writable folder", file=given,
+                         field=field)  # fmt: skip
+    return path
+
+
 @contextlib.contextmanager
 def atomic_output_file(path: str | os.PathLike, mode: str = "w") -> Iterator:
-    """Open a temporary file beside `path`; it is renamed onto `path` only if the block succeeds."""
+    """Open a temporary file beside `path`; it is renamed onto `path` only if the block
+    succeeds. Whatever fails (the block, a signal, a full disk, a folder that appeared at
+    `path`), the temporary file is removed; an `OSError` becomes an `InputError` on --out."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.partial-", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.partial-", dir=path.parent)
+    except OSError as err:
+        raise _write_error(path, err) from None
     try:
         with os.fdopen(fd, mode) as fh:
             yield fh
+        _check_not_interrupted()
+        if path.is_dir():
+            raise IsADirectoryError(errno.EISDIR, "a folder appeared there", str(path))
+        os.replace(tmp, path)
+    except OSError as err:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise _write_error(path, err) from None
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
-    os.replace(tmp, path)
+    _COMMITTED.append(path)

@@ -35,7 +35,7 @@ from greybox.io._csv import (
     read_csv,
     time_column,
 )
-from greybox.io._toml import TOML_NAME, TomlDocument
+from greybox.io._toml import TOML_NAME, TomlDocument, excerpt
 from greybox.io._waveform_spec import (
     WAVEFORM_TYPES,
     check_log_against_description,
@@ -188,6 +188,23 @@ class ExperimentSet:
         return self.device.spec.name
 
 
+def build_device(spec, options: dict):
+    """`spec.model(options)`, bounded in time; a failure in the device's own code is the
+    user's (`greybox._usercode.UserCodeError`, naming their file and line)."""
+    from greybox._usercode import UserCodeError, blame_user, time_limit
+
+    try:
+        with time_limit(f"building device {spec.name!r} with {options}"):
+            return spec.model(options)
+    except UserCodeError:
+        raise
+    except Exception as err:
+        blamed = blame_user(err, f"building device {spec.name!r} with options {options}")
+        if blamed is None:
+            raise
+        raise blamed from None
+
+
 def configure_model(spec, options: dict, camera: dict, fixed: dict):
     """`spec`'s model built with `options`, the given camera settings and fixed values applied.
 
@@ -196,7 +213,9 @@ def configure_model(spec, options: dict, camera: dict, fixed: dict):
     from greybox._parameters import set_values
 
     model = with_camera(
-        spec.model(options), exposure_s=camera.get("exposure_s"), m_per_px=camera.get("m_per_px")
+        build_device(spec, options),
+        exposure_s=camera.get("exposure_s"),
+        m_per_px=camera.get("m_per_px"),
     )
     return set_values(model, list(fixed), [float(v) for v in fixed.values()])
 
@@ -418,6 +437,18 @@ def _known_noise(doc: TomlDocument, spec, camera: dict, fit_options: dict, exper
             "camera",
             "noise_um",
         )
+    spread = max(
+        (float(np.nanmax(e.y) - np.nanmin(e.y)) for e in experiments if np.isfinite(e.y).any()),
+        default=0.0,
+    )
+    if spread > 0 and camera["noise_m"] > NOISE_OVER_SPREAD * spread:
+        raise doc.error(
+            f"{camera['noise_m'] * 1e6:g} um is {camera['noise_m'] / spread:.3g} x the whole "
+            f"range of the readings ({spread * 1e6:.4g} um): with that noise the data would say "
+            "nothing. Give the tracker's per-frame noise (typically 0.01 to 1 px), in um",
+            "camera",
+            "noise_um",
+        )
     fit_options["sigma"] = camera["noise_m"]
 
 
@@ -604,6 +635,13 @@ def _read_inputs(
     end = t[-1] + step
     if kind is None or kind == "logged":
         delay, before = rules["input_delay_s"], rules["input_applied"] == "before_reading"
+        if delay >= end - t[0]:  # every input level would act after the last reading
+            raise doc.error(
+                f"{delay:g} s is not shorter than the record ({end - t[0]:g} s): no reading "
+                "would see any input; give the delay in s (e.g. 0.05)",
+                *path,
+                "input_delay_s",
+            )
         waves = []
         for ch in inputs:
             if ch.name in constants:
@@ -646,6 +684,10 @@ def _read_inputs(
     return wave, text, "described (log checked)"
 
 
+NOISE_OVER_SPREAD = 1.0  # readings whose whole range is below one noise sd carry no signal
+NEAR_CONSTANT = 1e-9  # relative spread of an output below which it is rounding, not signal
+
+
 def _check_run_consistency(doc, table, path, t, y, refs, valid, wave, t_start) -> None:
     """Frames against the waveform's extent and t_start_s; outputs that never vary."""
     if t[-1] < 0:
@@ -681,11 +723,14 @@ def _check_run_consistency(doc, table, path, t, y, refs, valid, wave, t_start) -
             continue
         col = ref.column
         v = y[:, j][np.isfinite(y[:, j])]
-        if v.size >= 2 and float(np.ptp(v)) == 0.0:
+        spread = float(np.ptp(v)) if v.size >= 2 else None
+        # a spread within the rounding of the readings themselves is no signal either
+        if spread is not None and spread <= NEAR_CONSTANT * float(np.max(np.abs(v))):
+            what = "is" if spread == 0.0 else f"stays within {spread:.3g} of"
             raise InputError(
-                f"every valid reading is {v[0]:g} ({v.size} frames): the output never "
-                "varies, so nothing in it can be fitted (check the tracker output, the "
-                "column and the laser)",
+                f"every valid reading {what} {v[0]:g} ({v.size} frames): the output never "
+                f"varies beyond {NEAR_CONSTANT:g} of its size (rounding), so nothing in it can "
+                "be fitted (check the tracker output, the column and the laser)",
                 file=table.file,
                 line=table.lines[0],
                 field=col,
@@ -715,35 +760,52 @@ def _physical_ranges(doc: TomlDocument, data: dict, spec, options: dict) -> dict
     return physical_ranges(table, overrides)
 
 
-def check_problem_size(fs, max_bytes: float | None = None) -> None:
-    """Estimate a fit's working memory before anything is compiled; refuse one too large.
+def fit_memory_estimate(fs) -> float:
+    """Estimated peak resident bytes of fitting `fs` (`greybox._memory`: base + one solve of
+    the runs padded to the longest; every start and the noise re-fit reuse it)."""
+    from greybox import _memory
 
-    Runs are padded to the longest, and the Levenberg-Marquardt Jacobian carries one
-    column per raw parameter through every state of every frame:
-    ~ 8 B x runs x longest run x (states + outputs) x (raw parameters + 1) x 4.
-    """
-    import os
-
-    if max_bytes is None:
-        env = os.environ.get("GREYBOX_MAX_PROBLEM_GB")
-        try:
-            max_bytes = float(env) * 1e9 if env else MAX_PROBLEM_BYTES
-        except ValueError:
-            max_bytes = MAX_PROBLEM_BYTES
     runs = list(fs.estimation) + list(fs.validation)
-    longest = max(e.n_frames for e in runs)
     try:
         n_states = int(fs.model.n_states)
-    except Exception:
+    except Exception:  # a device that only knows its size once built for a run
         n_states = 8
-    n_out = len(fs.spec.outputs)
-    n_raw = sum(len(fs.estimation) if p.per_experiment else 1 for p in fs.free)
-    need = 8.0 * len(runs) * longest * (n_states + n_out) * (n_raw + 1) * 4
+    working = _memory.solve_bytes(
+        runs=len(runs),
+        frames=max(e.n_frames for e in runs),
+        states=n_states,
+        outputs=len(fs.spec.outputs),
+        inputs=len(fs.spec.inputs),
+        raw=sum(len(fs.estimation) if p.per_experiment else 1 for p in fs.free),
+    )
+    return _memory.peak_bytes(working)
+
+
+def max_problem_bytes() -> float:
+    """The memory a fit may need: GREYBOX_MAX_PROBLEM_GB, else `MAX_PROBLEM_BYTES`."""
+    import os
+
+    env = os.environ.get("GREYBOX_MAX_PROBLEM_GB")
+    try:
+        value = float(env) * 1e9 if env else MAX_PROBLEM_BYTES
+    except ValueError:
+        return MAX_PROBLEM_BYTES
+    return value if math.isfinite(value) and value > 0 else MAX_PROBLEM_BYTES
+
+
+def check_problem_size(fs, max_bytes: float | None = None) -> None:
+    """Estimate a fit's peak memory before anything is compiled (`fit_memory_estimate`, the
+    model `greybox._memory` shares with compare, fit-many and design); refuse one too large."""
+    if max_bytes is None:
+        max_bytes = max_problem_bytes()
+    need = fit_memory_estimate(fs)
     if need > max_bytes:
-        longest_run = max(runs, key=lambda e: e.n_frames).name
+        runs = list(fs.estimation) + list(fs.validation)
+        longest = max(runs, key=lambda e: e.n_frames)
+        n_raw = sum(len(fs.estimation) if p.per_experiment else 1 for p in fs.free)
         raise InputError(
             f"the fit would need about {need / 1e9:.1f} GB ({len(runs)} runs padded to the "
-            f"longest, {longest} frames in run {longest_run!r}, {n_states} states, "
+            f"longest, {longest.n_frames} frames in run {longest.name!r}, "
             f"{n_raw} fitted values); the limit is {max_bytes / 1e9:.1f} GB. Decimate the "
             "long runs (keep every k-th frame), split them into shorter runs, or fit fewer "
             "runs or per-run parameters (GREYBOX_MAX_PROBLEM_GB raises the limit)",
@@ -781,6 +843,13 @@ def _column_mapping(doc: TomlDocument, table, spec, *path) -> dict:
                 '{ column = "...", unit = "..." }',
                 *where,
             )
+        for other, (taken, _, _) in out.items():
+            if taken.strip() == col.strip():
+                raise doc.error(
+                    f"column {excerpt(col)} is already the {other!r} signal; two signals "
+                    "cannot be read from one column",
+                    *where,
+                )
         out[key] = (col, unit, f"{doc.file}:{doc.where.line(*where)}")
     return out
 
@@ -1045,12 +1114,29 @@ def _candidate(doc: TomlDocument, data: dict, index: int) -> tuple[dict, object]
     return model, entry.get("free")
 
 
+MAX_CANDIDATES = 32
+
+
+def check_candidates(directory) -> list[str]:
+    """Before the first fit of `greybox compare`: every candidate loads and fits in memory
+    (one bad candidate must not surface after the others ran). Returns the names."""
+    names = candidate_names(directory)
+    for i in range(len(names)):
+        check_problem_size(load_experiment_set(directory, candidate=i))
+    return names
+
+
 def candidate_names(directory) -> list[str]:
     """Names of the ``[[candidates]]`` structures of an experiment folder (loader-checked)."""
     doc = TomlDocument(Path(directory) / TOML_NAME)
     entries = doc.data.get("candidates")
     if not isinstance(entries, list) or not entries:
         _candidate(doc, doc.data, 0)  # raises the located "no candidates" error
+    if len(entries) > MAX_CANDIDATES:  # each candidate is a whole fit
+        raise doc.error(
+            f"{len(entries)} candidates; compare at most {MAX_CANDIDATES} structures at once",
+            "candidates",
+        )
     names = []
     for i in range(len(entries)):
         _candidate(doc, doc.data, i)  # checks the entry, name included
@@ -1113,6 +1199,8 @@ def _options(doc: TomlDocument, device, model_table: dict) -> dict:
 def _base_model(doc: TomlDocument, spec, options: dict, camera: dict):
     try:
         return configure_model(spec, options, camera, {})
+    except InputError:  # the device's own code failed: its file and line, not the toml's
+        raise
     except ValueError as err:
         raise doc.error(f"cannot build the model ({err})", "model") from None
 

@@ -355,12 +355,16 @@ def _check_covariance(cov: np.ndarray, file: str) -> None:
         )
 
 
-def load_params(path) -> FittedModel:
-    """Read `params.json` and rebuild the fitted model. Raises `InputError` naming the field."""
+def load_params(path, trust_device=()) -> FittedModel:
+    """Read `params.json` and rebuild the fitted model. Raises `InputError` naming the field.
+    A device file it names is imported only from its own folder or from `trust_device`
+    paths (files or folders; README, "A params.json is data")."""
     from greybox._parameters import set_values
     from greybox._registry import DeviceNotFound, resolve
     from greybox._spec import DeviceSpecError
+    from greybox._usercode import params_trust
     from greybox.io._experiment_set import configure_model
+    from greybox.io._params_checks import check_params_plausible
 
     path = Path(path)
     file = str(path)
@@ -414,16 +418,18 @@ def load_params(path) -> FittedModel:
     location = need(dev, "location", str, "device.")
     source = need(dev, "source", str, "device.")
     given_options = need(dev, "options", dict, "device.")
-    # a device file is found where it was fitted, else beside params.json (a moved result)
-    candidates = [location] if source == "file" else [ref]
-    if source == "file":
-        candidates.append(str(path.parent / Path(location).name))
+    # a device file beside params.json (copied with the result) first, else where it was
+    # fitted; greybox._usercode.trusted_devices decides which folders may supply code
+    candidates = [str(path.parent / Path(location).name), location] if source == "file" else [ref]
     device, last_err = None, None
     for candidate in candidates:
         try:
-            device = resolve(
-                candidate if source != "file" else f"{candidate}:{ref.partition(':')[2] or 'SPEC'}"
-            )
+            with params_trust(path, trust_device):
+                device = resolve(
+                    candidate
+                    if source != "file"
+                    else f"{candidate}:{ref.partition(':')[2] or 'SPEC'}"
+                )
             break
         except (DeviceNotFound, DeviceSpecError) as err:
             last_err = err
@@ -485,6 +491,7 @@ def load_params(path) -> FittedModel:
 
         for fp in free:  # every free path must name a value of this device
             check_scalar_path(model, fp.path)
+        check_params_plausible(free, raw, fitted, camera, file)
     except InputError:
         raise
     except (TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError) as err:

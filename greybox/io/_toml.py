@@ -122,6 +122,26 @@ def _field_name(path) -> str:
     return out
 
 
+MAX_ABS_NUMBER = 1e300  # larger values overflow as soon as they are squared or summed
+
+
+def non_finite(value) -> str | None:
+    """What is wrong with a number that is NaN, infinite or beyond `MAX_ABS_NUMBER` (named
+    as what it is: "nan is not finite", not "inf"), or None for a usable number."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        if abs(value) < MAX_ABS_NUMBER:
+            return None
+        return f"{excerpt(value)} is too large (|value| >= {MAX_ABS_NUMBER:g}); give a smaller one"
+    value = float(value)
+    if math.isnan(value):
+        return "nan is not finite; give a number"
+    if math.isinf(value):
+        return f"{'-' if value < 0 else ''}inf is not finite; give a finite number"
+    if abs(value) >= MAX_ABS_NUMBER:
+        return f"{value:g} is too large (|value| >= {MAX_ABS_NUMBER:g}); give a finite number"
+    return None
+
+
 class TomlDocument:
     """A parsed TOML file with helpers that raise located `InputError`s."""
 
@@ -229,21 +249,27 @@ class TomlDocument:
             raise self.error(
                 f"{excerpt(value)} is not a number; write it without quotes", *path, key
             )
-        value = float(value) if abs(value) < 1e300 else math.inf
-        if not math.isfinite(value):
-            raise self.error(f"{value} is not finite; give a finite number", *path, key)
+        problem = non_finite(value)
+        if problem:
+            raise self.error(problem, *path, key)
+        value = float(value)
         if positive and not value > 0:
             raise self.error(f"{value:g} must be > 0{f' {unit}' if unit else ''}", *path, key)
         if nonneg and not value >= 0:
             raise self.error(f"{value:g} must be >= 0{f' {unit}' if unit else ''}", *path, key)
         return value
 
-    def integer(self, table: dict, key: str, *path, default=None, minimum: int = 1):
+    def integer(
+        self, table: dict, key: str, *path, default=None, minimum: int = 1, maximum=None
+    ):
         if key not in table:
             return default
         value = table[key]
         if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
             raise self.error(f"{excerpt(value)} must be a whole number >= {minimum}", *path, key)
+        if maximum is not None and value > maximum:
+            raise self.error(f"{excerpt(value)} is above the largest allowed, {maximum}", *path,
+                             key)  # fmt: skip
         return value
 
     def string(

@@ -55,6 +55,12 @@ def conversion(unit: str, si_unit: str) -> tuple[float, float]:
         raise ValueError(f"the channel's SI unit {si_unit!r} is not a unit pint knows") from None
     if src.dimensionality != dst.dimensionality:
         raise ValueError(f"{unit!r} is not a unit of {si_unit} ({src.dimensionality})")
+    if "delta_" in str(src) and "delta_" not in str(dst):
+        # pint converts a difference (27 delta_degC = 27 K) where a reading is absolute
+        raise ValueError(
+            f"{unit!r} is a unit of temperature differences, but the column holds absolute "
+            f"readings; write it in {', '.join(EXAMPLES.get(si_unit, (si_unit,)))}"
+        )
     q = registry().Quantity
     zero = float(q(0.0, src).to(dst).magnitude)
     one = float(q(1.0, src).to(dst).magnitude)
@@ -73,9 +79,18 @@ def channel_conversion(channel: Channel, unit: str) -> tuple[float, float] | Non
     return conversion(unit, channel.si_unit)
 
 
+MAX_TIME_UNIT_S = 86400.0  # a day: a lab record's time column is not kept in weeks or years
+
+
 def time_conversion(unit: str) -> float:
-    """Seconds per `unit` (``s``, ``ms``, ``min``, ...); `ValueError` otherwise."""
+    """Seconds per `unit` (``s``, ``ms``, ``min``, ``h``, ``day``); `ValueError` otherwise,
+    also for a unit longer than a day (a year-valued time column is a wrong unit)."""
     scale, offset = conversion(unit, "s")
+    if scale > MAX_TIME_UNIT_S:
+        raise ValueError(
+            f"{unit!r} is {scale:g} s; a lab record's times are in s, ms, min or h (at most "
+            "a day per unit)"
+        )
     return scale
 
 

@@ -32,6 +32,7 @@ TIME_UNITS = {"s": 1.0, "ms": 1e-3}
 WAVEFORM_TYPES = ("pulse_train", "steps", "logged")
 MAX_PULSES = 100_000  # a pulse train's switching times are all materialised
 MAX_STEPS = 1_000_000
+MIN_EDGE_S = 1e-6  # shortest pulse or gap: below it the switching times are not distinct
 _PULSE_KEYS = {"type", "duty", "n_pulses", "n"}
 _STEPS_KEYS = {"type", "times_s", "end_s"}
 
@@ -153,6 +154,18 @@ def waveform_from_description(desc: dict, channel: Channel, where, path: tuple =
         ):
             if not ok:
                 raise where(f"{excerpt(desc[k])} {fix}", *path, k)
+        on, off = float(duty) * period, (1.0 - float(duty)) * period
+        if on < MIN_EDGE_S or (duty < 1 and off < MIN_EDGE_S):
+            short, k = (on, "duty") if on < MIN_EDGE_S else (off, "duty")
+            if period < 2 * MIN_EDGE_S:
+                k = period_key
+            raise where(
+                f"gives a {'pulse' if on < MIN_EDGE_S else 'gap'} of {short:.3g} s (period "
+                f"{period:g} s x duty {float(duty):g}); pulses and gaps must last at least "
+                f"{MIN_EDGE_S:g} s",
+                *path,
+                k,
+            )
         end_s = delay + n * period + tail
         if not math.isfinite(end_s) or end_s > 1e7:
             raise where(
@@ -162,6 +175,9 @@ def waveform_from_description(desc: dict, channel: Channel, where, path: tuple =
                 period_key,
             )
         level_si = float(channel.to_si(float(level), unit))
+        problem = channel.check_range(np.array([level_si]))
+        if problem:
+            raise where(problem, *path, key)
         wave = PulseTrain(level_si, period, float(duty), n, delay_s=delay, tail_s=tail)
         text = (
             f"pulse train {float(level):g} {unit}, period {period * 1e3:g} ms, duty "

@@ -61,6 +61,16 @@ from greybox._kalman import log_likelihood as log_likelihood
 from greybox._kalman import rts_smoother as rts_smoother
 from greybox._kalman import with_output_random_walks as with_output_random_walks
 from greybox._metrics import fit_percent as fit_percent
+from greybox._noise_models import L2 as L2
+from greybox._noise_models import ZOH as ZOH
+from greybox._noise_models import Adaptive as Adaptive
+from greybox._noise_models import ExtendedKalmanFilter as ExtendedKalmanFilter
+from greybox._noise_models import Huber as Huber
+from greybox._noise_models import InitialState as InitialState
+from greybox._noise_models import KalmanFilter as KalmanFilter
+from greybox._noise_models import OutputError as OutputError
+from greybox._noise_models import ProcessNoise as ProcessNoise
+from greybox._noise_models import StudentT as StudentT
 from greybox._metrics import fit_percent_per_output as fit_percent_per_output
 from greybox._metrics import mae as mae
 from greybox._metrics import r_squared as r_squared

@@ -62,7 +62,14 @@ FAILED_SOLVE_RESIDUAL = 1e3  # per residual, in units of sigma: far worse than a
 OUTLIER_SIGMAS = 5.0  # frames further than this from the fit are reported as outliers
 AUTO_STARTS = 4  # multi-start count when n_starts=None and more than two shared parameters
 SAME_COST = 1e-5  # relative cost difference within which two starts reached the same optimum
-STATUSES = ("converged", "local optimum", "at bound", "not converged", "diverged")
+STATUSES = (
+    "converged",
+    "local optimum",
+    "at bound",
+    "ran out of steps",
+    "not converged",
+    "diverged",
+)
 VALID_STATUSES = ("converged", "local optimum")
 
 
@@ -168,6 +175,41 @@ class FitResult:
     best_start: int
     n_starts_at_best: int
     horizon: str = "simulation"
+    noise: object = None  # the noise-model object (OutputError / ProcessNoise)
+    log_likelihood: float = float("nan")  # process noise: log L of the data (priors apart)
+    aic: float = float("nan")
+    bic: float = float("nan")
+    n_observations: int = 0  # readings scored (least squares: n_data)
+    predictions: dict = dataclasses.field(default_factory=dict)  # run -> {horizon: (N, q)}
+    prediction_sd: dict = dataclasses.field(default_factory=dict)  # run -> {horizon: (N, q)}
+    whiteness: dict = dataclasses.field(default_factory=dict)  # run -> (LjungBox per output)
+    runs: tuple = ()  # process noise: `RunDiagnostics` per estimation run
+
+    @property
+    def process_noise(self) -> bool:
+        """True for a process-noise (likelihood) fit."""
+        return getattr(self.noise, "name", "") == "process noise"
+
+    @property
+    def neg_log_likelihood(self) -> float:
+        return -float(self.log_likelihood)
+
+    @property
+    def likelihood(self) -> str:
+        """How the likelihood was computed (process noise), else ""."""
+        from greybox._sde_device import LIKELIHOOD
+
+        return LIKELIHOOD if self.process_noise else ""
+
+    @property
+    def filter_name(self) -> str:
+        if not self.process_noise:
+            return ""
+        return "extended Kalman filter" if self.model.use_ekf else "Kalman filter (exact)"
+
+    @property
+    def k_step(self) -> int:
+        return int(self.noise.k_step) if self.process_noise else 0
 
     @property
     def posterior(self) -> Posterior:
@@ -448,7 +490,181 @@ def _noise_source(experiments, sigma) -> str:
     return "declared" if sigma is not None else "estimated"
 
 
+_OLD_NOISE_KEYWORDS = ("loss", "huber_c", "student_nu", "sigma")
+_OLD_SIMULATION_KEYWORDS = ("method", "solver_rtol", "solver_atol", "solver_max_steps")
+
+
 def fit(
+    model,
+    experiments: Sequence[Experiment],
+    free: Sequence[FreeParameter],
+    *,
+    noise=None,
+    simulation=None,
+    n_starts: int | None = None,
+    seed: int = 0,
+    max_steps: int | None = None,
+    rtol: float = 1e-6,
+    atol: float = 1e-6,
+    start_values=None,
+    progress: Callable[[str], None] | None = None,
+    method: str | None = None,
+    loss: str | None = None,
+    huber_c: float | None = None,
+    student_nu: float | None = None,
+    sigma: float | Sequence[float] | None = None,
+    solver_rtol: float | None = None,
+    solver_atol: float | None = None,
+    solver_max_steps: int | None = None,
+) -> FitResult:
+    """Fit `free` parameters of `model` to the estimation `experiments`: the one fit.
+
+    **Main arguments:**
+    - `model`: device at its starting values; fields not in `free` stay fixed. With process
+      noise: a `StochasticDevice` (`stochastic_device(...)`) or a plain device (wrapped with
+      the structure of `noise`).
+    - `experiments`: runs to fit (their `role` is not consulted; pass estimation runs). Runs
+      that carry `Experiment.sigma` (known noise per frame) are weighted by it.
+    - `free`: `FreeParameter`s (shared or per-experiment, bounds, priors); with process noise
+      also noise paths (`noise_parameters`).
+    - `noise`: the noise model. `OutputError(loss, sigma)` (default: `OutputError()`, Huber
+      1.5, sigma estimated): least squares on the simulation (free-run) error.
+      `ProcessNoise(structure, filter, initial_state, ...)`: maximum likelihood through the
+      (extended) Kalman filter.
+    - `simulation`: `ZOH()` or `Adaptive(rtol, atol, max_steps)`; None: the device's default.
+
+    **Other arguments:**
+    - `n_starts`, `seed`: multi-start count and its seed; None starts `AUTO_STARTS` times when
+      more than two shared parameters are free, else once. Every start reuses one compiled
+      solver; `multistart_costs` reports them.
+    - `max_steps`: optimiser budget (None: 200 Levenberg-Marquardt steps for least squares,
+      `_likelihood.MAX_STEPS` damped-Newton steps for the likelihood); `rtol`, `atol`: least
+      squares tolerances (raw space).
+    - `start_values`: a hook ``(model, free, experiments) -> free`` setting data-based
+      starting values (e.g. camera offsets from rest readings), or a `DeviceSpec` whose
+      `start_values` hook is used; the command line applies the spec's hook the same way.
+    - `progress`: called with a short text line at each stage (the CLI prints it).
+    - Old string keywords (still accepted, mapped once to the objects): `method`, `loss`,
+      `huber_c`, `student_nu`, `sigma`, `solver_rtol`, `solver_atol`, `solver_max_steps`.
+
+    **Returns:** a `FitResult`. Its `status` and `valid` say whether the estimate is usable:
+    a fit that does not converge, ends on a bound or diverges says so; it never presents NaN
+    parameters as a success.
+    """
+    from greybox import _noise_models as nm
+
+    old = dict(
+        method=method,
+        loss=loss,
+        huber_c=huber_c,
+        student_nu=student_nu,
+        sigma=sigma,
+        solver_rtol=solver_rtol,
+        solver_atol=solver_atol,
+        solver_max_steps=solver_max_steps,
+    )
+    given = [k for k, v in old.items() if v is not None]
+    if noise is None:
+        noise = nm.OutputError(
+            nm.loss_from_string(
+                loss or "huber", 1.5 if huber_c is None else huber_c, student_nu or 4.0
+            ),
+            sigma,
+        )
+    else:
+        clash = [k for k in given if k in _OLD_NOISE_KEYWORDS]
+        if clash:
+            raise ValueError(
+                f"{clash[0]}: give it inside the noise object (OutputError(loss=..., "
+                "sigma=...)), not beside noise="
+            )
+    if isinstance(noise, nm.ProcessNoise):
+        refused = [k for k in given if k not in ()]
+        if refused or simulation is not None:
+            what = refused[0] if refused else "simulation"
+            raise ValueError(
+                f"{what}: applies to OutputError (least squares) only; a ProcessNoise fit "
+                "takes its filter, initial state and horizons from the ProcessNoise object"
+            )
+        from greybox._likelihood import fit_likelihood
+
+        return fit_likelihood(
+            model,
+            experiments,
+            free,
+            noise,
+            n_starts=n_starts,
+            seed=seed,
+            max_steps=max_steps,
+            start_values=start_values,
+            progress=progress,
+        )
+    if not isinstance(noise, nm.OutputError):
+        raise ValueError(
+            f"noise: {noise!r} is not a noise model; use greybox.OutputError(...) or "
+            "greybox.ProcessNoise(...)"
+        )
+    if simulation is not None:
+        clash = [k for k in given if k in _OLD_SIMULATION_KEYWORDS]
+        if clash:
+            raise ValueError(
+                f"{clash[0]}: give it inside the simulation object (ZOH() / Adaptive(...)), "
+                "not beside simulation="
+            )
+        if not isinstance(simulation, (nm.ZOH, nm.Adaptive)):
+            raise ValueError(
+                f"simulation: {simulation!r}: use greybox.ZOH() or greybox.Adaptive(...)"
+            )
+    else:
+        simulation = nm.simulation_from_string(
+            method,
+            1e-8 if solver_rtol is None else solver_rtol,
+            1e-10 if solver_atol is None else solver_atol,
+            16384 if solver_max_steps is None else solver_max_steps,
+        )
+    solver = (
+        dict(
+            solver_rtol=simulation.rtol,
+            solver_atol=simulation.atol,
+            solver_max_steps=simulation.max_steps,
+        )
+        if isinstance(simulation, nm.Adaptive)
+        else dict(
+            solver_rtol=1e-8 if solver_rtol is None else solver_rtol,
+            solver_atol=1e-10 if solver_atol is None else solver_atol,
+            solver_max_steps=16384 if solver_max_steps is None else solver_max_steps,
+        )
+    )
+    free = apply_start_values(start_values, model, free, experiments)
+    result = _fit_least_squares(
+        model,
+        experiments,
+        free,
+        method=None if simulation is None else simulation.name,
+        loss=noise.loss.name,
+        huber_c=getattr(noise.loss, "c", 1.5),
+        student_nu=getattr(noise.loss, "nu", 4.0),
+        sigma=noise.sigma,
+        n_starts=n_starts,
+        seed=seed,
+        max_steps=200 if max_steps is None else max_steps,
+        rtol=rtol,
+        atol=atol,
+        progress=progress,
+        **solver,
+    )
+    return dataclasses.replace(result, noise=noise)
+
+
+def apply_start_values(start_values, model, free, experiments) -> tuple:
+    """`free` after the data-based start-value hook (a callable or a `DeviceSpec`'s)."""
+    hook = getattr(start_values, "start_values", start_values)
+    if hook is None:
+        return tuple(free)
+    return tuple(hook(model, tuple(free), tuple(experiments)))
+
+
+def _fit_least_squares(
     model,
     experiments: Sequence[Experiment],
     free: Sequence[FreeParameter],
@@ -468,7 +684,7 @@ def fit(
     solver_max_steps: int = 16384,
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
-    """Fit `free` parameters of `model` to the estimation `experiments` (free-run simulation error).
+    """The least-squares back end of `fit` (free-run simulation error).
 
     **Main arguments:**
     - `model`: device at its starting values; fields not in `free` stay fixed.
@@ -751,6 +967,8 @@ def _assemble(
         goodness_of_fit=gof,
         best_start=int(best_index),
         n_starts_at_best=len(at_best),
+        n_observations=problem.n_data,
+        predictions={e.name: {"simulation": zi} for e, zi in zip(experiments, preds)},
     )
 
 

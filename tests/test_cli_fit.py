@@ -63,7 +63,9 @@ def truth():
 
 
 def test_params_json_schema(params):
-    assert params["schema"] == "greybox.params/2"
+    assert params["schema"] == "greybox.params/3"
+    assert params["noise_model"]["kind"] == "output error"
+    assert params["noise_model"]["horizons"] == ["simulation"]
     assert params["device"]["name"] == "chevron_laser"
     assert params["device"]["options"]["kinematics"] == "exact"
     options = greybox.get_device("chevron_laser").options
@@ -226,7 +228,7 @@ def test_prior_dominated_parameter_is_reported(tmp_path):
 
     jax.config.update("jax_enable_x64", True)
     from greybox._fit import fit
-    from greybox.cli._fit import render_report
+    from greybox.io._results import report_text
     from greybox.io import load_experiment_set
 
     folder = tmp_path / "prior"
@@ -246,7 +248,7 @@ def test_prior_dominated_parameter_is_reported(tmp_path):
     verdicts = {p.name: p.verdict for p in res.parameters}
     assert verdicts["thermal.resistance_K_per_W"] == "prior-dominated"
     assert verdicts["thermal.tau_s"] == "identifiable"
-    report = render_report(fs, res, None, [])
+    report = report_text(fs, res, None, [])
     assert "| `thermal.resistance_K_per_W` |" in report and "prior-dominated" in report
     ident = report.split("## Identifiability")[1]
     assert "`absorptance` x `thermal.resistance_K_per_W`" in ident

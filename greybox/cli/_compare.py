@@ -184,7 +184,8 @@ def run(args) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from greybox.cli._fit import Progress, usual_permissions
+    from greybox.cli._common import Progress
+    from greybox.io._results import usual_permissions
     from greybox.io._atomic import atomic_output_dir, check_output_dir
 
     say = Progress(args.quiet)

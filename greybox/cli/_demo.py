@@ -95,7 +95,7 @@ def run(args) -> int:
     import jax
 
     from greybox._errors import InputError
-    from greybox.cli._fit import Progress, fit_experiment_dir, fit_lines
+    from greybox.cli._common import Progress, fit_experiment_dir, fit_lines
 
     jax.config.update("jax_enable_x64", True)
     say = Progress(args.quiet)

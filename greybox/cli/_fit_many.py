@@ -149,13 +149,10 @@ def fit_devices(loaded, args, say):
 
 
 def write_device(folder: Path, fs, result, validation, figures: bool) -> None:
-    from greybox.cli._fit import render_report, write_figures
-    from greybox.io._params_file import params_document, write_params
+    from greybox.io._results import write_fit_files
 
     folder.mkdir(parents=True)
-    names = write_figures(folder, fs, result, validation) if figures else []
-    write_params(folder / "params.json", params_document(fs, result, validation))
-    (folder / "report.md").write_text(render_report(fs, result, validation, names))
+    write_fit_files(folder, fs, result, validation, figures=figures, tables=False)
 
 
 def batch_csv(rows) -> str:
@@ -288,7 +285,8 @@ def run(args) -> int:
 
     jax.config.update("jax_enable_x64", True)
     from greybox._errors import InputError
-    from greybox.cli._fit import Progress, usual_permissions
+    from greybox.cli._common import Progress
+    from greybox.io._results import usual_permissions
     from greybox.io._atomic import atomic_output_dir, check_output_dir
 
     say = Progress(args.quiet)

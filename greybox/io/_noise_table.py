@@ -380,9 +380,22 @@ def noise_paths(noise: NoiseTable, model, spec) -> list[str]:
     return [p.path for p in noise_parameters(_stochastic(noise, model, spec))]
 
 
+def initial_state(noise: NoiseTable):
+    """The engine's `InitialState` of `noise.initial_state`."""
+    from greybox._noise_models import InitialState
+
+    if noise.initial_state == "known":
+        return InitialState()
+    if noise.initial_state == "diffuse":
+        return InitialState(diffuse=True)
+    return InitialState(sd=noise.initial_state)
+
+
 def noise_model(noise: NoiseTable, model, spec):
-    """(stochastic model with the fixed noise values set, fitted noise `FreeParameter`s with
-    their starting values and priors): what the likelihood fit takes beside the physics."""
+    """(stochastic model with the fixed noise values set, `ProcessNoise`, the fitted noise
+    `FreeParameter`s with their starting values and priors): what the likelihood fit takes
+    beside the device's own free parameters."""
+    from greybox._noise_models import ProcessNoise
     from greybox._parameters import set_values
     from greybox._sde_device import noise_parameters
 
@@ -397,4 +410,7 @@ def noise_model(noise: NoiseTable, model, spec):
         if p.path in noise.priors:
             kw["prior_median"], kw["prior_log_sd"] = noise.priors[p.path]
         out.append(dataclasses.replace(p, **kw))
-    return sd, out
+    config = ProcessNoise(
+        structure=sd.structure, initial_state=initial_state(noise), k_step=noise.k_step
+    )
+    return sd, config, out

@@ -319,3 +319,254 @@ def write_figures(folder: Path, fs, runs, sigma, fit_percent, *, result=None) ->
         )
         names += ["figures/residual_tests.png", "figures/correlation.png"]
     return names
+
+
+# --------------------------------------------------------------------------------------------
+# From the fit's results to the runs of the result folder
+
+
+def _is_process(result) -> bool:
+    return getattr(getattr(result, "noise", None), "name", "") == "process noise"
+
+
+def horizon_labels(result) -> dict:
+    """{the fit's horizon key: the label the result folder uses}."""
+    k = getattr(result, "k_step", None) or getattr(getattr(result, "noise", None), "k_step", 10)
+    return {"simulation": SIMULATION, "one-step": ONE_STEP, "k-step": f"{k}-step prediction"}
+
+
+def _band_halfwidths(model, result, e):
+    """(lower, upper) distances (N, n_y) [SI] of the simulation's 95 % confidence band from
+    the response, from the shared parameters' covariance (delta method); None when it cannot
+    be had."""
+    from greybox._prediction import prediction_band
+
+    try:
+        band = prediction_band(
+            model,
+            result.free,
+            result.raw,
+            result.covariance_raw,
+            e.inputs,
+            e.t_s,
+            method=result.method,
+            t_start_s=e.t_start_s,
+        )
+    except (ValueError, FloatingPointError):
+        return None
+    y, lo, hi = (np.asarray(a).reshape(e.n_frames, -1) for a in (band.y, band.lower, band.upper))
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        return None
+    return y - lo, hi - y
+
+
+def _whiteness_doc(whiteness, outputs) -> dict:
+    from greybox.io._params_file import _num
+
+    return {
+        c: {
+            "test": "Ljung-Box",
+            "statistic": _num(w.statistic),
+            "p_value": _num(w.p_value),
+            "lags": w.lags,
+            "white": bool(w.p_value > 0.01),
+        }
+        for c, w in zip(outputs, whiteness)
+    }
+
+
+def diagnostics_doc(run, outputs) -> dict:
+    """A process-noise run's diagnostics (`RunDiagnostics`): log-likelihood, innovations'
+    whiteness, fit % per horizon."""
+    from greybox.io._params_file import _num
+
+    return {
+        "role": run.role,
+        "log_likelihood": _num(run.log_likelihood),
+        "whiteness": _whiteness_doc(run.whiteness, outputs),
+        "fit_percent": {
+            label: {c: _num(v) for c, v in zip(outputs, pct)} for label, _, pct in run.horizons
+        },
+        "k_step": run.k_step,
+    }
+
+
+def _refitted(validation, name) -> dict | None:
+    from greybox.io._params_file import _num
+
+    params = getattr(validation, "parameters", None)
+    if params is None:
+        return None
+    return {
+        p.path: {"value": _num(p.value), "se": _num(p.se), "unit": p.unit}
+        for p in params
+        if p.experiment == name
+    }
+
+
+def run_outputs(fs, result, validation) -> list:
+    """A `RunOutput` per estimation and validation run, from what the fit and the validation
+    computed (estimation runs with their fitted per-run values, validation runs as
+    validated)."""
+    outputs = [c.name for c in fs.spec.outputs]
+    out = []
+    if _is_process(result):
+        labels = horizon_labels(result)
+        diag = {r.name: r for r in getattr(result, "runs", ())}
+        for e in result.experiments:
+            pred = result.predictions[e.name]
+            horizons = {labels[k]: np.asarray(z).reshape(e.n_frames, -1) for k, z in pred.items()}
+            sds = (getattr(result, "prediction_sd", None) or {}).get(e.name, {})
+            sd = {labels[k]: np.asarray(v).reshape(e.n_frames, -1) for k, v in sds.items()}
+            extra = diagnostics_doc(diag[e.name], outputs) if e.name in diag else {}
+            out.append(RunOutput("estimation", e, horizons, None, sd, extra))
+        if validation is not None:
+            by_name = {e.name: e for e in fs.validation}
+            for r in validation.runs:
+                e = by_name[r.name]
+                horizons = {label: np.asarray(z).reshape(e.n_frames, -1) for label, z, _ in r.horizons}
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    sd1 = (e.y - np.asarray(r.y_one_step).reshape(e.y.shape)) / np.asarray(
+                        r.standardised_innovation
+                    ).reshape(e.y.shape)
+                extra = diagnostics_doc(r, outputs)
+                extra["refitted"] = _refitted(validation, e.name)
+                out.append(RunOutput("validation", e, horizons, None, {ONE_STEP: np.abs(sd1)}, extra))
+        return out
+    for i, e in enumerate(result.experiments):
+        z = np.asarray(result.predict(i)).reshape(e.n_frames, -1)
+        band = _band_halfwidths(result.experiment_models[i], result, e)
+        out.append(RunOutput("estimation", e, {SIMULATION: z}, band))
+    if validation is not None:
+        for e, z in zip(validation.experiments, validation.predictions):
+            z = np.asarray(z).reshape(e.n_frames, -1)
+            # the band of the shared physics, around the validated response (per-run values
+            # re-fitted on the run shift it, they do not widen it here)
+            band = _band_halfwidths(e.apply_settings(result.model), result, e)
+            extra = {"refitted": _refitted(validation, e.name)}
+            out.append(RunOutput("validation", e, {SIMULATION: z}, band, {}, extra))
+    return out
+
+
+def check_finite_result(fs, result) -> None:
+    """Refuse a fit whose values or model response are not finite (nothing is written)."""
+    from greybox._errors import InputError
+
+    bad = [p.name for p in result.parameters if not np.isfinite(p.value)]
+    if not bad:
+        for i, e in enumerate(result.experiments):
+            if not np.all(np.isfinite(np.asarray(result.predict(i)))):
+                bad = [f"the model response of run {e.name}"]
+                break
+    if bad:
+        raise InputError(
+            f"the fit produced non-finite values ({', '.join(bad)}); nothing was written. "
+            "Check the [experiment] settings and the free parameters' bounds and initial "
+            "values (a start far from the data can overflow the model)",
+            file=str(Path(fs.directory) / "experiment.toml"),
+            field="fit",
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class WrittenFit:
+    """What `write_fit_result` wrote: params.json's content, the metrics, the runs."""
+
+    out: Path
+    document: dict
+    metrics: dict
+    runs: tuple
+    figures: tuple
+
+
+def _simulation_scale(runs, n_y) -> np.ndarray:
+    """Per output, the RMS of the simulation residuals of the estimation runs: the scale the
+    simulation residuals of a process-noise fit are marked against (not the measurement sd)."""
+    r = [run.experiment.y - run.simulation for run in runs if run.role == "estimation"]
+    if not r:
+        return np.full(n_y, np.nan)
+    r = np.concatenate(r)
+    return np.sqrt(np.nanmean(r**2, axis=0))
+
+
+def write_fit_files(
+    folder: Path, fs, result, validation, *, figures: bool = True, tables: bool = True
+) -> WrittenFit:
+    """Write a fit's files into the existing `folder`: params.json and report.md, with
+    `figures` figures/, with `tables` predictions/, metrics.csv and validation_runs.json."""
+    from greybox.io._params_file import params_document, write_params
+
+    folder = Path(folder)
+    check_finite_result(fs, result)
+    document = params_document(fs, result, validation)
+    # the unit each output had in the run files, so `greybox simulate` answers in it
+    document.setdefault(
+        "file_units", {c.name: u for c, (u, _) in zip(fs.spec.outputs, output_units(fs))}
+    )
+    runs = run_outputs(fs, result, validation)
+    metrics = metrics_table(fs, runs)
+    process = _is_process(result)
+    if process:
+        sigma = _simulation_scale(runs, len(fs.spec.outputs))
+        fit_percent = {r.name: np.atleast_1d(metrics_fit(metrics, r.name)) for r in runs}
+    else:
+        sigma = result.sigma
+        fit_percent = dict(result.fit_percent)
+        if validation is not None:
+            fit_percent.update(validation.fit_percent)
+    names = []
+    if figures:
+        names = write_figures(
+            folder, fs, runs, sigma, fit_percent, result=None if process else result
+        )
+    write_params(folder / "params.json", document)
+    (folder / "report.md").write_text(report_text(fs, result, validation, names, metrics))
+    if tables:
+        per_run = {p.path for p in result.free if p.per_experiment}
+        write_predictions(folder, fs, runs)
+        write_metrics(folder / "metrics.csv", metrics)
+        write_validation_runs(folder / "validation_runs.json", fs, runs, per_run)
+    return WrittenFit(folder, document, metrics, tuple(runs), tuple(names))
+
+
+def report_text(fs, result, validation, figures=(), metrics=None) -> str:
+    """report.md of a fit of the folder `fs` (`metrics`: `metrics_table`, computed when
+    None)."""
+    from greybox._report import fit_report
+
+    if metrics is None:
+        metrics = metrics_table(fs, run_outputs(fs, result, validation))
+    notes = {p.path: p.identifiability for p in fs.spec.parameter_table(fs.options)}
+    source = " ".join(filter(None, [fs.description, f"Data: `{fs.directory}`."]))
+    return fit_report(
+        result,
+        validation,
+        title=fs.name,
+        device_name=fs.device_name,
+        runs=fs.runs,
+        parameter_notes=notes,
+        figures=figures,
+        source=source,
+        output_unit=fs.spec.outputs[0].si_unit,
+        outputs=tuple(c.name for c in fs.spec.outputs),
+        metrics=metric_rows(metrics),
+        noise_table=fs.noise,
+    )
+
+
+def write_fit_result(out, fs, result, validation, *, force: bool = False) -> WrittenFit:
+    """The result folder of a fit, written atomically (it appears complete or not at all):
+    params.json, report.md, predictions/, metrics.csv, validation_runs.json, figures/."""
+    from greybox.io._atomic import atomic_output_dir
+
+    check_finite_result(fs, result)  # before the folder is touched
+    with atomic_output_dir(out, kind="fit", force=force) as tmp:
+        usual_permissions(tmp)
+        written = write_fit_files(tmp, fs, result, validation)
+    return dataclasses.replace(written, out=Path(out))
+
+
+def metrics_fit(metrics: dict, run: str) -> list:
+    """Simulation fit % per output of `run` (NaN where undefined)."""
+    per = metrics["runs"][run]["outputs"]
+    return [np.nan if m["fit_percent"] is None else m["fit_percent"] for m in per.values()]

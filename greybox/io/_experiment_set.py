@@ -1159,7 +1159,9 @@ def _fit_settings(doc: TomlDocument, data: dict, model, entry, index) -> tuple:
                 raise doc.error(
                     f'does not apply with noise_model = "process": {why}', *where_of[key], key
                 )
-        fit_options = {k: given.get(k, _FIT_DEFAULTS[k]) for k in ("n_starts", "seed", "max_steps")}
+        # max_steps absent: the likelihood back end's own budget (damped Newton steps)
+        fit_options = {k: given.get(k, _FIT_DEFAULTS[k]) for k in ("n_starts", "seed")}
+        fit_options["max_steps"] = given.get("max_steps")
     else:
         fit_options = {**_FIT_DEFAULTS, **given}
         fit_options["method"] = check_method(model, given.get("method"))

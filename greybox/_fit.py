@@ -222,6 +222,7 @@ class FitResult:
             self.identifiability.null_directions,
             self.sigma,
             self.method,
+            self.noise,
         )
 
     @property
@@ -802,7 +803,18 @@ def _fit_least_squares(
         steps += int(best["steps"])
 
     return _assemble(
-        problem, best, sig, steps, runs, best_index, raw0, experiments, free, source, say
+        problem,
+        best,
+        sig,
+        steps,
+        runs,
+        best_index,
+        raw0,
+        experiments,
+        free,
+        source,
+        say,
+        int(max_steps),
     )
 
 
@@ -863,7 +875,7 @@ def _scores(
 
 
 def _assemble(
-    problem, best, sig, steps, runs, best_index, raw0, experiments, free, source, say
+    problem, best, sig, steps, runs, best_index, raw0, experiments, free, source, say, max_steps
 ) -> FitResult:
     raw, cost, ok = np.asarray(best["raw"]), float(best["cost"]), bool(best["ok"])
     raw_j = jnp.asarray(raw)
@@ -931,6 +943,8 @@ def _assemble(
         costs=[float(r["cost"]) for r in runs],
         best_index=best_index,
         unidentified=unidentified,
+        ran_out=int(best["steps"]) >= max_steps,
+        start_converged=[bool(r["ok"]) for r in runs],
     )
     converged = bool(ok and finite and np.all(solved))
     return FitResult(
@@ -991,6 +1005,10 @@ def fit_status(
     costs,
     best_index: int,
     unidentified=(),
+    ran_out: bool = False,
+    reason: str | None = None,
+    start_converged=None,
+    optimiser: str = "Levenberg-Marquardt",
 ) -> tuple[str, str, list]:
     """(status, message, indices of the starts that reached the lowest cost) of a fit.
 
@@ -998,8 +1016,13 @@ def fit_status(
     failed, or the optimiser stopped short while no parameter sits on a bound), "at bound"
     (`pinned`: (name, "lower"/"upper", bound value) per parameter on a bound; an optimiser
     chasing a bound often stops short, and the bound is then the cause), "local optimum"
-    (start 0, the given values, stopped above the lowest cost of `costs` by more than
-    SAME_COST relative; the best start is `best_index`), else "converged".
+    (start 0, the given values, converged at a cost above the lowest cost of `costs` by more
+    than SAME_COST relative; the best start is `best_index`), else "converged".
+
+    The one place that derives the status, for both back ends. When the optimiser stopped
+    short: "ran out of steps" (`ran_out`: the step budget was spent) or "not converged"
+    (with `reason` in words when known). `start_converged`: per start, whether it met its
+    tolerances (a start that ran out of steps at a higher cost is not a local optimum).
     """
     costs = [float(c) for c in costs]
     best = costs[best_index] if costs else float("nan")
@@ -1031,14 +1054,27 @@ def fit_status(
             message += " (the optimiser also stopped short, as it does chasing a bound)"
         return "at bound", message + _unidentified_note(unidentified), at_best
     if not optimiser_ok:
+        if ran_out:
+            return (
+                "ran out of steps",
+                f"ran out of steps: {optimiser} spent its step budget `max_steps` before "
+                "meeting its tolerances; raise max_steps or start closer; treat the "
+                "estimates as unconverged" + _unidentified_note(unidentified),
+                at_best,
+            )
         return (
             "not converged",
-            "Levenberg-Marquardt stopped without meeting its tolerances (its step budget "
-            "`max_steps`, or stalled); treat the estimates as unconverged"
+            (
+                f"not converged: {reason}"
+                if reason
+                else f"{optimiser} stopped without meeting its tolerances (stalled); treat "
+                "the estimates as unconverged"
+            )
             + _unidentified_note(unidentified),
             at_best,
         )
-    if 0 not in at_best:
+    start0_converged = True if start_converged is None else bool(start_converged[0])
+    if 0 not in at_best and start0_converged:
         status = "local optimum"
         message = (
             f"local optimum: the starting values stopped at cost {costs[0]:.6g}; start "
@@ -1047,7 +1083,12 @@ def fit_status(
         )
     else:
         status, message = "converged", "converged"
-        if len(costs) > 1 and len(at_best) < len(costs):
+        if 0 not in at_best:
+            message += (
+                f" (the starting values ran out of steps at cost {costs[0]:.6g}; start "
+                f"{best_index + 1} converged at the lowest cost {best:.6g}, reported)"
+            )
+        elif len(costs) > 1 and len(at_best) < len(costs):
             message += (
                 f" ({len(at_best)} of {len(costs)} starts reached the lowest cost; the "
                 "others stopped in local optima)"
@@ -1100,7 +1141,7 @@ def parameter_estimates(
         value = float(p.to_value(raw[k]))
         verdict = report.verdicts[k]
         deriv = abs(p.value_derivative(raw[k]))
-        blank = verdict in ("not identifiable", "at bound")
+        blank = verdict in ("not identifiable", "at bound", "not needed")
         se_gn = float("nan") if blank else deriv * sd_gn[k]
         se_hac = float("nan") if blank else deriv * sd_hac[k]
         if blank or not np.isfinite(sd_head[k]):
@@ -1126,7 +1167,7 @@ def parameter_estimates(
                 se_gauss_newton=float(se_gn),
                 se_hac=float(se_hac),
                 se_method=headline,
-                bound=bounds[k],
+                bound=bounds[k] if bounds[k] in ("lower", "upper") else None,
             )
         )
     return tuple(out)
@@ -1166,6 +1207,7 @@ class ValidationResult:
     goodness_of_fit: GoodnessOfFit | None = None
     horizon: str = "simulation"
     parameters: tuple = ()
+    runs: tuple = ()  # process noise: `RunDiagnostics` per run (innovations, every horizon)
 
     def refitted(self, run: str) -> dict:
         """{path: ParameterEstimate} re-fitted on validation run `run`."""
@@ -1175,11 +1217,21 @@ class ValidationResult:
 def validate(
     result: FitResult, experiments: Sequence[Experiment], **fit_kwargs
 ) -> ValidationResult:
-    """Score fitted physics on new runs: re-fit only per-experiment parameters, then simulate."""
+    """Score fitted physics on new runs: re-fit only per-experiment parameters, then simulate
+    (process noise: also filter, scoring the innovations and every horizon in `runs`)."""
     per_exp = [p for p in result.free if p.per_experiment]
     experiments = tuple(experiments)
     if not experiments:
         raise ValueError("experiments: no validation runs given")
+    if result.process_noise:
+        from greybox._likelihood import validate_runs
+
+        pairs = validate_runs(result, experiments)
+        diags = tuple(d for d, _ in pairs)
+        preds = [d.y_simulation for d in diags]
+        scores = _validation_scores(experiments, preds, result.sigma, False, 0)
+        refit = tuple(p for _, ps in pairs for p in ps)
+        return dataclasses.replace(scores, parameters=refit, runs=diags)
     known = result.noise_known
     if not per_exp:
         from greybox._simulate import simulate

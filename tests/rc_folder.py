@@ -71,3 +71,31 @@ waveform = {{ type = "logged" }}
 """
     (folder / "experiment.toml").write_text(toml)
     return folder
+
+
+CANDIDATES = """\
+[[candidates]]
+name = "one state"
+model = { nodes = 1 }
+noise = { process = { air = [0] } }
+
+[[candidates]]
+name = "two states"
+model = { nodes = 2 }
+nests = ["one state"]
+noise = { process = { air = [0], envelope = [1] } }
+
+[[candidates]]
+name = "three states"
+model = { nodes = 3 }
+nests = ["two states"]
+noise = { process = { air = [0], envelope = [1], heater = [2] } }
+"""
+
+
+def write_candidates_folder(root: Path, data: dict, candidates: str = CANDIDATES, name="cands"):
+    """The air temperature alone (CTSM-R's classic case) with one-, two- and three-state
+    candidates, each with its own noise table."""
+    return write_folder(
+        root, data, spec="SPEC_AIR", outputs=("Ti",), noise="", extra=candidates, name=name
+    )

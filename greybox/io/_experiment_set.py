@@ -50,7 +50,7 @@ _TOP_KEYS = {"experiment", "model", "camera", "fit", "runs", "columns", "data", 
 _TOP_KEYS |= {"noise"}  # [noise]: the process-noise structure (greybox/io/_noise_table.py)
 # a candidate carries a whole structure: options, free list (with bounds and priors), known
 # values (settings over [experiment] settings), [fit] settings over [fit], its own [noise]
-_CANDIDATE_KEYS = {"name", "model", "free", "settings", "fit", "noise"}
+_CANDIDATE_KEYS = {"name", "model", "free", "settings", "fit", "noise", "nests"}
 # how a run's file is read and its clock and inputs interpreted: [data] for every run, or
 # the same keys in a [[runs]] table for that run (a run's `columns` mapping is merged
 # over [columns] key by key)
@@ -1037,6 +1037,12 @@ def _candidate(doc: TomlDocument, data: dict, index: int) -> dict:
 
 def candidate_names(directory) -> list[str]:
     """Names of the ``[[candidates]]`` structures of an experiment folder (loader-checked)."""
+    return list(candidate_nests(directory))
+
+
+def candidate_nests(directory) -> dict:
+    """{name: names of the candidates it declares nested in it (``nests = [...]``)} of every
+    ``[[candidates]]`` entry, in file order (names unique, `nests` naming other candidates)."""
     doc = TomlDocument(Path(directory) / TOML_NAME)
     entries = doc.data.get("candidates")
     if not isinstance(entries, list) or not entries:
@@ -1047,7 +1053,21 @@ def candidate_names(directory) -> list[str]:
         names.append(entries[i]["name"])
     if len(set(names)) != len(names):
         raise doc.error(f"candidate names repeat ({names}); name each once", "candidates")
-    return names
+    out = {}
+    for i, name in enumerate(names):
+        nests = entries[i].get("nests", [])
+        where = ("candidates", i, "nests")
+        if not isinstance(nests, list) or not all(isinstance(n, str) for n in nests):
+            raise doc.error("give a list of candidate names, e.g. [\"one node\"]", *where)
+        for n in nests:
+            if n == name or n not in names:
+                raise doc.error(
+                    f"{n!r} is not another candidate; the candidates are: "
+                    + ", ".join(repr(m) for m in names if m != name),
+                    *where,
+                )
+        out[name] = tuple(nests)
+    return out
 
 
 _NO_CAMERA = ("fps", "exposure_s", "m_per_px", "noise_m")

@@ -1240,11 +1240,11 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
         _raise_collected(errors)
     spec = device.spec
     model_table = _attempt(errors, doc.table, data, "model", required=False, fallback={})
-    entry = None
+    chosen = None
     if candidate is not None:
-        entry = _attempt(errors, _candidate, doc, data, candidate)
-        if entry is not None:
-            model_table = {**model_table, **(entry.get("model") or {})}
+        chosen = _attempt(errors, _candidate, doc, data, candidate)
+        if chosen is not None:
+            model_table = {**model_table, **(chosen.get("model") or {})}
     options = _attempt(errors, _options, doc, spec, model_table)
     if options is None:  # check the rest against the device's default structure
         options = spec.resolve_options({})
@@ -1265,18 +1265,18 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
     )
     ranges = {p.path: p for p in spec.parameter_table(options)}
     _attempt(errors, _check_ranges, doc, ranges, fixed, "experiment", "settings")
-    if entry is not None and isinstance(entry.get("settings"), dict):  # its known values
+    if chosen is not None and isinstance(chosen.get("settings"), dict):  # its known values
         where = ("candidates", candidate, "settings")
-        own = _attempt(errors, _settings, doc, entry["settings"], base, *where, fallback={})
+        own = _attempt(errors, _settings, doc, chosen["settings"], base, *where, fallback={})
         _attempt(errors, _check_ranges, doc, ranges, own, *where)
         fixed = {**fixed, **own}
     model = configure_model(spec, options, camera, fixed)
-    settings = _attempt(errors, _fit_settings, doc, data, model, entry, candidate)
+    settings = _attempt(errors, _fit_settings, doc, data, model, chosen, candidate)
     fit_options, noise_model, noise_table, noise_where = settings or ({}, "none", {}, ())
     fitopt = data.get("fit") if isinstance(data.get("fit"), dict) else {}
     free_entries, free_where = fitopt.get("free"), ("fit", "free")
-    if entry is not None and "free" in entry:
-        free_entries, free_where = entry["free"], ("candidates", candidate, "free")
+    if chosen is not None and "free" in chosen:
+        free_entries, free_where = chosen["free"], ("candidates", candidate, "free")
     free = _attempt(
         errors, _free_parameters, doc, free_entries, spec, options, model, fixed, free_where
     )
@@ -1373,7 +1373,7 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
         free=free,
         fit_options=fit_options,
         noise=noise,
-        candidate=None if entry is None else entry["name"],
+        candidate=None if chosen is None else chosen["name"],
     )
 
 

@@ -455,7 +455,12 @@ def check_finite_result(fs, result) -> None:
     bad = [p.name for p in result.parameters if not np.isfinite(p.value)]
     if not bad:
         for i, e in enumerate(result.experiments):
-            if not np.all(np.isfinite(np.asarray(result.predict(i)))):
+            z = (
+                result.predictions[e.name]["simulation"]
+                if _is_process(result)
+                else result.predict(i)
+            )
+            if not np.all(np.isfinite(np.asarray(z))):
                 bad = [f"the model response of run {e.name}"]
                 break
     if bad:

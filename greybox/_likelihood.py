@@ -7,15 +7,16 @@ a stochastic device through the continuous-discrete (extended) Kalman filter.
   and per-run estimates; covariance diag(sd^2); with a known initial state (sd 0, the
   default) the first frame of each run is conditioned on, not scored, so reading the initial
   state off the first reading cannot make the likelihood unbounded.
-- Optimiser: a damped Newton method on the exact Hessian (forward-over-reverse AD through the
-  filter), compiled as one `lax.while_loop` (no host loop per step): each step solves
-  (|H| + lambda |H|_max I) p = -g on the eigen-decomposition of H (negative curvature
-  mirrored, so a saddle is left, not approached), capped at `MAX_RAW_STEP` raw units, with
-  lambda adapted by the ratio of actual to predicted decrease (a trust region). It stops when
-  the Newton decrement g^T |H|^-1 g (twice the log-likelihood still to gain) is below
-  `DECREMENT_TOL`. Raw coordinates are log / logit for bounded parameters, so physical and
-  noise parameters of very different magnitudes are steps of the same size. Every start of a
-  multi-start reuses the one compiled solver.
+- Optimiser, compiled as one program of two `lax.while_loop`s (no host loop per step):
+  BFGS on the exact reverse-mode gradient with a backtracking line search, then Newton steps
+  on the Hessian (central differences of that gradient, negative curvature mirrored so a
+  saddle is left, not approached) until the Newton decrement g^T |H|^-1 g (twice the
+  log-likelihood still to gain) is below `DECREMENT_TOL`. Steps are capped at `MAX_RAW_STEP`
+  raw units. Raw coordinates are log / logit for bounded parameters, so physical and noise
+  parameters of very different magnitudes are steps of the same size. Every start of a
+  multi-start reuses the one compiled solver. (A forward-over-reverse AD Hessian through the
+  filter's scan measured 18x the cost of a gradient and 3x its compile time on the RC3
+  test; the differences of the gradient cost 2 P gradients and compile nothing new.)
 - Covariance: the inverse Hessian of -log L + priors at the optimum (determined subspace,
   `greybox._identifiability`); the status is "not converged" with the combination named when
   the Hessian is not positive definite there.
@@ -56,7 +57,6 @@ from greybox._simulate import as_arrays, require_x64
 MAX_STEPS = 500  # damped Newton steps per start
 DECREMENT_TOL = 1e-9  # Newton decrement (log-likelihood units x 2) at which a start has converged
 MAX_RAW_STEP = 2.0  # largest raw step per iteration (a factor e^2 on a log parameter)
-LAMBDA_MAX = 1e10  # damping beyond which no step decreases -log L: the search has stalled
 NOT_NEEDED_DROP = 1e-2  # a noise intensity below this fraction of its start ...
 NOT_NEEDED_CURVATURE = 0.1  # ... with less raw curvature than this (log-sd > 3) is "not needed"
 COLLAPSE_DROP = 1e-3  # a measurement sd below this fraction of its data-based start collapsed
@@ -160,59 +160,118 @@ def _eig_parts(H):
     return w, V, jnp.maximum(jnp.abs(w), 1e-12 * scale), scale
 
 
+_FD_STEP = 1e-4  # raw step of the central differences of the exact gradient (Hessian)
+
+
+def _fd_hessian(grad, raw):
+    """Hessian by central differences of the exact (reverse-mode) gradient: 2 P gradient
+    calls through `lax.map`, so no second derivative of the filter is compiled. A raw step of
+    1e-4 makes it accurate to ~1e-8 relative (4.7e-9 against forward-over-forward AD on the
+    TCLab case, `benchmarks/kalman.py --coverage-device`), far below what standard errors
+    need."""
+    n = raw.shape[0]
+    steps = jnp.concatenate([jnp.eye(n), -jnp.eye(n)]) * _FD_STEP
+    g = jax.lax.map(lambda d: grad(raw + d), steps)
+    H = (g[:n] - g[n:]).T / (2 * _FD_STEP)
+    return 0.5 * (H + H.T)
+
+
+def _backtrack(f, raw, v, slope, p):
+    """Largest a in 1, 1/2, 1/4, ... (30 tries) with f(raw + a p) <= v + 1e-4 a slope."""
+
+    def cond(s):
+        a, v_new, k = s
+        ok = jnp.isfinite(v_new) & (v_new <= v + 1e-4 * a * slope)
+        return (~ok) & (k < 30)
+
+    def body(s):
+        a, _, k = s
+        a = a * 0.5
+        return a, f(raw + a * p), k + 1
+
+    a, v_new, k = jax.lax.while_loop(cond, body, (jnp.ones_like(v), f(raw + p), 0))
+    ok = jnp.isfinite(v_new) & (v_new <= v + 1e-4 * a * slope)
+    return a, v_new, ok
+
+
+def _cap(p):
+    return p * jnp.minimum(1.0, MAX_RAW_STEP / jnp.maximum(jnp.max(jnp.abs(p)), 1e-300))
+
+
 @eqx.filter_jit
 def _newton(obj: _Objective, raw0, max_steps):
-    """Damped Newton from `raw0` (see the module docstring); one compiled program for every
-    start. Returns a dict: raw, cost, gradient, Hessian (total), data Hessian, steps,
-    converged (decrement met), ran_out (step budget spent), stalled (no decreasing step)."""
+    """Maximise the likelihood from `raw0`; one compiled program for every start.
+
+    BFGS (backtracking Armijo line search, steps capped at `MAX_RAW_STEP` raw units) until its
+    own estimate of the Newton decrement is below `DECREMENT_TOL`, then Newton steps on the
+    Hessian (central differences of the exact gradient, negative curvature mirrored) until the
+    Newton decrement g^T |H|^-1 g is below `DECREMENT_TOL`; the Hessian at the end point is
+    returned for the covariance. `max_steps` bounds each phase. Returns a dict: raw, cost,
+    data_nll, gradient, hessian (total), prior_hessian, steps, converged, ran_out, stalled."""
     f = obj.total
     vg = jax.value_and_grad(f)
-    hess = jax.hessian(f)
-
-    def evaluate(raw):
-        v, g = vg(raw)
-        return v, g, hess(raw)
-
-    v0, g0, H0 = evaluate(raw0)
+    grad = jax.grad(f)
+    n = raw0.shape[0]
     dtype = raw0.dtype
+    v0, g0 = vg(raw0)
 
+    # ---- phase 1: BFGS on gradients only
+    def bfgs_cond(s):
+        raw, v, g, Hi, it, done, stalled = s
+        return (~done) & (it < max_steps)
+
+    def bfgs_body(s):
+        raw, v, g, Hi, it, done, stalled = s
+        p = -Hi @ g
+        descent = g @ p < 0
+        Hi = jnp.where(descent, Hi, jnp.eye(n, dtype=dtype))
+        p = _cap(jnp.where(descent, p, -g))
+        a, v_new, ok = _backtrack(f, raw, v, g @ p, p)
+        step = a * p
+        raw2 = jnp.where(ok, raw + step, raw)
+        v2, g2 = jax.lax.cond(ok, lambda: vg(raw + step), lambda: (v, g))
+        yv = g2 - g
+        sy = step @ yv
+        # first update: scale the identity to the curvature seen (Nocedal & Wright 6.20)
+        Hi = jnp.where((it == 0) & (sy > 0), Hi * sy / jnp.maximum(yv @ yv, 1e-300), Hi)
+        rho = 1.0 / jnp.where(sy > 1e-300, sy, 1.0)
+        E = jnp.eye(n, dtype=dtype) - rho * jnp.outer(step, yv)
+        Hi_new = E @ Hi @ E.T + rho * jnp.outer(step, step)
+        Hi = jnp.where(ok & (sy > 1e-300), Hi_new, Hi)
+        dec = g2 @ Hi @ g2
+        stalled = ~ok
+        done = (ok & (dec < DECREMENT_TOL) & (dec >= 0)) | stalled
+        return raw2, v2, g2, Hi, it + 1, done, stalled
+
+    init = (raw0, v0, g0, jnp.eye(n, dtype=dtype), 0, jnp.asarray(False), jnp.asarray(False))
+    raw, v, g, _, it1, _, _ = jax.lax.while_loop(bfgs_cond, bfgs_body, init)
+
+    # ---- phase 2: Newton on the finite-difference Hessian of the exact gradient
     def decrement(g, H):
         _, V, wabs, _ = _eig_parts(H)
         gt = V.T @ g
         return jnp.sum(gt**2 / wabs)
 
-    def cond(s):
-        raw, v, g, H, lam, it, done = s
+    def newton_cond(s):
+        raw, v, g, H, it, done = s
         return (~done) & (it < max_steps)
 
-    def body(s):
-        raw, v, g, H, lam, it, done = s
-        w, V, wabs, scale = _eig_parts(H)
-        gt = V.T @ g
-        met = jnp.sum(gt**2 / wabs) < DECREMENT_TOL
-        p = -V @ (gt / (wabs + lam * scale))
-        p = p * jnp.minimum(1.0, MAX_RAW_STEP / jnp.maximum(jnp.max(jnp.abs(p)), 1e-300))
-        pt = V.T @ p
-        predicted = -(g @ p + 0.5 * jnp.sum(wabs * pt**2))
-        v_new = f(raw + p)
-        gain = v - v_new
-        rho = gain / jnp.maximum(predicted, 1e-300)
-        accept = (~met) & jnp.isfinite(v_new) & (gain > 0) & (rho > 1e-4)
-        v2, g2, H2 = jax.lax.cond(
-            accept, lambda: evaluate(raw + p), lambda: (v, g, H)
-        )
-        raw2 = jnp.where(accept, raw + p, raw)
-        lam2 = jnp.where(
-            accept,
-            jnp.where(rho > 0.75, lam * 0.2, jnp.where(rho > 0.25, lam, lam * 2.0)),
-            lam * 8.0,
-        )
-        lam2 = jnp.clip(lam2, 1e-12, 2 * LAMBDA_MAX)
-        done = met | (lam2 > LAMBDA_MAX)
-        return raw2, v2, g2, H2, lam2, it + jnp.where(met, 0, 1), done
+    def newton_body(s):
+        raw, v, g, H, it, done = s
+        _, V, wabs, _ = _eig_parts(H)
+        p = _cap(-V @ ((V.T @ g) / wabs))
+        a, v_new, ok = _backtrack(f, raw, v, g @ p, p)
+        raw2 = jnp.where(ok, raw + a * p, raw)
+        v2, g2 = jax.lax.cond(ok, lambda: vg(raw2), lambda: (v, g))
+        H2 = jax.lax.cond(ok, lambda: _fd_hessian(grad, raw2), lambda: H)
+        done = (decrement(g2, H2) < DECREMENT_TOL) | ~ok
+        return raw2, v2, g2, H2, it + 1, done
 
-    init = (raw0, v0, g0, H0, jnp.asarray(1e-3, dtype), jnp.asarray(0), jnp.asarray(False))
-    raw, v, g, H, lam, it, done = jax.lax.while_loop(cond, body, init)
+    H = _fd_hessian(grad, raw)
+    done0 = decrement(g, H) < DECREMENT_TOL
+    raw, v, g, H, it2, _ = jax.lax.while_loop(
+        newton_cond, newton_body, (raw, v, g, H, 0, done0)
+    )
     converged = decrement(g, H) < DECREMENT_TOL
     return dict(
         raw=raw,
@@ -221,11 +280,48 @@ def _newton(obj: _Objective, raw0, max_steps):
         gradient=g,
         hessian=H,
         prior_hessian=jax.hessian(obj.prior_nll)(raw),
-        steps=it,
+        steps=it1 + it2,
         converged=converged,
-        ran_out=(~converged) & (it >= max_steps),
-        stalled=(~converged) & (lam > LAMBDA_MAX),
+        ran_out=(~converged) & ((it1 >= max_steps) | (it2 >= max_steps)),
+        stalled=~converged & (it2 < max_steps) & (it1 < max_steps),
     )
+
+
+def _solve_reviving(obj, flat, start, raw0, budget: int, say, i: int, n: int) -> dict:
+    """`_newton` from `start`; then, while a noise intensity has vanished (log coordinate
+    driven towards -inf, where its gradient vanishes too: a stationary point at infinity that
+    need not be a maximum), the solve is repeated with those intensities back at their
+    starting values, keeping the better end point. A zero intensity that survives this is a
+    real answer ("not needed")."""
+    out = jax.device_get(_newton(obj, jnp.asarray(start), jnp.asarray(budget)))
+    steps = int(out["steps"])
+    for _ in range(2):
+        raw = np.asarray(out["raw"], dtype=float)
+        gone = [
+            k
+            for k, p in enumerate(flat)
+            if _vanishing(p.path)
+            and np.isfinite(raw[k])
+            and float(p.to_value(raw[k])) < NOT_NEEDED_DROP * float(p.to_value(raw0[k]))
+        ]
+        if not gone:
+            break
+        trial = raw.copy()
+        trial[gone] = np.asarray(raw0)[gone]
+        again = jax.device_get(_newton(obj, jnp.asarray(trial), jnp.asarray(budget)))
+        steps += int(again["steps"])
+        names = ", ".join(flat[k].path for k in gone)
+        if float(again["cost"]) < float(out["cost"]) - 1e-6:
+            say(
+                f"start {i + 1}/{n}: {names} had vanished; restarted from its start value, "
+                f"-log L + priors {float(out['cost']):.6g} -> {float(again['cost']):.6g}"
+            )
+            out = again
+        else:
+            break
+    out = dict(out)
+    out["steps"] = steps
+    return out
 
 
 def _structure_model(model, noise: ProcessNoise) -> StochasticDevice:
@@ -436,10 +532,10 @@ def fit_likelihood(
     runs = []
     for i, s in enumerate(starts):
         say(
-            f"start {i + 1}/{len(starts)}: maximum likelihood ({filt}, damped Newton, "
+            f"start {i + 1}/{len(starts)}: maximum likelihood ({filt}, BFGS + Newton, "
             f"{raw0.size} parameters, {len(experiments)} runs)"
         )
-        out = jax.device_get(_newton(obj, jnp.asarray(s), jnp.asarray(budget)))
+        out = _solve_reviving(obj, flat, s, raw0, budget, say, i, len(starts))
         runs.append(out)
         state = (
             "converged"
@@ -526,7 +622,7 @@ def fit_likelihood(
         ran_out=bool(best["ran_out"]) and reason is None,
         reason=reason,
         start_converged=[bool(r["converged"]) for r in runs],
-        optimiser="the damped Newton search",
+        optimiser="the BFGS / Newton search",
     )
     not_needed = [names[k] for k, b in enumerate(bounds) if b == "not needed"]
     if not_needed:

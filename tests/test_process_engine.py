@@ -21,7 +21,7 @@ import pytest
 import greybox
 from greybox.blocks._camera import SensorReadout
 
-from . import rc3_reference as ref
+from tests import rc3_reference as ref
 
 PHYS = ("Ci", "Ce", "Ch", "Rie", "Rea", "Rih", "Aw")
 NOISE = {"q_i": "process.air", "q_e": "process.envelope", "q_h": "process.heater"}
@@ -138,7 +138,7 @@ def fitted(data):
 
 @pytest.fixture(scope="module")
 def reference(data, fitted):
-    return ref.reference_max(data, extra_starts=[_estimate(fitted)])
+    return ref.reference_max(data, n_starts=2, extra_starts=[_estimate(fitted)])
 
 
 def test_reaches_the_reference_maximum(data, fitted, reference):
@@ -185,7 +185,9 @@ def test_initial_state_from_first_reading_keeps_measurement_noise(data):
     measurement sd stays near the truth instead of collapsing."""
     y0 = data["y"][0]
     model = _start_model(data, (y0[0], y0[1], y0[0]))
-    res = greybox.fit(model, [_experiment(data)], _free(), noise=greybox.ProcessNoise(STRUCTURE))
+    res = greybox.fit(
+        model, [_experiment(data)], _free(), noise=greybox.ProcessNoise(STRUCTURE), n_starts=1
+    )
     for k, path in MEAS.items():
         v = res.estimate(path).value
         assert 0.5 * data["truth"][k] < v < 2.0 * data["truth"][k], (path, v)
@@ -215,7 +217,7 @@ def test_process_noise_not_needed_leaves_fit_valid(data):
     free += [greybox.FreeParameter(v, "K", lower=0.0) for v in MEAS.values()]
     free += [greybox.FreeParameter("Rea", "K/W", lower=0.0)]
     noise = dataclasses.replace(greybox.ProcessNoise(STRUCTURE), start_noise=False)
-    res = greybox.fit(model, [_experiment(d0)], free, noise=noise)
+    res = greybox.fit(model, [_experiment(d0)], free, noise=noise, n_starts=1)
     assert res.estimate("process.envelope").verdict == "not needed", res.estimate(
         "process.envelope"
     )

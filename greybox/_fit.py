@@ -34,12 +34,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from greybox import _problem
 from greybox._data import Experiment
 from greybox._device import check_method
 from greybox._freeparams import FreeParameter, apply_raw, levenberg_marquardt
 from greybox._identifiability import IdentifiabilityReport, analyse
 from greybox._metrics import fit_percent_per_output, noise_ceiling
-from greybox._parameters import get_value, set_values
 from greybox._posterior import Posterior
 from greybox._residuals import (
     GoodnessOfFit,
@@ -60,7 +60,7 @@ from greybox._simulate import (
 LOSSES = ("l2", "huber", "student_t")
 FAILED_SOLVE_RESIDUAL = 1e3  # per residual, in units of sigma: far worse than any real misfit
 OUTLIER_SIGMAS = 5.0  # frames further than this from the fit are reported as outliers
-AUTO_STARTS = 4  # multi-start count when n_starts=None and more than two shared parameters
+AUTO_STARTS = _problem.AUTO_STARTS  # starts when n_starts=None and > 2 shared parameters
 SAME_COST = 1e-5  # relative cost difference within which two starts reached the same optimum
 STATUSES = (
     "converged",
@@ -300,33 +300,17 @@ class _Problem(eqx.Module):
             w[i, : e.n_frames] = e.mask
             if e.sigma is not None:
                 noise[i, : e.n_frames] = np.where(e.mask, e.sigma, 1.0)
-        setting_paths = tuple(sorted({k for e in experiments for k in e.settings}))
-        settings = np.array(
-            [
-                [
-                    e.settings.get(k, np.asarray(get_value(model, k), dtype=float))
-                    for k in setting_paths
-                ]
-                for e in experiments
-            ],
-            dtype=float,
-        )
-        free_paths = {p.path for p in free}
-        if free_paths & set(setting_paths):
-            raise ValueError(
-                f"settings: {sorted(free_paths & set(setting_paths))} are both "
-                "fitted and given as known per-run settings; choose one"
-            )
+        setting_paths, settings = _problem.settings_matrix(model, experiments, free)
         return _Problem(
             model=as_arrays(model),
             sched=sched,
             y=jnp.asarray(y),
             w=jnp.asarray(w),
             noise=jnp.asarray(noise),
-            settings=jnp.asarray(settings.reshape(n_exp, len(setting_paths))),
+            settings=jnp.asarray(settings),
             setting_paths=setting_paths,
-            shared=tuple(p for p in free if not p.per_experiment),
-            per_exp=tuple(p for p in free if p.per_experiment),
+            shared=_problem.split(free)[0],
+            per_exp=_problem.split(free)[1],
             n_exp=n_exp,
             method=method,
             loss=loss,
@@ -361,7 +345,7 @@ class _Problem(eqx.Module):
     @property
     def flat_free(self) -> list:
         """The FreeParameter behind each raw coordinate (shared, then per experiment)."""
-        return [*self.shared] + [p for _ in range(self.n_exp) for p in self.per_exp]
+        return _problem.flat_free(self.shared, self.per_exp, self.n_exp)
 
     def models(self, raw):
         """(shared model, per-experiment raw block (E, P))."""
@@ -370,8 +354,7 @@ class _Problem(eqx.Module):
         return base, raw[ns:].reshape(self.n_exp, len(self.per_exp))
 
     def experiment_model(self, base, per_raw_row, settings_row):
-        model = set_values(base, list(self.setting_paths), list(settings_row))
-        return apply_raw(model, self.per_exp, per_raw_row)
+        return _problem.run_model(base, self.setting_paths, settings_row, self.per_exp, per_raw_row)
 
     def predictions(self, raw):
         """Camera readings (E, N, n_y) and per-experiment success flags."""
@@ -426,27 +409,17 @@ def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_st
     )
 
 
-def _start_values(free, model) -> list[float]:
-    """Each parameter's starting value in SI: its `initial`, else the model's value."""
-    return [p.initial if p.initial is not None else float(get_value(model, p.path)) for p in free]
+_start_values = _problem.start_values  # (kept for greybox._batch)
 
 
 def _initial_raw(problem: _Problem, model) -> np.ndarray:
-    """Raw start vector: each parameter's `initial` or else the model's value (bounds checked)."""
-    raw = []
-    for p, v in zip(problem.flat_free, _start_values(problem.flat_free, model)):
-        p.check_value(v)
-        raw.append(float(p.to_raw(v)))
-    return np.asarray(raw)
+    """Raw start vector of `problem` (`_problem.initial_raw`)."""
+    return _problem.initial_raw(problem.flat_free, model)
 
 
 def _perturbed(problem: _Problem, raw0: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """A multi-start point: log/logit parameters moved by ~x2, linear ones left alone."""
-    raw = raw0.copy()
-    for k, p in enumerate(problem.shared):
-        if p.transform != "linear":
-            raw[k] += rng.normal(0.0, 0.7)
-    return raw
+    """A multi-start point (`_problem.perturbed`)."""
+    return _problem.perturbed(problem.shared, raw0, rng)
 
 
 def _robust_sigma(r_scaled: np.ndarray, w: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -716,17 +689,11 @@ def _fit_least_squares(
     say = progress or (lambda _msg: None)
     if not experiments:
         raise ValueError("experiments: zero runs in the estimation set; give at least one")
-    if not free:
-        raise ValueError("free: no free parameters; list at least one FreeParameter")
+    free = _problem.check_free(model, free)
     method = check_method(model, method)
     if loss not in LOSSES:
         raise ValueError(f"loss: {loss!r} is unknown; use one of {LOSSES}")
-    paths = [p.path for p in free]
-    if len(set(paths)) != len(paths):
-        raise ValueError(f"free: a parameter is listed twice ({paths})")
-    for p in free:
-        get_value(model, p.path)  # a clear error for a misspelt path
-    free = tuple(p.with_scale_from(v) for p, v in zip(free, _start_values(free, model)))
+    free = _problem.with_scales(free, model)
     source = _noise_source(experiments, sigma)
 
     problem = _Problem.build(
@@ -768,10 +735,7 @@ def _fit_least_squares(
     else:
         sig = np.ones(n_y)  # the per-frame levels are in the problem's `noise`
 
-    if n_starts is None:
-        n_starts = AUTO_STARTS if len(problem.shared) > 2 else 1
-    if int(n_starts) < 1:
-        raise ValueError(f"n_starts: {n_starts} starts; give at least 1 (or None for auto)")
+    n_starts = _problem.n_starts_for(n_starts, problem.shared)
     rng = np.random.default_rng(seed)
     starts = [raw0] + [_perturbed(problem, raw0, rng) for _ in range(int(n_starts) - 1)]
     runs = []
@@ -934,7 +898,7 @@ def _assemble(
         for p, q in zip(params, flat_free)
         if p.bound is not None
     ]
-    unidentified = [p.name for p in params if p.verdict == "not identifiable"]
+    unidentified = unidentified_with_reasons(params, report)
     status, message, at_best = fit_status(
         finite=finite,
         solved=bool(np.all(solved)),
@@ -984,6 +948,15 @@ def _assemble(
         n_observations=problem.n_data,
         predictions={e.name: {"simulation": zi} for e, zi in zip(experiments, preds)},
     )
+
+
+def unidentified_with_reasons(params, report) -> list:
+    """ "name (the weak combination)" of every "not identifiable" estimate."""
+    return [
+        f"{p.name} ({report.explain(k)})"
+        for k, p in enumerate(params)
+        if p.verdict == "not identifiable"
+    ]
 
 
 def _bound_value(p: FreeParameter, bound: str) -> float:
@@ -1175,12 +1148,7 @@ def parameter_estimates(
 
 def _labels(problem, experiments):
     """Display name and owning experiment (None if shared) of each raw coordinate."""
-    labels = [p.path for p in problem.shared]
-    owners = [None] * len(problem.shared)
-    for e in experiments:
-        labels += [f"{p.path}[{e.name}]" for p in problem.per_exp]
-        owners += [e.name] * len(problem.per_exp)
-    return labels, owners
+    return _problem.labels(problem.shared, problem.per_exp, experiments)
 
 
 @dataclasses.dataclass(frozen=True)

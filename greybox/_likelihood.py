@@ -609,7 +609,7 @@ def fit_likelihood(
         for k, (p, b) in enumerate(zip(flat, bounds))
         if b in ("lower", "upper")
     ]
-    unidentified = [p.name for p in params if p.verdict == "not identifiable"]
+    unidentified = _fit.unidentified_with_reasons(params, report)
     costs = [float(r["cost"]) for r in runs]
     status, message, at_best = _fit.fit_status(
         finite=ok_finite,

@@ -73,23 +73,34 @@ waveform = {{ type = "logged" }}
     return folder
 
 
-CANDIDATES = """\
+def _free(**starts) -> str:
+    """A candidate's free list with starting values (SI; bounds from the device table)."""
+    cells = [f'{{ path = "{k}", lower = {lo!r}, upper = {hi!r}, initial = {v!r} }}'
+             for k, (v, lo, hi) in starts.items()]
+    return "free = [\n  " + ",\n  ".join(cells) + ",\n]"
+
+
+_C, _R = (1e4, 1e9), (1e-5, 1.0)
+CANDIDATES = f"""\
 [[candidates]]
 name = "one state"
-model = { nodes = 1 }
-noise = { process = { air = [0] } }
+model = {{ nodes = 1 }}
+noise = {{ process = {{ air = [0] }} }}
 
 [[candidates]]
 name = "two states"
-model = { nodes = 2 }
+model = {{ nodes = 2 }}
 nests = ["one state"]
-noise = { process = { air = [0], envelope = [1] } }
+{_free(Ci=(2e6, *_C), Ce=(1e7, *_C), Rie=(5e-3, *_R), Rea=(7e-3, *_R), Aw=(2.5, 1e-2, 100.0))}
+noise = {{ process = {{ air = [0], envelope = [1] }} }}
 
 [[candidates]]
 name = "three states"
-model = { nodes = 3 }
+model = {{ nodes = 3 }}
 nests = ["two states"]
-noise = { process = { air = [0], envelope = [1], heater = [2] } }
+{_free(Ci=(2e6, *_C), Ce=(1e7, *_C), Ch=(5e5, 1e3, 1e9), Rie=(5e-3, *_R), Rea=(7e-3, *_R),
+       Rih=(2.5e-3, *_R), Aw=(2.5, 1e-2, 100.0))}
+noise = {{ process = {{ air = [0], envelope = [1], heater = [2] }} }}
 """
 
 

@@ -1155,7 +1155,8 @@ def _fit_table(doc: TomlDocument, fitopt: dict, model, *where) -> dict:
 
 
 def _fit_settings(doc: TomlDocument, data: dict, model, entry, index) -> tuple:
-    """(fit_options, noise_model, noise table, its TOML path) of the folder, or of candidate
+    """(fit_options, noise_model, noise table, its TOML path, the [fit] settings refused for
+    a process-noise fit as `InputError`s) of the folder, or of candidate
     `index` (`entry`): its `fit` over [fit], its `noise` instead of [noise] (a candidate with
     its own `noise` is a process-noise fit unless its `fit` says otherwise)."""
     top = doc.table(data, "fit", required=False)
@@ -1173,11 +1174,14 @@ def _fit_settings(doc: TomlDocument, data: dict, model, entry, index) -> tuple:
     noise_model = given.pop("noise_model", "none")
     if noise_model == "none" and noise_table is not None:
         raise doc.error('needs noise_model = "process" (or remove the noise table)', *noise_where)
+    refused = []  # reported with the rest of the folder's problems (the noise table too)
     if noise_model == "process":
         for key, why in REFUSED_WITH_PROCESS.items():
             if key in given:
-                raise doc.error(
-                    f'does not apply with noise_model = "process": {why}', *where_of[key], key
+                refused.append(
+                    doc.error(
+                        f'does not apply with noise_model = "process": {why}', *where_of[key], key
+                    )
                 )
         # max_steps absent: the likelihood back end's own budget (damped Newton steps)
         fit_options = {k: given.get(k, _FIT_DEFAULTS[k]) for k in ("n_starts", "seed")}
@@ -1185,7 +1189,7 @@ def _fit_settings(doc: TomlDocument, data: dict, model, entry, index) -> tuple:
     else:
         fit_options = {**_FIT_DEFAULTS, **given}
         fit_options["method"] = check_method(model, given.get("method"))
-    return fit_options, noise_model, (noise_table or {}), noise_where
+    return fit_options, noise_model, (noise_table or {}), noise_where, refused
 
 
 def _all_data_rules(doc: TomlDocument, data: dict, spec) -> dict:
@@ -1272,7 +1276,14 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
         fixed = {**fixed, **own}
     model = configure_model(spec, options, camera, fixed)
     settings = _attempt(errors, _fit_settings, doc, data, model, chosen, candidate)
-    fit_options, noise_model, noise_table, noise_where = settings or ({}, "none", {}, ())
+    fit_options, noise_model, noise_table, noise_where, refused = settings or (
+        {},
+        "none",
+        {},
+        (),
+        [],
+    )
+    errors.extend(refused)
     fitopt = data.get("fit") if isinstance(data.get("fit"), dict) else {}
     free_entries, free_where = fitopt.get("free"), ("fit", "free")
     if chosen is not None and "free" in chosen:

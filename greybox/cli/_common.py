@@ -39,10 +39,10 @@ def print_input_errors(command: str, where, err) -> None:
         print(f"greybox {command}: error: ... and {len(err.errors) - 20} more", file=sys.stderr)
 
 
-def fit_loaded(fs, say, *, start=None):
+def fit_loaded(fs, say, *, start=None, validate_runs: bool = True):
     """(FitResult, ValidationResult or None) of a loaded folder (`ExperimentSet`), whatever
-    its noise model: one call of `greybox.fit`, then the validation runs. `start`: a
-    function free -> free (a warm start)."""
+    its noise model: one call of `greybox.fit`, then (`validate_runs`) the validation runs.
+    `start`: a function free -> free (a warm start)."""
     from greybox._fit import fit, validate
 
     free = list(fs.free)
@@ -59,7 +59,7 @@ def fit_loaded(fs, say, *, start=None):
         free = start(free)
     result = fit(model, fs.estimation, free, progress=say, **options)
     validation = None
-    if fs.validation:
+    if fs.validation and validate_runs:
         per_run = sorted({p.path for p in fs.free if p.per_experiment})
         say(
             f"validating on {len(fs.validation)} runs (physics fixed"

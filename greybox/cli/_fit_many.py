@@ -120,9 +120,24 @@ def fit_devices(loaded, args, say):
     from greybox._batch import Device, fit_batch
 
     by_options: dict = {}
-    for name, fs in loaded:
-        by_options.setdefault(_option_key(fs), []).append((name, fs))
     results = {}
+    process = [(name, fs) for name, fs in loaded if fs.noise is not None]
+    if process and args.scheduler:
+        from greybox._errors import InputError
+
+        raise InputError(
+            f"{process[0][0]} is a process-noise fit, which --scheduler does not distribute; "
+            "leave --scheduler out (process-noise devices are fitted one after another)",
+            field="--scheduler",
+        )
+    for name, fs in process:  # the likelihood back end: one `fit` per device
+        from greybox.cli._common import fit_loaded
+
+        say(f"{name}: process-noise fit")
+        results[name], _ = fit_loaded(fs, say, validate_runs=False)
+    for name, fs in loaded:
+        if fs.noise is None:
+            by_options.setdefault(_option_key(fs), []).append((name, fs))
     budget = None if args.memory_budget_mb is None else args.memory_budget_mb * 1e6
     for members in by_options.values():
         opts = dict(members[0][1].fit_options)
@@ -145,7 +160,7 @@ def fit_devices(loaded, args, say):
             extra = {} if budget is None else {"memory_budget_bytes": budget}
             out = fit_batch(devices, free, progress=say, **opts, **extra)
         results.update(out.results)
-    return results
+    return {name: results[name] for name, _ in loaded}  # in the order given
 
 
 def write_device(folder: Path, fs, result, validation, figures: bool) -> None:

@@ -410,7 +410,13 @@ def noise_model(noise: NoiseTable, model, spec):
         if p.path in noise.priors:
             kw["prior_median"], kw["prior_log_sd"] = noise.priors[p.path]
         out.append(dataclasses.replace(p, **kw))
+    from greybox._noise_models import ExtendedKalmanFilter, KalmanFilter
+
+    filt = {"auto": None, "kalman": KalmanFilter(), "ekf": ExtendedKalmanFilter(noise.substeps)}
     config = ProcessNoise(
-        structure=sd.structure, initial_state=initial_state(noise), k_step=noise.k_step
+        structure=sd.structure,
+        filter=filt[noise.filter],
+        initial_state=initial_state(noise),
+        k_step=noise.k_step,
     )
     return sd, config, out

@@ -43,7 +43,8 @@ import numpy as np  # noqa: E402
 import scipy.linalg as sla  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from greybox import FilterGrid, LinearGaussianSDE, fit_stochastic, log_likelihood  # noqa: E402
+from greybox import FilterGrid, LinearGaussianSDE, log_likelihood  # noqa: E402
+from greybox._stochastic import fit_stochastic  # noqa: E402  (the LinearGaussianSDE estimator)
 
 # ------------------------------------------------------------------------------------------
 # speed: 3 states, 2 outputs, 2,000 frames

@@ -97,7 +97,8 @@ from greybox._prediction import prediction_band as prediction_band
 from greybox._prediction import propagate as propagate
 from greybox._prediction import raw_draws as raw_draws
 from greybox._prediction import with_shared as with_shared
-from greybox._process_fit import ProcessFitResult as ProcessFitResult
+# deprecated adapters over `fit(noise=ProcessNoise(...))`, kept while the CLI and
+# experiments/tclab/stochastic.py switch over (ENGINE-NOTES.md)
 from greybox._process_fit import RunDiagnostics as RunDiagnostics
 from greybox._process_fit import fit_process as fit_process
 from greybox._process_fit import validate_process as validate_process
@@ -120,8 +121,6 @@ from greybox._spec import DeviceSpec as DeviceSpec
 from greybox._spec import DeviceSpecError as DeviceSpecError
 from greybox._spec import Option as Option
 from greybox._stochastic import LjungBox as LjungBox
-from greybox._stochastic import StochasticFitResult as StochasticFitResult
-from greybox._stochastic import fit_stochastic as fit_stochastic
 from greybox._stochastic import ljung_box as ljung_box
 from greybox._synthetic import CameraDefects as CameraDefects
 from greybox._synthetic import record as record

@@ -243,6 +243,16 @@ class FitResult:
                 return p
         raise KeyError(f"{name}: not a fitted parameter; have {[p.name for p in self.parameters]}")
 
+    def z_scores(self, truth: dict) -> dict:
+        """(estimate - truth) / sd in raw coordinates, per shared parameter path in `truth`."""
+        out = {}
+        sd = np.sqrt(np.clip(np.diag(self.covariance_raw), 0, None))
+        shared = [p for p in self.free if not p.per_experiment]  # raw order: shared first
+        for k, p in enumerate(shared):
+            if p.path in truth:
+                out[p.path] = float((self.raw[k] - float(p.to_raw(truth[p.path]))) / sd[k])
+        return out
+
     def predict(self, experiment_index: int, method: str | None = None) -> np.ndarray:
         """Free-run simulation of experiment `experiment_index` with its fitted parameters (SI)."""
         from greybox._simulate import simulate
@@ -839,7 +849,18 @@ def _scores(
 
 
 def _assemble(
-    problem, best, sig, steps, runs, best_index, raw0, experiments, free, source, say, max_steps
+    problem,
+    best,
+    sig,
+    steps,
+    runs,
+    best_index,
+    raw0,
+    experiments,
+    free,
+    source,
+    say,
+    max_steps: int | None = None,
 ) -> FitResult:
     raw, cost, ok = np.asarray(best["raw"]), float(best["cost"]), bool(best["ok"])
     raw_j = jnp.asarray(raw)
@@ -907,7 +928,7 @@ def _assemble(
         costs=[float(r["cost"]) for r in runs],
         best_index=best_index,
         unidentified=unidentified,
-        ran_out=int(best["steps"]) >= max_steps,
+        ran_out=max_steps is not None and int(best["steps"]) >= max_steps,
         start_converged=[bool(r["ok"]) for r in runs],
     )
     converged = bool(ok and finite and np.all(solved))

@@ -473,10 +473,13 @@ def test_covariance_hessian_equals_exact_second_derivatives(stochastic_fit, data
     import jax
     import jax.numpy as jnp
 
-    from greybox import _process_fit as sde
+    from greybox import _likelihood
 
     res = stochastic_fit
-    problem = sde._Problem.build(res.model, [data], res.free)
-    exact = np.asarray(jax.jit(jax.jacfwd(jax.jacfwd(problem.data_nll)))(jnp.asarray(res.raw)))
-    fd = sde._hessian(lambda r: sde._data_value_and_grad(problem, jnp.asarray(r)), res.raw)
+    problem = _likelihood._build(res.model, [data], res.free)
+    raw = jnp.asarray(res.raw)
+    exact = np.asarray(jax.jit(jax.jacfwd(jax.jacfwd(problem.data_nll)))(raw))
+    fd = np.asarray(
+        jax.jit(lambda r: _likelihood._fd_hessian(jax.grad(problem.data_nll), r))(raw)
+    )
     assert np.max(np.abs(fd - exact)) <= 1e-6 * np.max(np.abs(exact))

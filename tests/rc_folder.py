@@ -43,8 +43,9 @@ def run_csv(data: dict, outputs=("Ti", "Te")) -> str:
 
 
 def write_folder(root: Path, data: dict, *, spec="SPEC", outputs=("Ti", "Te"), extra="",
-                 noise=THREE_STATE_NOISE, name="rc") -> Path:
-    """root/devices/rc_building_device.py and root/<name>/ (experiment.toml + run.csv)."""
+                 noise=THREE_STATE_NOISE, name="rc", validation: dict | None = None) -> Path:
+    """root/devices/rc_building_device.py and root/<name>/ (experiment.toml + run.csv, and
+    val.csv as a validation run when `validation` data are given)."""
     (root / "devices").mkdir(parents=True, exist_ok=True)
     shutil.copy(DEVICE, root / "devices" / DEVICE.name)
     folder = root / name
@@ -68,6 +69,15 @@ name = "rc3"
 file = "run.csv"
 role = "estimation"
 waveform = {{ type = "logged" }}
+"""
+    if validation is not None:
+        (folder / "val.csv").write_text(run_csv(validation, outputs))
+        toml += """
+[[runs]]
+name = "val"
+file = "val.csv"
+role = "validation"
+waveform = { type = "logged" }
 """
     (folder / "experiment.toml").write_text(toml)
     return folder

@@ -286,3 +286,30 @@ def test_noise_table_maps_once_to_the_engine_objects(tmp_path, data):
     from greybox._parameters import get_value
 
     assert float(get_value(model, "measurement.Te")) == 0.08
+
+
+@pytest.mark.slow
+def test_fit_many_fits_process_noise_devices(tmp_path):
+    """Two devices (records of two seeds), each a one-node process-noise folder of the air
+    temperature: fit-many writes each device's params.json (a process-noise file) and the
+    batch table; each device's log-likelihood is the one `greybox fit` gives that folder."""
+    one_node = '[model]\nnodes = 1\n\n[noise]\nprocess = { air = [0] }\n'
+    folders = []
+    for seed in (0, 2):
+        d = ref.simulate(seed=seed, n=150)
+        folders.append(
+            write_folder(
+                tmp_path / f"s{seed}", d, spec="SPEC_AIR", outputs=("Ti",), noise=one_node,
+                name=f"house{seed}",
+            )
+        )
+    out = tmp_path / "batch"
+    assert main(["fit-many", *map(str, folders), "--out", str(out), "--quiet"]) in (0, 1)
+    rows = (out / "batch.csv").read_text().splitlines()
+    assert rows[0].startswith("device,status") and len(rows) == 3
+    single = tmp_path / "single"
+    assert main(["fit", str(folders[1]), "--out", str(single), "--quiet"]) in (0, 1)
+    one = json.loads((single / "params.json").read_text())
+    batch = json.loads((out / "devices" / "house2" / "params.json").read_text())
+    assert batch["noise_model"]["kind"] == "process noise"
+    assert batch["log_likelihood"] == pytest.approx(one["log_likelihood"], rel=1e-9)

@@ -313,3 +313,23 @@ def test_fit_many_fits_process_noise_devices(tmp_path):
     batch = json.loads((out / "devices" / "house2" / "params.json").read_text())
     assert batch["noise_model"]["kind"] == "process noise"
     assert batch["log_likelihood"] == pytest.approx(one["log_likelihood"], rel=1e-9)
+
+
+def test_cli_commands_import_no_other_command():
+    """The CLI is thin and has no import circle: a command module imports, from greybox.cli,
+    only the shared helpers (cli/_common.py), which import no command."""
+    import ast
+    from pathlib import Path
+
+    cli = Path(__file__).resolve().parents[1] / "greybox" / "cli"
+    for path in cli.glob("_*.py"):
+        names = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names.add(node.module)
+            elif isinstance(node, ast.Import):
+                names.update(a.name for a in node.names)
+        inside = {n for n in names if n.startswith("greybox.cli")}
+        allowed = set() if path.name == "_common.py" else {"greybox.cli._common"}
+        assert inside <= allowed, (path.name, inside)
+    assert not (cli / "_fit_process.py").exists()

@@ -28,6 +28,8 @@ VERDICT_MEANING = {
     "parameters is known); no interval is reported",
     "at bound": "the fit ended on one of its bounds: the estimate is the boundary, not what "
     "the data say, and no interval is reported",
+    "not needed": "a noise intensity or variance that went to zero: the data need no such "
+    "noise (no process noise on that state); the fit stays valid, no interval is reported",
 }
 
 STATUS_MEANING = {
@@ -35,6 +37,8 @@ STATUS_MEANING = {
     "local optimum": "the starting values led to a higher optimum than another start; the "
     "best start's estimate is reported and valid, but the cost surface has several minima",
     "at bound": "a parameter ended on one of its bounds; the estimate is NOT valid",
+    "ran out of steps": "the optimiser used its whole step budget before meeting its "
+    "tolerances ([fit] max_steps); the estimate is NOT valid",
     "not converged": "the optimiser stopped before meeting its tolerances; the estimate is "
     "NOT valid",
     "diverged": "the fit diverged; there is no estimate",

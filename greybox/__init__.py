@@ -97,11 +97,7 @@ from greybox._prediction import prediction_band as prediction_band
 from greybox._prediction import propagate as propagate
 from greybox._prediction import raw_draws as raw_draws
 from greybox._prediction import with_shared as with_shared
-# deprecated adapters over `fit(noise=ProcessNoise(...))`, kept while the CLI and
-# experiments/tclab/stochastic.py switch over (ENGINE-NOTES.md)
-from greybox._process_fit import RunDiagnostics as RunDiagnostics
-from greybox._process_fit import fit_process as fit_process
-from greybox._process_fit import validate_process as validate_process
+from greybox._likelihood import RunDiagnostics as RunDiagnostics
 from greybox._registry import available as available_devices  # noqa: F401
 from greybox._registry import device_module as device_module
 from greybox._registry import get_device as get_device

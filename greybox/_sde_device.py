@@ -38,7 +38,7 @@ filter at the frame times (dropped frames skipped):
   Van Loan with J, P <- Ad P Ad^T + Qd; the output is linearised at the predicted mean. On a
   linear device it equals the linear filter.
 
-The fit (`fit_process`, `validate_process`) is `greybox._process_fit`.
+The fit is `greybox.fit(..., noise=ProcessNoise(...))` (`greybox._likelihood`).
 """
 
 from __future__ import annotations
@@ -352,7 +352,7 @@ def stochastic_device(
     - `outputs`, `inputs`: names of the output and input channels (strings or
       `greybox.Channel`s, e.g. `spec.outputs`); default y0, y1, ... and u0, u1, ...
     - `values`: starting values {noise path: SI value}, e.g. {"measurement.T1": 0.1}; the
-      rest start at 1 (use `fit_process`'s data-based starts or set them).
+      rest start at 1 (`greybox.fit` starts free noise parameters from the data, or set them).
     """
     if not isinstance(device, AbstractODEDevice):
         raise ValueError(

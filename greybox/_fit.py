@@ -139,6 +139,23 @@ class FitResult:
     - `multistart_costs`: ((cost, converged) per start, at the first noise scale);
       `best_start`: the start whose estimate is reported; `n_starts_at_best`: how many
       starts reached its cost.
+    - `noise`: the noise-model object of the fit (`OutputError` or `ProcessNoise`);
+      `process_noise`: True for the likelihood back end.
+    - `predictions`: {run: {horizon: (N, n_y) SI}}: "simulation" always, "one-step" and
+      "k-step" (`noise.k_step` frames ahead) with process noise; `prediction_sd` their sds
+      (process noise only).
+    - process noise only (NaN / empty for least squares): `log_likelihood` (data term; the
+      first frame conditioned on when the initial state is known), `aic`, `bic`,
+      `whiteness` ({run: Ljung-Box per output of the standardised innovations}), `runs`
+      (`RunDiagnostics` per run). `n_observations`: readings scored (least squares: n_data).
+      For process noise `covariance_raw` is the inverse Hessian of -log L + priors,
+      `residuals` the analysis of the one-step innovations, `sigma` the fitted measurement sd
+      and `fit_percent` the simulation fit %.
+
+    The status vocabulary is `STATUSES`, derived in one place (`fit_status`) for both back
+    ends; besides the above, "ran out of steps" (the optimiser spent `max_steps`). A
+    parameter's verdict "not needed" (a process-noise intensity that went to zero) leaves the
+    fit valid.
     """
 
     model: object
@@ -563,9 +580,8 @@ def fit(
                 "sigma=...)), not beside noise="
             )
     if isinstance(noise, nm.ProcessNoise):
-        refused = [k for k in given if k not in ()]
-        if refused or simulation is not None:
-            what = refused[0] if refused else "simulation"
+        if given or simulation is not None:
+            what = given[0] if given else "simulation"
             raise ValueError(
                 f"{what}: applies to OutputError (least squares) only; a ProcessNoise fit "
                 "takes its filter, initial state and horizons from the ProcessNoise object"

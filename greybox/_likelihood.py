@@ -20,9 +20,11 @@ a stochastic device through the continuous-discrete (extended) Kalman filter.
 - Covariance: the inverse Hessian of -log L + priors at the optimum (determined subspace,
   `greybox._identifiability`); the status is "not converged" with the combination named when
   the Hessian is not positive definite there.
-- Verdicts: a process-noise or random-walk intensity that fell to a negligible value with no
-  curvature left is "not needed" (no noise on that state; the fit stays valid); a measurement
-  sd that collapsed is the status "not converged" with the reason "likelihood unbounded".
+- Verdicts: a process-noise or random-walk intensity that fell towards zero (below a tenth
+  of its start) and whose zero the data do not reject (the boundary likelihood-ratio test at
+  5 %: setting it to 0 costs less than 1.355 in log L) is
+  "not needed" (no noise on that state; the fit stays valid, no interval); a measurement sd
+  that collapsed is the status "not converged" with the reason "likelihood unbounded".
 """
 
 from __future__ import annotations
@@ -57,8 +59,9 @@ from greybox._simulate import as_arrays, require_x64
 MAX_STEPS = 500  # damped Newton steps per start
 DECREMENT_TOL = 1e-9  # Newton decrement (log-likelihood units x 2) at which a start has converged
 MAX_RAW_STEP = 2.0  # largest raw step per iteration (a factor e^2 on a log parameter)
-NOT_NEEDED_DROP = 1e-2  # a noise intensity below this fraction of its start ...
-NOT_NEEDED_CURVATURE = 0.1  # ... with less raw curvature than this (log-sd > 3) is "not needed"
+NOT_NEEDED_DROP = 1e-2  # a noise intensity below this fraction of its start has vanished
+NOT_NEEDED_LR = 2.71  # 2 x log L lost at zero below which zero is not rejected (5 %, boundary)
+NOT_NEEDED_FALL = 0.1  # ... for an intensity that fell below this fraction of its start
 COLLAPSE_DROP = 1e-3  # a measurement sd below this fraction of its data-based start collapsed
 INDEFINITE_TOL = 1e-6  # relative negative eigenvalue of the Hessian that counts as indefinite
 
@@ -285,6 +288,26 @@ def _newton(obj: _Objective, raw0, max_steps):
         ran_out=(~converged) & ((it1 >= max_steps) | (it2 >= max_steps)),
         stalled=~converged & (it2 < max_steps) & (it1 < max_steps),
     )
+
+
+@eqx.filter_jit
+def _data_nll_jit(obj: _Objective, raw):
+    return obj.data_nll(raw)
+
+
+def _zero_suffices(obj: _Objective, raw, k: int, nll_hat: float, start: float) -> bool:
+    """Whether noise intensity `k` is "not needed": it fell towards zero (below
+    `NOT_NEEDED_FALL` of its `start` value) and setting it to zero (the others at the
+    estimate) costs less than the boundary likelihood-ratio test's 5 % critical value
+    (`NOT_NEEDED_LR`: 2 x log L, half a chi-square(1) at a boundary), so the data do not
+    reject "no noise on these states"."""
+    p = obj.flat[k]
+    if not float(p.to_value(raw[k])) < NOT_NEEDED_FALL * start:
+        return False
+    at_zero = np.asarray(raw, dtype=float).copy()
+    at_zero[k] = -np.inf  # value = lower bound (0) for a log or logit coordinate
+    nll0 = float(_data_nll_jit(obj, jnp.asarray(at_zero)))
+    return bool(np.isfinite(nll0) and 2.0 * (nll0 - nll_hat) < NOT_NEEDED_LR)
 
 
 def _solve_reviving(obj, flat, start, raw0, budget: int, say, i: int, n: int) -> dict:
@@ -563,11 +586,11 @@ def fit_likelihood(
     bounds = []
     for k, p in enumerate(flat):
         hit = p.bound_hit(raw[k], raw0[k]) if ok_finite else None
+        start = float(p.to_value(raw0[k]))
         if (
             ok_finite
             and _vanishing(p.path)
-            and float(p.to_value(raw[k])) < NOT_NEEDED_DROP * float(p.to_value(raw0[k]))
-            and H[k, k] < NOT_NEEDED_CURVATURE
+            and _zero_suffices(obj, raw, k, float(best["data_nll"]), start)
         ):
             hit = "not needed"
         bounds.append(hit)

@@ -118,18 +118,22 @@ class InitialState:
     settings and per-run estimates applied (free a per-run initial-state path to estimate it
     with the other parameters), covariance diag(`sd`^2).
 
-    - `sd` = 0 (default): the initial state is known. The first reading of each run is then
-      conditioned on, not scored (the usual case: the initial state was read off the first
-      reading, which therefore carries no information and, scored, would let the measurement
-      sd collapse to 0 with an unbounded likelihood).
+    - `sd` = 0 (default): the initial state is known.
     - `sd` > 0 (a float for every device state, or one per state) [state units]: a declared
-      prior x0 ~ N(mean, diag(sd^2)); every reading is scored.
-    - `diffuse=True`: a prior of sd `DIFFUSE_SD` x the readings' spread on every device state,
-      with the first reading conditioned on (a vague initial state).
+      prior x0 ~ N(mean, diag(sd^2)) (e.g. 0 on the measured states, a few K on an unmeasured
+      node).
+    - `diffuse=True`: a prior of sd `DIFFUSE_SD` x the readings' spread on every device state
+      (a vague initial state).
+    - `score_first`: False (default): the first frame of each run is conditioned on, not
+      scored: the likelihood is p(y_2..y_N | y_1). The usual case reads the initial state (of
+      the measured states at least) off the first reading, which then carries no information
+      and, scored, would let the measurement sd collapse to 0 with an unbounded likelihood.
+      True scores it too (a prior on the initial state that is independent of the data).
     """
 
     sd: float | tuple = 0.0
     diffuse: bool = False
+    score_first: bool = False
 
     def __post_init__(self):
         sd = self.sd
@@ -151,7 +155,7 @@ class InitialState:
     @property
     def scores_first_reading(self) -> bool:
         """Whether the first reading of each run counts in the likelihood (see the class)."""
-        return not (self.known or self.diffuse)
+        return bool(self.score_first)
 
 
 DIFFUSE_SD = 10.0  # the diffuse prior's sd, in units of the readings' spread

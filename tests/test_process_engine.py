@@ -222,3 +222,19 @@ def test_process_noise_not_needed_leaves_fit_valid(data):
         "process.envelope"
     )
     assert res.valid, res.message
+
+
+def test_validate_scores_new_runs_at_the_estimate(data, fitted):
+    """`greybox.validate` on a new record: its innovations' log-likelihood at the fitted
+    parameters equals the numpy filter's, and every horizon is reported."""
+    new = ref.simulate(seed=5, n=300)
+    val = greybox.validate(fitted, [_experiment(new)])
+    (run,) = val.runs
+    assert run.role == "validation"
+    assert run.log_likelihood == pytest.approx(ref.loglik(_estimate(fitted), new), abs=1e-6)
+    assert [h for h, _, _ in run.horizons] == [
+        "simulation",
+        "one-step prediction",
+        "10-step prediction",
+    ]
+    assert val.fit_percent["rc3"].shape == (2,)

@@ -9,6 +9,14 @@ log-likelihood is the numpy Kalman filter's, maximised by scipy from several sta
 `greybox.fit(..., noise=ProcessNoise(...))` starts every physical and noise parameter a factor
 3-10 away from the truth and must reach the reference maximum within 0.1, with every parameter
 within 3 standard errors of the truth and the status "converged".
+
+Measured (seed 0, 2-core shared machine): greybox log L 3256.8245986106, the numpy filter at
+greybox's estimate 3256.8245986101 and the scipy reference maximum 3256.8245986105; 4 starts
+all reach it (the first and fourth after restarting a vanished heater intensity); every
+|z| < 3; process.air and process.heater are "not identifiable" as a pair (weak combination
++0.75 log q_air - 0.64 log q_heater, sd 0.75). The module takes ~200 s, most of it the numpy
+reference optimiser (3 L-BFGS-B runs) and the first compilation (~40 s), not the 40 s aimed
+for.
 """
 
 import dataclasses

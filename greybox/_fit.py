@@ -572,7 +572,7 @@ def fit(
             ),
             sigma,
         )
-    else:
+    elif not isinstance(noise, nm.ProcessNoise):
         clash = [k for k in given if k in _OLD_NOISE_KEYWORDS]
         if clash:
             raise ValueError(

@@ -339,3 +339,23 @@ def test_delta_method_matches_reported_standard_error(thesis_fit):
     )
     assert value[0] == pytest.approx(est.value, rel=1e-12)
     assert np.sqrt(cov[0, 0]) == pytest.approx(est.se, rel=1e-9)
+
+
+def test_noise_objects_map_the_string_keywords_once(truth, start):
+    """`fit(noise=OutputError(StudentT(5)))` is the fit the old keywords loss="student_t",
+    student_nu=5 give (the keywords are mapped to the objects once); a keyword beside the
+    object it belongs in, or a least-squares keyword with process noise, is refused by name."""
+    import greybox
+
+    exps, _ = chevron_runs(truth, runs=((10, 0.3), (30, 0.6)), duration_s=4.0, seed=4)
+    free = default_free_parameters()
+    a = fit(start, exps, free, loss="student_t", student_nu=5.0, n_starts=1)
+    noise = greybox.OutputError(greybox.StudentT(5.0))
+    b = fit(start, exps, free, noise=noise, n_starts=1)
+    np.testing.assert_array_equal(a.raw, b.raw)
+    assert b.noise == noise and a.loss == b.loss == "student_t"
+    assert b.predictions[exps[0].name]["simulation"].shape == exps[0].y.shape
+    with pytest.raises(ValueError, match="^loss: give it inside the noise object"):
+        fit(start, exps, free, noise=noise, loss="l2")
+    with pytest.raises(ValueError, match="^sigma: applies to OutputError"):
+        fit(start, exps, free, noise=greybox.ProcessNoise(), sigma=0.1)

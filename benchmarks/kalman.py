@@ -14,7 +14,7 @@ tests/test_kalman.py; 400 frames, fixed design, new noise per replicate) fitted 
 likelihood; reports the fraction of 95 % intervals that contain the truth, per parameter
 (target 0.90-0.98), and how often the innovations pass the Ljung-Box test (p > 0.01).
 
-`--coverage-device N`: the same through the device adapter (`greybox.fit_process` on the
+`--coverage-device N`: the same through the device adapter (`greybox.fit` with `ProcessNoise` on the
 built-in linear two-heater `tclab` device with process noise on the heater nodes and a
 random-walk ambient shared by both sensors, 9 parameters); each replicate's record (600
 irregular frames unless `--frames N`, dropped frames, a new design and new noise per seed)
@@ -43,7 +43,8 @@ import numpy as np  # noqa: E402
 import scipy.linalg as sla  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from greybox import FilterGrid, LinearGaussianSDE, fit_stochastic, log_likelihood  # noqa: E402
+from greybox import FilterGrid, LinearGaussianSDE, log_likelihood  # noqa: E402
+from greybox._stochastic import fit_stochastic  # noqa: E402  (the LinearGaussianSDE estimator)
 
 # ------------------------------------------------------------------------------------------
 # speed: 3 states, 2 outputs, 2,000 frames
@@ -279,7 +280,7 @@ def coverage_device(n_reps, n_frames: int = 600):
         sd = T.cli_model()
         free = T.physical_free() + greybox.noise_parameters(sd, T.UNITS)
         t0 = time.perf_counter()
-        res = greybox.fit_process(sd, [data], free)
+        res = greybox.fit(sd, [data], free, noise=greybox.ProcessNoise(sd.structure), n_starts=1)
         times.append(time.perf_counter() - t0)
         cov_ok = np.all(np.isfinite(np.diag(res.covariance_raw)))
         if res.status != "converged" or not cov_ok:
@@ -334,7 +335,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--coverage", type=int, default=0, metavar="N", help="replicates")
     parser.add_argument(
-        "--coverage-device", type=int, default=0, metavar="N", help="replicates (fit_process)"
+        "--coverage-device", type=int, default=0, metavar="N", help="replicates (greybox.fit, ProcessNoise)"
     )
     parser.add_argument(
         "--frames", type=int, default=600, metavar="N", help="frames per --coverage-device record"

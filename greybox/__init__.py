@@ -61,6 +61,16 @@ from greybox._kalman import log_likelihood as log_likelihood
 from greybox._kalman import rts_smoother as rts_smoother
 from greybox._kalman import with_output_random_walks as with_output_random_walks
 from greybox._metrics import fit_percent as fit_percent
+from greybox._noise_models import L2 as L2
+from greybox._noise_models import ZOH as ZOH
+from greybox._noise_models import Adaptive as Adaptive
+from greybox._noise_models import ExtendedKalmanFilter as ExtendedKalmanFilter
+from greybox._noise_models import Huber as Huber
+from greybox._noise_models import InitialState as InitialState
+from greybox._noise_models import KalmanFilter as KalmanFilter
+from greybox._noise_models import OutputError as OutputError
+from greybox._noise_models import ProcessNoise as ProcessNoise
+from greybox._noise_models import StudentT as StudentT
 from greybox._metrics import fit_percent_per_output as fit_percent_per_output
 from greybox._metrics import mae as mae
 from greybox._metrics import r_squared as r_squared
@@ -87,10 +97,7 @@ from greybox._prediction import prediction_band as prediction_band
 from greybox._prediction import propagate as propagate
 from greybox._prediction import raw_draws as raw_draws
 from greybox._prediction import with_shared as with_shared
-from greybox._process_fit import ProcessFitResult as ProcessFitResult
-from greybox._process_fit import RunDiagnostics as RunDiagnostics
-from greybox._process_fit import fit_process as fit_process
-from greybox._process_fit import validate_process as validate_process
+from greybox._likelihood import RunDiagnostics as RunDiagnostics
 from greybox._registry import available as available_devices  # noqa: F401
 from greybox._registry import device_module as device_module
 from greybox._registry import get_device as get_device
@@ -110,8 +117,6 @@ from greybox._spec import DeviceSpec as DeviceSpec
 from greybox._spec import DeviceSpecError as DeviceSpecError
 from greybox._spec import Option as Option
 from greybox._stochastic import LjungBox as LjungBox
-from greybox._stochastic import StochasticFitResult as StochasticFitResult
-from greybox._stochastic import fit_stochastic as fit_stochastic
 from greybox._stochastic import ljung_box as ljung_box
 from greybox._synthetic import CameraDefects as CameraDefects
 from greybox._synthetic import record as record

@@ -9,8 +9,15 @@ maximum-likelihood value (the mean squared residual of that output):
     AIC = -2 log L + 2 k,   BIC = -2 log L + k log n,
 
 k = every fitted value (shared and per-run) plus one noise variance per output, n = the number
-of valid readings. The rule that names the preferred structure uses estimation data only
-(AIC by default); validation fit % is shown beside it and never used to choose.
+of valid readings. A process-noise candidate brings its own maximum log-likelihood (the Kalman
+filter's prediction-error decomposition over its scored readings), k = every fitted value
+(noise parameters included). The rule that names the preferred structure uses estimation data
+only (AIC by default); validation fit % is shown beside it and never used to choose.
+
+Nested pairs (a candidate that contains another: the same options and a larger free set, or
+declared with ``nests = [...]``) also get a likelihood-ratio test: D = 2 (log L_big -
+log L_small), referred to chi-square with k_big - k_small degrees of freedom (Wilks); a small
+p-value says the larger structure explains the data better than the nested one can.
 """
 
 from __future__ import annotations
@@ -45,6 +52,10 @@ class CandidateScore:
     valid: bool
     message: str
     note: str = ""  # how compare treated it beyond the fit (a nested-structure re-start)
+    # each fitted value: {"name", "path", "unit", "value", "se", "ci95", "verdict", "run"}
+    estimates: tuple = ()
+    noise_model: str = "output error"  # or "process noise"
+    nests: tuple = ()  # names of candidates declared nested in this one
 
 
 def gaussian_loglik(experiments: Sequence, predictions: Sequence) -> tuple[float, int, int]:
@@ -63,29 +74,123 @@ def gaussian_loglik(experiments: Sequence, predictions: Sequence) -> tuple[float
     return float(ll.sum()), int(n.sum()), int(used.sum())
 
 
-def score(name: str, options: dict, result, validation=None) -> CandidateScore:
-    """A `CandidateScore` for a `FitResult` (and its `ValidationResult`, if any)."""
+def _estimates(result) -> tuple:
+    def num(x):
+        x = float(x)
+        return x if np.isfinite(x) else None
+
+    return tuple(
+        {
+            "name": p.name,
+            "path": p.path,
+            "unit": p.unit,
+            "value": num(p.value),
+            "se": num(p.se),
+            "ci95": [num(p.ci95[0]), num(p.ci95[1])],
+            "verdict": p.verdict,
+            "run": p.experiment,
+        }
+        for p in result.parameters
+    )
+
+
+def _is_process(result) -> bool:
+    return getattr(getattr(result, "noise", None), "name", "") == "process noise"
+
+
+def score(name: str, options: dict, result, validation=None, nests=()) -> CandidateScore:
+    """A `CandidateScore` for a `FitResult` (and its `ValidationResult`, if any); `nests`:
+    the names of candidates declared nested in this one."""
+    fit_val = (
+        {r: np.atleast_1d(v) for r, v in validation.fit_percent.items()} if validation else {}
+    )
+    common = dict(
+        name=name,
+        options=dict(options),
+        free=tuple(p.path for p in result.free),
+        fit_estimation={
+            r: np.atleast_1d(v) for r, v in (getattr(result, "fit_percent", None) or {}).items()
+        },
+        fit_validation=fit_val,
+        status=result.status,
+        valid=bool(result.valid),
+        message=result.message,
+        estimates=_estimates(result),
+        nests=tuple(nests),
+    )
+    if _is_process(result):
+        white = all(all(w.p_value > 0.01 for w in r.whiteness) for r in result.runs)
+        verdict = (
+            "innovations white (Ljung-Box, p > 0.01 per output)"
+            if white
+            else "innovations NOT white (Ljung-Box, p <= 0.01 on an output): the structure "
+            "misses dynamics"
+        )
+        return CandidateScore(
+            n_params=int(result.raw.size),
+            n_data=int(result.n_observations),
+            loglik=float(result.log_likelihood),
+            aic=float(result.aic),
+            bic=float(result.bic),
+            residual_verdict=verdict,
+            noise_model="process noise",
+            **common,
+        )
     preds = [result.predict(i) for i in range(len(result.experiments))]
     ll, n, n_out = gaussian_loglik(result.experiments, preds)
     k = int(result.raw.size) + n_out
     return CandidateScore(
-        name=name,
-        options=dict(options),
-        free=tuple(p.path for p in result.free),
         n_params=k,
         n_data=n,
         loglik=ll,
         aic=-2 * ll + 2 * k,
         bic=-2 * ll + k * np.log(max(n, 1)),
-        fit_estimation={r: np.atleast_1d(v) for r, v in result.fit_percent.items()},
-        fit_validation=(
-            {r: np.atleast_1d(v) for r, v in validation.fit_percent.items()} if validation else {}
-        ),
         residual_verdict=result.residuals.verdict,
-        status=result.status,
-        valid=bool(result.valid),
-        message=result.message,
+        **common,
     )
+
+
+@dataclasses.dataclass(frozen=True)
+class LikelihoodRatio:
+    """The likelihood-ratio test of `small` nested in `big`: D = 2 (log L_big - log L_small)
+    against chi-square with `dof` = k_big - k_small degrees of freedom."""
+
+    big: str
+    small: str
+    statistic: float
+    dof: int
+    p_value: float
+    declared: bool  # nested by the user's ``nests`` (else by options and free set)
+
+
+def nested(scores: Sequence[CandidateScore]) -> list[tuple[int, int, bool]]:
+    """(larger, nested, declared) index pairs: the same options and a free set strictly inside
+    the larger one's (and the same noise model), or declared by the larger's ``nests``."""
+    out = []
+    for i, big in enumerate(scores):
+        for j, small in enumerate(scores):
+            if i == j or big.noise_model != small.noise_model:
+                continue
+            declared = small.name in big.nests
+            if declared or (big.options == small.options and set(small.free) < set(big.free)):
+                out.append((i, j, declared))
+    return out
+
+
+def likelihood_ratios(scores: Sequence[CandidateScore]) -> list[LikelihoodRatio]:
+    """A likelihood-ratio test per nested pair (see the module text); NaN where a
+    log-likelihood is not finite or the larger structure has no more parameters."""
+    from scipy.stats import chi2
+
+    out = []
+    for i, j, declared in nested(scores):
+        big, small = scores[i], scores[j]
+        dof = big.n_params - small.n_params
+        stat = 2.0 * (big.loglik - small.loglik)
+        ok = dof > 0 and np.isfinite(stat)
+        p = float(chi2.sf(max(stat, 0.0), dof)) if ok else float("nan")
+        out.append(LikelihoodRatio(big.name, small.name, float(stat), int(dof), p, declared))
+    return out
 
 
 def nested_pairs(scores: Sequence[CandidateScore]) -> list[tuple[int, int]]:

@@ -34,12 +34,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from greybox import _problem
 from greybox._data import Experiment
 from greybox._device import check_method
 from greybox._freeparams import FreeParameter, apply_raw, levenberg_marquardt
 from greybox._identifiability import IdentifiabilityReport, analyse
 from greybox._metrics import fit_percent_per_output, noise_ceiling
-from greybox._parameters import get_value, set_values
 from greybox._posterior import Posterior
 from greybox._residuals import (
     GoodnessOfFit,
@@ -60,9 +60,16 @@ from greybox._simulate import (
 LOSSES = ("l2", "huber", "student_t")
 FAILED_SOLVE_RESIDUAL = 1e3  # per residual, in units of sigma: far worse than any real misfit
 OUTLIER_SIGMAS = 5.0  # frames further than this from the fit are reported as outliers
-AUTO_STARTS = 4  # multi-start count when n_starts=None and more than two shared parameters
+AUTO_STARTS = _problem.AUTO_STARTS  # starts when n_starts=None and > 2 shared parameters
 SAME_COST = 1e-5  # relative cost difference within which two starts reached the same optimum
-STATUSES = ("converged", "local optimum", "at bound", "not converged", "diverged")
+STATUSES = (
+    "converged",
+    "local optimum",
+    "at bound",
+    "ran out of steps",
+    "not converged",
+    "diverged",
+)
 VALID_STATUSES = ("converged", "local optimum")
 
 
@@ -132,6 +139,23 @@ class FitResult:
     - `multistart_costs`: ((cost, converged) per start, at the first noise scale);
       `best_start`: the start whose estimate is reported; `n_starts_at_best`: how many
       starts reached its cost.
+    - `noise`: the noise-model object of the fit (`OutputError` or `ProcessNoise`);
+      `process_noise`: True for the likelihood back end.
+    - `predictions`: {run: {horizon: (N, n_y) SI}}: "simulation" always, "one-step" and
+      "k-step" (`noise.k_step` frames ahead) with process noise; `prediction_sd` their sds
+      (process noise only).
+    - process noise only (NaN / empty for least squares): `log_likelihood` (data term; the
+      first frame conditioned on when the initial state is known), `aic`, `bic`,
+      `whiteness` ({run: Ljung-Box per output of the standardised innovations}), `runs`
+      (`RunDiagnostics` per run). `n_observations`: readings scored (least squares: n_data).
+      For process noise `covariance_raw` is the inverse Hessian of -log L + priors,
+      `residuals` the analysis of the one-step innovations, `sigma` the fitted measurement sd
+      and `fit_percent` the simulation fit %.
+
+    The status vocabulary is `STATUSES`, derived in one place (`fit_status`) for both back
+    ends; besides the above, "ran out of steps" (the optimiser spent `max_steps`). A
+    parameter's verdict "not needed" (a process-noise intensity that went to zero) leaves the
+    fit valid.
     """
 
     model: object
@@ -168,6 +192,41 @@ class FitResult:
     best_start: int
     n_starts_at_best: int
     horizon: str = "simulation"
+    noise: object = None  # the noise-model object (OutputError / ProcessNoise)
+    log_likelihood: float = float("nan")  # process noise: log L of the data (priors apart)
+    aic: float = float("nan")
+    bic: float = float("nan")
+    n_observations: int = 0  # readings scored (least squares: n_data)
+    predictions: dict = dataclasses.field(default_factory=dict)  # run -> {horizon: (N, q)}
+    prediction_sd: dict = dataclasses.field(default_factory=dict)  # run -> {horizon: (N, q)}
+    whiteness: dict = dataclasses.field(default_factory=dict)  # run -> (LjungBox per output)
+    runs: tuple = ()  # process noise: `RunDiagnostics` per estimation run
+
+    @property
+    def process_noise(self) -> bool:
+        """True for a process-noise (likelihood) fit."""
+        return getattr(self.noise, "name", "") == "process noise"
+
+    @property
+    def neg_log_likelihood(self) -> float:
+        return -float(self.log_likelihood)
+
+    @property
+    def likelihood(self) -> str:
+        """How the likelihood was computed (process noise), else ""."""
+        from greybox._sde_device import LIKELIHOOD
+
+        return LIKELIHOOD if self.process_noise else ""
+
+    @property
+    def filter_name(self) -> str:
+        if not self.process_noise:
+            return ""
+        return "extended Kalman filter" if self.model.use_ekf else "Kalman filter (exact)"
+
+    @property
+    def k_step(self) -> int:
+        return int(self.noise.k_step) if self.process_noise else 0
 
     @property
     def posterior(self) -> Posterior:
@@ -180,6 +239,7 @@ class FitResult:
             self.identifiability.null_directions,
             self.sigma,
             self.method,
+            self.noise,
         )
 
     @property
@@ -199,6 +259,16 @@ class FitResult:
             if p.name == name:
                 return p
         raise KeyError(f"{name}: not a fitted parameter; have {[p.name for p in self.parameters]}")
+
+    def z_scores(self, truth: dict) -> dict:
+        """(estimate - truth) / sd in raw coordinates, per shared parameter path in `truth`."""
+        out = {}
+        sd = np.sqrt(np.clip(np.diag(self.covariance_raw), 0, None))
+        shared = [p for p in self.free if not p.per_experiment]  # raw order: shared first
+        for k, p in enumerate(shared):
+            if p.path in truth:
+                out[p.path] = float((self.raw[k] - float(p.to_raw(truth[p.path]))) / sd[k])
+        return out
 
     def predict(self, experiment_index: int, method: str | None = None) -> np.ndarray:
         """Free-run simulation of experiment `experiment_index` with its fitted parameters (SI)."""
@@ -257,33 +327,17 @@ class _Problem(eqx.Module):
             w[i, : e.n_frames] = e.mask
             if e.sigma is not None:
                 noise[i, : e.n_frames] = np.where(e.mask, e.sigma, 1.0)
-        setting_paths = tuple(sorted({k for e in experiments for k in e.settings}))
-        settings = np.array(
-            [
-                [
-                    e.settings.get(k, np.asarray(get_value(model, k), dtype=float))
-                    for k in setting_paths
-                ]
-                for e in experiments
-            ],
-            dtype=float,
-        )
-        free_paths = {p.path for p in free}
-        if free_paths & set(setting_paths):
-            raise ValueError(
-                f"settings: {sorted(free_paths & set(setting_paths))} are both "
-                "fitted and given as known per-run settings; choose one"
-            )
+        setting_paths, settings = _problem.settings_matrix(model, experiments, free)
         return _Problem(
             model=as_arrays(model),
             sched=sched,
             y=jnp.asarray(y),
             w=jnp.asarray(w),
             noise=jnp.asarray(noise),
-            settings=jnp.asarray(settings.reshape(n_exp, len(setting_paths))),
+            settings=jnp.asarray(settings),
             setting_paths=setting_paths,
-            shared=tuple(p for p in free if not p.per_experiment),
-            per_exp=tuple(p for p in free if p.per_experiment),
+            shared=_problem.split(free)[0],
+            per_exp=_problem.split(free)[1],
             n_exp=n_exp,
             method=method,
             loss=loss,
@@ -318,7 +372,7 @@ class _Problem(eqx.Module):
     @property
     def flat_free(self) -> list:
         """The FreeParameter behind each raw coordinate (shared, then per experiment)."""
-        return [*self.shared] + [p for _ in range(self.n_exp) for p in self.per_exp]
+        return _problem.flat_free(self.shared, self.per_exp, self.n_exp)
 
     def models(self, raw):
         """(shared model, per-experiment raw block (E, P))."""
@@ -327,8 +381,7 @@ class _Problem(eqx.Module):
         return base, raw[ns:].reshape(self.n_exp, len(self.per_exp))
 
     def experiment_model(self, base, per_raw_row, settings_row):
-        model = set_values(base, list(self.setting_paths), list(settings_row))
-        return apply_raw(model, self.per_exp, per_raw_row)
+        return _problem.run_model(base, self.setting_paths, settings_row, self.per_exp, per_raw_row)
 
     def predictions(self, raw):
         """Camera readings (E, N, n_y) and per-experiment success flags."""
@@ -383,27 +436,17 @@ def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_st
     )
 
 
-def _start_values(free, model) -> list[float]:
-    """Each parameter's starting value in SI: its `initial`, else the model's value."""
-    return [p.initial if p.initial is not None else float(get_value(model, p.path)) for p in free]
+_start_values = _problem.start_values  # (kept for greybox._batch)
 
 
 def _initial_raw(problem: _Problem, model) -> np.ndarray:
-    """Raw start vector: each parameter's `initial` or else the model's value (bounds checked)."""
-    raw = []
-    for p, v in zip(problem.flat_free, _start_values(problem.flat_free, model)):
-        p.check_value(v)
-        raw.append(float(p.to_raw(v)))
-    return np.asarray(raw)
+    """Raw start vector of `problem` (`_problem.initial_raw`)."""
+    return _problem.initial_raw(problem.flat_free, model)
 
 
 def _perturbed(problem: _Problem, raw0: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """A multi-start point: log/logit parameters moved by ~x2, linear ones left alone."""
-    raw = raw0.copy()
-    for k, p in enumerate(problem.shared):
-        if p.transform != "linear":
-            raw[k] += rng.normal(0.0, 0.7)
-    return raw
+    """A multi-start point (`_problem.perturbed`)."""
+    return _problem.perturbed(problem.shared, raw0, rng)
 
 
 def _robust_sigma(r_scaled: np.ndarray, w: np.ndarray, sigma: np.ndarray) -> np.ndarray:
@@ -448,7 +491,180 @@ def _noise_source(experiments, sigma) -> str:
     return "declared" if sigma is not None else "estimated"
 
 
+_OLD_NOISE_KEYWORDS = ("loss", "huber_c", "student_nu", "sigma")
+_OLD_SIMULATION_KEYWORDS = ("method", "solver_rtol", "solver_atol", "solver_max_steps")
+
+
 def fit(
+    model,
+    experiments: Sequence[Experiment],
+    free: Sequence[FreeParameter],
+    *,
+    noise=None,
+    simulation=None,
+    n_starts: int | None = None,
+    seed: int = 0,
+    max_steps: int | None = None,
+    rtol: float = 1e-6,
+    atol: float = 1e-6,
+    start_values=None,
+    progress: Callable[[str], None] | None = None,
+    method: str | None = None,
+    loss: str | None = None,
+    huber_c: float | None = None,
+    student_nu: float | None = None,
+    sigma: float | Sequence[float] | None = None,
+    solver_rtol: float | None = None,
+    solver_atol: float | None = None,
+    solver_max_steps: int | None = None,
+) -> FitResult:
+    """Fit `free` parameters of `model` to the estimation `experiments`: the one fit.
+
+    **Main arguments:**
+    - `model`: device at its starting values; fields not in `free` stay fixed. With process
+      noise: a `StochasticDevice` (`stochastic_device(...)`) or a plain device (wrapped with
+      the structure of `noise`).
+    - `experiments`: runs to fit (their `role` is not consulted; pass estimation runs). Runs
+      that carry `Experiment.sigma` (known noise per frame) are weighted by it.
+    - `free`: `FreeParameter`s (shared or per-experiment, bounds, priors); with process noise
+      also noise paths (`noise_parameters`).
+    - `noise`: the noise model. `OutputError(loss, sigma)` (default: `OutputError()`, Huber
+      1.5, sigma estimated): least squares on the simulation (free-run) error.
+      `ProcessNoise(structure, filter, initial_state, ...)`: maximum likelihood through the
+      (extended) Kalman filter.
+    - `simulation`: `ZOH()` or `Adaptive(rtol, atol, max_steps)`; None: the device's default.
+
+    **Other arguments:**
+    - `n_starts`, `seed`: multi-start count and its seed; None starts `AUTO_STARTS` times when
+      more than two shared parameters are free, else once. Every start reuses one compiled
+      solver; `multistart_costs` reports them.
+    - `max_steps`: optimiser budget (None: 200 Levenberg-Marquardt steps for least squares,
+      `_likelihood.MAX_STEPS` damped-Newton steps for the likelihood); `rtol`, `atol`: least
+      squares tolerances (raw space).
+    - `start_values`: a hook ``(model, free, experiments) -> free`` setting data-based
+      starting values (e.g. camera offsets from rest readings), or a `DeviceSpec` whose
+      `start_values` hook is used; the command line applies the spec's hook the same way.
+    - `progress`: called with a short text line at each stage (the CLI prints it).
+    - Old string keywords (still accepted, mapped once to the objects): `method`, `loss`,
+      `huber_c`, `student_nu`, `sigma`, `solver_rtol`, `solver_atol`, `solver_max_steps`.
+
+    **Returns:** a `FitResult`. Its `status` and `valid` say whether the estimate is usable:
+    a fit that does not converge, ends on a bound or diverges says so; it never presents NaN
+    parameters as a success.
+    """
+    from greybox import _noise_models as nm
+
+    old = dict(
+        method=method,
+        loss=loss,
+        huber_c=huber_c,
+        student_nu=student_nu,
+        sigma=sigma,
+        solver_rtol=solver_rtol,
+        solver_atol=solver_atol,
+        solver_max_steps=solver_max_steps,
+    )
+    given = [k for k, v in old.items() if v is not None]
+    if noise is None:
+        noise = nm.OutputError(
+            nm.loss_from_string(
+                loss or "huber", 1.5 if huber_c is None else huber_c, student_nu or 4.0
+            ),
+            sigma,
+        )
+    elif not isinstance(noise, nm.ProcessNoise):
+        clash = [k for k in given if k in _OLD_NOISE_KEYWORDS]
+        if clash:
+            raise ValueError(
+                f"{clash[0]}: give it inside the noise object (OutputError(loss=..., "
+                "sigma=...)), not beside noise="
+            )
+    if isinstance(noise, nm.ProcessNoise):
+        if given or simulation is not None:
+            what = given[0] if given else "simulation"
+            raise ValueError(
+                f"{what}: applies to OutputError (least squares) only; a ProcessNoise fit "
+                "takes its filter, initial state and horizons from the ProcessNoise object"
+            )
+        from greybox._likelihood import fit_likelihood
+
+        return fit_likelihood(
+            model,
+            experiments,
+            free,
+            noise,
+            n_starts=n_starts,
+            seed=seed,
+            max_steps=max_steps,
+            start_values=start_values,
+            progress=progress,
+        )
+    if not isinstance(noise, nm.OutputError):
+        raise ValueError(
+            f"noise: {noise!r} is not a noise model; use greybox.OutputError(...) or "
+            "greybox.ProcessNoise(...)"
+        )
+    if simulation is not None:
+        clash = [k for k in given if k in _OLD_SIMULATION_KEYWORDS]
+        if clash:
+            raise ValueError(
+                f"{clash[0]}: give it inside the simulation object (ZOH() / Adaptive(...)), "
+                "not beside simulation="
+            )
+        if not isinstance(simulation, (nm.ZOH, nm.Adaptive)):
+            raise ValueError(
+                f"simulation: {simulation!r}: use greybox.ZOH() or greybox.Adaptive(...)"
+            )
+    else:
+        simulation = nm.simulation_from_string(
+            method,
+            1e-8 if solver_rtol is None else solver_rtol,
+            1e-10 if solver_atol is None else solver_atol,
+            16384 if solver_max_steps is None else solver_max_steps,
+        )
+    solver = (
+        dict(
+            solver_rtol=simulation.rtol,
+            solver_atol=simulation.atol,
+            solver_max_steps=simulation.max_steps,
+        )
+        if isinstance(simulation, nm.Adaptive)
+        else dict(
+            solver_rtol=1e-8 if solver_rtol is None else solver_rtol,
+            solver_atol=1e-10 if solver_atol is None else solver_atol,
+            solver_max_steps=16384 if solver_max_steps is None else solver_max_steps,
+        )
+    )
+    free = apply_start_values(start_values, model, free, experiments)
+    result = _fit_least_squares(
+        model,
+        experiments,
+        free,
+        method=None if simulation is None else simulation.name,
+        loss=noise.loss.name,
+        huber_c=getattr(noise.loss, "c", 1.5),
+        student_nu=getattr(noise.loss, "nu", 4.0),
+        sigma=noise.sigma,
+        n_starts=n_starts,
+        seed=seed,
+        max_steps=200 if max_steps is None else max_steps,
+        rtol=rtol,
+        atol=atol,
+        progress=progress,
+        **solver,
+    )
+    return dataclasses.replace(result, noise=noise)
+
+
+def apply_start_values(start_values, model, free, experiments) -> tuple:
+    """`free` after the data-based start-value hook (a callable or a `DeviceSpec`'s)."""
+    hook = getattr(start_values, "start_values", start_values)
+    if hook is None:
+        return tuple(free)
+    return tuple(hook(model, tuple(free), tuple(experiments)))
+
+
+def _fit_least_squares(
     model,
     experiments: Sequence[Experiment],
     free: Sequence[FreeParameter],
@@ -468,7 +684,7 @@ def fit(
     solver_max_steps: int = 16384,
     progress: Callable[[str], None] | None = None,
 ) -> FitResult:
-    """Fit `free` parameters of `model` to the estimation `experiments` (free-run simulation error).
+    """The least-squares back end of `fit` (free-run simulation error).
 
     **Main arguments:**
     - `model`: device at its starting values; fields not in `free` stay fixed.
@@ -499,17 +715,11 @@ def fit(
     say = progress or (lambda _msg: None)
     if not experiments:
         raise ValueError("experiments: zero runs in the estimation set; give at least one")
-    if not free:
-        raise ValueError("free: no free parameters; list at least one FreeParameter")
+    free = _problem.check_free(model, free)
     method = check_method(model, method)
     if loss not in LOSSES:
         raise ValueError(f"loss: {loss!r} is unknown; use one of {LOSSES}")
-    paths = [p.path for p in free]
-    if len(set(paths)) != len(paths):
-        raise ValueError(f"free: a parameter is listed twice ({paths})")
-    for p in free:
-        get_value(model, p.path)  # a clear error for a misspelt path
-    free = tuple(p.with_scale_from(v) for p, v in zip(free, _start_values(free, model)))
+    free = _problem.with_scales(free, model)
     source = _noise_source(experiments, sigma)
 
     problem = _Problem.build(
@@ -551,10 +761,7 @@ def fit(
     else:
         sig = np.ones(n_y)  # the per-frame levels are in the problem's `noise`
 
-    if n_starts is None:
-        n_starts = AUTO_STARTS if len(problem.shared) > 2 else 1
-    if int(n_starts) < 1:
-        raise ValueError(f"n_starts: {n_starts} starts; give at least 1 (or None for auto)")
+    n_starts = _problem.n_starts_for(n_starts, problem.shared)
     rng = np.random.default_rng(seed)
     starts = [raw0] + [_perturbed(problem, raw0, rng) for _ in range(int(n_starts) - 1)]
     runs = []
@@ -586,7 +793,18 @@ def fit(
         steps += int(best["steps"])
 
     return _assemble(
-        problem, best, sig, steps, runs, best_index, raw0, experiments, free, source, say
+        problem,
+        best,
+        sig,
+        steps,
+        runs,
+        best_index,
+        raw0,
+        experiments,
+        free,
+        source,
+        say,
+        int(max_steps),
     )
 
 
@@ -647,7 +865,18 @@ def _scores(
 
 
 def _assemble(
-    problem, best, sig, steps, runs, best_index, raw0, experiments, free, source, say
+    problem,
+    best,
+    sig,
+    steps,
+    runs,
+    best_index,
+    raw0,
+    experiments,
+    free,
+    source,
+    say,
+    max_steps: int | None = None,
 ) -> FitResult:
     raw, cost, ok = np.asarray(best["raw"]), float(best["cost"]), bool(best["ok"])
     raw_j = jnp.asarray(raw)
@@ -706,7 +935,7 @@ def _assemble(
         for p, q in zip(params, flat_free)
         if p.bound is not None
     ]
-    unidentified = [p.name for p in params if p.verdict == "not identifiable"]
+    unidentified = unidentified_with_reasons(params, report)
     status, message, at_best = fit_status(
         finite=finite,
         solved=bool(np.all(solved)),
@@ -715,6 +944,8 @@ def _assemble(
         costs=[float(r["cost"]) for r in runs],
         best_index=best_index,
         unidentified=unidentified,
+        ran_out=max_steps is not None and int(best["steps"]) >= max_steps,
+        start_converged=[bool(r["ok"]) for r in runs],
     )
     converged = bool(ok and finite and np.all(solved))
     return FitResult(
@@ -751,7 +982,18 @@ def _assemble(
         goodness_of_fit=gof,
         best_start=int(best_index),
         n_starts_at_best=len(at_best),
+        n_observations=problem.n_data,
+        predictions={e.name: {"simulation": zi} for e, zi in zip(experiments, preds)},
     )
+
+
+def unidentified_with_reasons(params, report) -> list:
+    """ "name (the weak combination)" of every "not identifiable" estimate."""
+    return [
+        f"{p.name} ({report.explain(k)})"
+        for k, p in enumerate(params)
+        if p.verdict == "not identifiable"
+    ]
 
 
 def _bound_value(p: FreeParameter, bound: str) -> float:
@@ -773,6 +1015,10 @@ def fit_status(
     costs,
     best_index: int,
     unidentified=(),
+    ran_out: bool = False,
+    reason: str | None = None,
+    start_converged=None,
+    optimiser: str = "Levenberg-Marquardt",
 ) -> tuple[str, str, list]:
     """(status, message, indices of the starts that reached the lowest cost) of a fit.
 
@@ -780,8 +1026,13 @@ def fit_status(
     failed, or the optimiser stopped short while no parameter sits on a bound), "at bound"
     (`pinned`: (name, "lower"/"upper", bound value) per parameter on a bound; an optimiser
     chasing a bound often stops short, and the bound is then the cause), "local optimum"
-    (start 0, the given values, stopped above the lowest cost of `costs` by more than
-    SAME_COST relative; the best start is `best_index`), else "converged".
+    (start 0, the given values, converged at a cost above the lowest cost of `costs` by more
+    than SAME_COST relative; the best start is `best_index`), else "converged".
+
+    The one place that derives the status, for both back ends. When the optimiser stopped
+    short: "ran out of steps" (`ran_out`: the step budget was spent) or "not converged"
+    (with `reason` in words when known). `start_converged`: per start, whether it met its
+    tolerances (a start that ran out of steps at a higher cost is not a local optimum).
     """
     costs = [float(c) for c in costs]
     best = costs[best_index] if costs else float("nan")
@@ -813,14 +1064,27 @@ def fit_status(
             message += " (the optimiser also stopped short, as it does chasing a bound)"
         return "at bound", message + _unidentified_note(unidentified), at_best
     if not optimiser_ok:
+        if ran_out:
+            return (
+                "ran out of steps",
+                f"ran out of steps: {optimiser} spent its step budget `max_steps` before "
+                "meeting its tolerances; raise max_steps or start closer; treat the "
+                "estimates as unconverged" + _unidentified_note(unidentified),
+                at_best,
+            )
         return (
             "not converged",
-            "Levenberg-Marquardt stopped without meeting its tolerances (its step budget "
-            "`max_steps`, or stalled); treat the estimates as unconverged"
+            (
+                f"not converged: {reason}"
+                if reason
+                else f"{optimiser} stopped without meeting its tolerances (stalled); treat "
+                "the estimates as unconverged"
+            )
             + _unidentified_note(unidentified),
             at_best,
         )
-    if 0 not in at_best:
+    start0_converged = True if start_converged is None else bool(start_converged[0])
+    if 0 not in at_best and start0_converged:
         status = "local optimum"
         message = (
             f"local optimum: the starting values stopped at cost {costs[0]:.6g}; start "
@@ -829,7 +1093,12 @@ def fit_status(
         )
     else:
         status, message = "converged", "converged"
-        if len(costs) > 1 and len(at_best) < len(costs):
+        if 0 not in at_best:
+            message += (
+                f" (the starting values ran out of steps at cost {costs[0]:.6g}; start "
+                f"{best_index + 1} converged at the lowest cost {best:.6g}, reported)"
+            )
+        elif len(costs) > 1 and len(at_best) < len(costs):
             message += (
                 f" ({len(at_best)} of {len(costs)} starts reached the lowest cost; the "
                 "others stopped in local optima)"
@@ -882,7 +1151,7 @@ def parameter_estimates(
         value = float(p.to_value(raw[k]))
         verdict = report.verdicts[k]
         deriv = abs(p.value_derivative(raw[k]))
-        blank = verdict in ("not identifiable", "at bound")
+        blank = verdict in ("not identifiable", "at bound", "not needed")
         se_gn = float("nan") if blank else deriv * sd_gn[k]
         se_hac = float("nan") if blank else deriv * sd_hac[k]
         if blank or not np.isfinite(sd_head[k]):
@@ -908,7 +1177,7 @@ def parameter_estimates(
                 se_gauss_newton=float(se_gn),
                 se_hac=float(se_hac),
                 se_method=headline,
-                bound=bounds[k],
+                bound=bounds[k] if bounds[k] in ("lower", "upper") else None,
             )
         )
     return tuple(out)
@@ -916,12 +1185,7 @@ def parameter_estimates(
 
 def _labels(problem, experiments):
     """Display name and owning experiment (None if shared) of each raw coordinate."""
-    labels = [p.path for p in problem.shared]
-    owners = [None] * len(problem.shared)
-    for e in experiments:
-        labels += [f"{p.path}[{e.name}]" for p in problem.per_exp]
-        owners += [e.name] * len(problem.per_exp)
-    return labels, owners
+    return _problem.labels(problem.shared, problem.per_exp, experiments)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -948,6 +1212,7 @@ class ValidationResult:
     goodness_of_fit: GoodnessOfFit | None = None
     horizon: str = "simulation"
     parameters: tuple = ()
+    runs: tuple = ()  # process noise: `RunDiagnostics` per run (innovations, every horizon)
 
     def refitted(self, run: str) -> dict:
         """{path: ParameterEstimate} re-fitted on validation run `run`."""
@@ -957,11 +1222,21 @@ class ValidationResult:
 def validate(
     result: FitResult, experiments: Sequence[Experiment], **fit_kwargs
 ) -> ValidationResult:
-    """Score fitted physics on new runs: re-fit only per-experiment parameters, then simulate."""
+    """Score fitted physics on new runs: re-fit only per-experiment parameters, then simulate
+    (process noise: also filter, scoring the innovations and every horizon in `runs`)."""
     per_exp = [p for p in result.free if p.per_experiment]
     experiments = tuple(experiments)
     if not experiments:
         raise ValueError("experiments: no validation runs given")
+    if result.process_noise:
+        from greybox._likelihood import validate_runs
+
+        pairs = validate_runs(result, experiments)
+        diags = tuple(d for d, _ in pairs)
+        preds = [d.y_simulation for d in diags]
+        scores = _validation_scores(experiments, preds, result.sigma, False, 0)
+        refit = tuple(p for _, ps in pairs for p in ps)
+        return dataclasses.replace(scores, parameters=refit, runs=diags)
     known = result.noise_known
     if not per_exp:
         from greybox._simulate import simulate

@@ -14,7 +14,10 @@ The optimiser works on unconstrained raw values; each `FreeParameter` maps raw <
 
 A value that ends within `AT_BOUND_FRACTION` of its range from a bound (|logit| > 6.9), or a
 lower-bounded value that shrank to within that fraction of its starting distance from the
-bound, is "at bound": the optimum lies on the boundary, not inside it.
+bound, is "at bound": the optimum lies on the boundary, not inside it. For bounds that span
+decades (lower > 0 and upper / lower >= 100) the range is measured in log space: with bounds
+1..1e4, 5.3 is not at bound (18 % of the log range) and 1.0001 is; with 1e-4..1 s, 1.06e-3 s
+is not.
 
 Fields not listed stay fixed at the model's value. A parameter may be shared by all
 experiments or estimated once per experiment (offsets, drift, initial temperature). An
@@ -30,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 AT_BOUND_FRACTION = 1e-3  # distance to a bound, as a fraction of the range, that counts as "at"
+LOG_SCALED_RATIO = 100.0  # bounds spanning this ratio or more: "at bound" judged in log space
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,6 +88,16 @@ class FreeParameter:
         return "linear"
 
     @property
+    def log_scaled(self) -> bool:
+        """Bounds that span decades (lower > 0, upper / lower >= `LOG_SCALED_RATIO`): the
+        parameter's scale is logarithmic, and "at bound" is judged in log space."""
+        return (
+            self.transform == "logit"
+            and self.lower > 0
+            and self.upper / self.lower >= LOG_SCALED_RATIO
+        )
+
+    @property
     def has_prior(self) -> bool:
         return self.prior_median is not None
 
@@ -104,6 +118,14 @@ class FreeParameter:
         """ "lower" or "upper" when the value at `raw` sits on that bound (see the module
         docstring), else None. `raw_start` is where the fit started (for a lower bound only)."""
         raw = float(raw)
+        if self.log_scaled:
+            # judged where the parameter lives: the fraction of the log range from a bound
+            value = float(self.to_value(raw))
+            lo, hi = np.log(self.lower), np.log(self.upper)
+            frac = (np.log(max(value, self.lower)) - lo) / (hi - lo)
+            return "lower" if frac < AT_BOUND_FRACTION else (
+                "upper" if frac > 1.0 - AT_BOUND_FRACTION else None
+            )
         if self.transform == "logit":
             edge = float(np.log(AT_BOUND_FRACTION / (1.0 - AT_BOUND_FRACTION)))  # -6.9
             return "lower" if raw < edge else "upper" if raw > -edge else None

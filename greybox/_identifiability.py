@@ -32,7 +32,7 @@ PRIOR_SHRINK = 0.25  # posterior var / prior var above this => prior-dominated
 RANK_TOL = 1e-8  # singular value of the column-scaled Jacobian, relative, treated as zero
 TINY = RANK_TOL**2  # the same threshold on eigenvalues of an information matrix J^T J
 ON_NULL = 1e-6  # squared weight on an undetermined direction that makes a coordinate undetermined
-VERDICTS = ("identifiable", "prior-dominated", "not identifiable", "at bound")
+VERDICTS = ("identifiable", "prior-dominated", "not identifiable", "at bound", "not needed")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,6 +67,20 @@ class IdentifiabilityReport:
     raw_labels: tuple
     undetermined: np.ndarray
     bounds: tuple = ()
+
+    def explain(self, k: int) -> str:
+        """Why raw coordinate `k` is not identified, in words: the weak or undetermined
+        combination that carries it most (every "not identifiable" verdict names one)."""
+        label = self.raw_labels[k] if k < len(self.raw_labels) else None
+        best, weight = None, 0.0
+        for w in self.weak_directions:
+            c = abs(w.combination.get(label, 0.0))
+            if c > weight:
+                best, weight = w, c
+        if best is None:
+            sd = self.data_sd_raw[k] if k < len(self.data_sd_raw) else float("nan")
+            return f"data-only sd {sd:.2g} in raw units, no single weak combination"
+        return f"weak combination {best.describe()}"
 
     def summary(self) -> list[str]:
         lines = [
@@ -199,6 +213,9 @@ def analyse(
 
     verdicts = []
     for k, p in enumerate(free_flat):
+        if bounds[k] == "not needed":  # a noise intensity at zero: an answer, not a failure
+            verdicts.append("not needed")
+            continue
         if bounds[k] is not None:
             verdicts.append("at bound")
             continue

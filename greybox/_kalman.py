@@ -468,7 +468,8 @@ def measurement_update(m_p, P_p, y_i, y_hat, H, R):
 
 
 def _run(model: LinearGaussianSDE, grid: FilterGrid, y, keep_path: bool):
-    """Forward pass over the L grid steps; per-step moments when `keep_path`."""
+    """Forward pass over the L grid steps: (log L, per-step moments when `keep_path` else the
+    per-step log-likelihood terms (L,), Ad, y)."""
     y = _as_rows(model, grid, y)
     dtype = jnp.result_type(model.A, y)
     Ad, Bd, Qd = discretise(model.A, model.B, model.Qc, jnp.asarray(grid.dt_s, dtype))
@@ -486,7 +487,7 @@ def _run(model: LinearGaussianSDE, grid: FilterGrid, y, keep_path: bool):
         y_hat = model.observe(m_p, uo_i)
         H = jax.jacfwd(model.observe)(m_p, uo_i) if model.output is not None else model.C
         m_f, P_f, ll_i = measurement_update(m_p, P_p, y_i, y_hat, H, model.R)
-        out = None
+        out = ll_i  # without the path: each step's log-likelihood term
         if keep_path:
             S_full = H @ P_p @ H.T + model.R
             out = (m_p, P_p, m_f, P_f, y_hat, S_full)

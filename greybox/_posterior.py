@@ -21,7 +21,9 @@ class Posterior:
     - `free`: the `FreeParameter`s in the order of `raw` (shared first, then per-run blocks);
     - `raw`, `covariance_raw`: the raw estimate and its (headline) covariance;
     - `null_directions`: (k, n_raw) raw directions the data did not determine;
-    - `sigma`: noise sd per output [SI]; `method`: the simulation path of the fit.
+    - `sigma`: noise sd per output [SI]; `method`: the simulation path of the fit;
+    - `noise`: the fit's noise-model object (`model` is a `StochasticDevice` for
+      `ProcessNoise`).
     """
 
     model: object
@@ -31,6 +33,7 @@ class Posterior:
     null_directions: np.ndarray
     sigma: np.ndarray
     method: str
+    noise: object = None  # the fit's noise model (OutputError / ProcessNoise)
 
     def band(self, inputs, t_s, *, noise: bool = False, level: float = 0.95, t_start_s=0.0):
         """The response to `inputs` at `t_s` with its pointwise band (`greybox.Band`): a

@@ -28,6 +28,8 @@ VERDICT_MEANING = {
     "parameters is known); no interval is reported",
     "at bound": "the fit ended on one of its bounds: the estimate is the boundary, not what "
     "the data say, and no interval is reported",
+    "not needed": "a noise intensity or variance that went to zero: the data need no such "
+    "noise (no process noise on that state); the fit stays valid, no interval is reported",
 }
 
 STATUS_MEANING = {
@@ -35,6 +37,8 @@ STATUS_MEANING = {
     "local optimum": "the starting values led to a higher optimum than another start; the "
     "best start's estimate is reported and valid, but the cost surface has several minima",
     "at bound": "a parameter ended on one of its bounds; the estimate is NOT valid",
+    "ran out of steps": "the optimiser used its whole step budget before meeting its "
+    "tolerances ([fit] max_steps); the estimate is NOT valid",
     "not converged": "the optimiser stopped before meeting its tolerances; the estimate is "
     "NOT valid",
     "diverged": "the fit diverged; there is no estimate",
@@ -381,6 +385,8 @@ def fit_report(
     output_unit: str = "m",
     outputs: tuple | None = None,
     physical_ranges: dict | None = None,
+    metrics=(),
+    noise_table=None,
 ) -> str:
     """Markdown report of a fit (and its validation) for people who did not run it.
 
@@ -393,7 +399,22 @@ def fit_report(
     - `figures`: relative paths of figures to link; `source`: where the data came from.
     - `output_unit`: SI unit of the measured outputs (for sigma); `outputs`: their names
       (default "output 1", ...).
+    - `metrics`: rows (run, role, output, horizon, unit, n, fit %, RMSE, MAE, SAE) of the
+      result folder (a process-noise fit's report tabulates every horizon);
+      `noise_table`: the `[noise]` settings of a process-noise fit.
     """
+    if getattr(getattr(result, "noise", None), "name", "") == "process noise":
+        return process_report(
+            result,
+            validation,
+            title=title,
+            device_name=device_name,
+            source=source,
+            outputs=outputs,
+            metrics=metrics,
+            noise_table=noise_table,
+            figures=figures,
+        )
     shared = [p for p in result.parameters if p.experiment is None]
     per_run = [p for p in result.parameters if p.experiment is not None]
     n_frames = sum(e.n_frames for e in result.experiments)
@@ -520,3 +541,107 @@ def fit_report(
         lines += [f"- [{f}]({f})" for f in figures]
         lines.append("")
     return "\n".join(lines)
+
+
+def _text(x, spec: str) -> str:
+    """A metric for the report: formatted, or n/a where undefined."""
+    return "n/a" if x is None else format(x, spec)
+
+
+def process_report(
+    result,
+    validation=None,
+    *,
+    title: str,
+    device_name: str,
+    source: str = "",
+    outputs: tuple | None = None,
+    metrics=(),
+    noise_table=None,
+    figures=(),
+) -> str:
+    """Markdown report of a process-noise (maximum-likelihood, Kalman filter) fit: status,
+    likelihood and criteria, parameters with intervals and verdicts, fit % per run, output
+    and horizon (simulation, one-step, k-step prediction), the innovations' whiteness."""
+    k = result.k_step
+    names = _output_names(len(outputs or ()) or 1, outputs)
+    structure = result.noise.structure
+    groups = ", ".join(f"{g} (states {list(i)})" for g, i in structure.process_groups) or "none"
+    fixed = dict(getattr(noise_table, "fixed", {}) or {})
+    status = result.status
+    head = f"**Fit status: {status}** ({STATUS_MEANING.get(status, '')})"
+    runs = (*result.runs, *(getattr(validation, "runs", ()) or ()))
+    white = all(all(w.p_value > 0.01 for w in r.whiteness) for r in result.runs)
+    lines = [
+        f"# greybox fit: {title} (stochastic grey-box fit)",
+        "",
+        head + ("." if status == "converged" else f": {result.message}."),
+        f"**Innovations (estimation runs): {'white' if white else 'NOT white'}** "
+        "(Ljung-Box, p > 0.01 per output and run).",
+        "",
+    ]
+    if source:
+        lines += [source, ""]
+    initial = getattr(noise_table, "initial_state", "known")
+    lines += [
+        f"Device `{device_name}`. **Likelihood:** {result.likelihood} ({result.filter_name}); "
+        f"{result.n_steps} optimiser steps.",
+        "",
+        f"Noise model: process noise on {groups}; disturbances: "
+        f"{', '.join(structure.disturbances) or 'none'}; measurement noise per output"
+        + (f"; held fixed: {fixed}" if fixed else "")
+        + ". Intensities are of the Wiener increments (variance per second). Initial state: "
+        + (
+            "known (each run's first reading is conditioned on, not scored)"
+            if initial == "known"
+            else "diffuse (a vague prior; the first reading conditioned on)"
+            if initial == "diffuse"
+            else f"declared sd {initial} (state units; every reading scored)"
+        )
+        + ".",
+        "",
+        f"log L = {fmt(result.log_likelihood, 8)} over {result.n_observations} readings; "
+        f"AIC {fmt(result.aic, 8)}, BIC {fmt(result.bic, 8)}.",
+        "",
+        "## Parameters",
+        "",
+        "Standard errors from the inverse observed information (Hessian of -log L); 95 % "
+        "intervals mapped through each parameter's transform.",
+        "",
+        *parameter_table(result.parameters),
+        "",
+        "Verdicts: " + "; ".join(f"*{k_}*: {v}" for k_, v in VERDICT_MEANING.items()) + ".",
+        "",
+        "## Fit per run, output and horizon",
+        "",
+        "Simulation: the deterministic model from the initial state, no reading used. One-step "
+        "prediction: the filter's prediction of each reading from the readings before it. "
+        f"{k}-step prediction: each reading predicted from the readings up to {k} frames "
+        f"before it (from the initial state for the first {k} frames).",
+        "",
+        "| run | role | output | horizon | fit % | RMSE | SAE | unit |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for run, role, out, horizon, unit, n, fp, rmse, mae, sae in metrics:
+        lines.append(
+            f"| {run} | {role} | {out} | {horizon} | {_text(fp, '.2f')} | "
+            f"{_text(rmse, '.4g')} | {_text(sae, '.4g')} | {unit} |"
+        )
+    lines += [
+        "",
+        "## Innovations whiteness (Ljung-Box, 20 lags, white when p > 0.01)",
+        "",
+        "| run | role | output | Q | p | verdict |",
+        "|---|---|---|---|---|---|",
+    ]
+    for run in runs:
+        for c, w in zip(names, run.whiteness):
+            verdict = "white" if w.p_value > 0.01 else "NOT white"
+            lines.append(
+                f"| {run.name} | {run.role} | {c} | {w.statistic:.1f} | {w.p_value:.3g} | "
+                f"{verdict} |"
+            )
+    if figures:
+        lines += ["", "## Figures", ""]
+        lines += [f"- [{f}]({f})" for f in figures]
+    return "\n".join(lines) + "\n"

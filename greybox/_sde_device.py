@@ -38,7 +38,7 @@ filter at the frame times (dropped frames skipped):
   Van Loan with J, P <- Ad P Ad^T + Qd; the output is linearised at the predicted mean. On a
   linear device it equals the linear filter.
 
-The fit (`fit_process`, `validate_process`) is `greybox._process_fit`.
+The fit is `greybox.fit(..., noise=ProcessNoise(...))` (`greybox._likelihood`).
 """
 
 from __future__ import annotations
@@ -185,6 +185,8 @@ class StochasticDevice(eqx.Module):
     output_walk: _Named
     input_walk: _Named
     structure: NoiseStructure = eqx.field(static=True)
+    initial_sd: jnp.ndarray | None = None  # (n_device_states,) sd of the initial state
+    score_first: bool = eqx.field(static=True, default=True)
 
     def __getattr__(self, name):
         try:
@@ -260,7 +262,12 @@ class StochasticDevice(eqx.Module):
         n = self.n_device_states
         m = len(self.input_walk.names) + len(self.output_walk.names)
         sd2 = float(self.structure.walk_initial_sd) ** 2
-        return jnp.diag(jnp.concatenate([jnp.zeros(n, dtype), jnp.full(m, sd2, dtype)]))
+        dev = (
+            jnp.zeros(n, dtype)
+            if self.initial_sd is None
+            else jnp.broadcast_to(jnp.asarray(self.initial_sd, dtype) ** 2, (n,))
+        )
+        return jnp.diag(jnp.concatenate([dev, jnp.full(m, sd2, dtype)]))
 
     def augmented_field(self, t, z, u):
         """d(augmented state)/dt: the device driven by u + the input walks; walks do not move."""
@@ -345,7 +352,7 @@ def stochastic_device(
     - `outputs`, `inputs`: names of the output and input channels (strings or
       `greybox.Channel`s, e.g. `spec.outputs`); default y0, y1, ... and u0, u1, ...
     - `values`: starting values {noise path: SI value}, e.g. {"measurement.T1": 0.1}; the
-      rest start at 1 (use `fit_process`'s data-based starts or set them).
+      rest start at 1 (`greybox.fit` starts free noise parameters from the data, or set them).
     """
     if not isinstance(device, AbstractODEDevice):
         raise ValueError(
@@ -480,7 +487,8 @@ def _ekf_predictor(model: StochasticDevice, dtype):
 
 
 def _ekf_run(model: StochasticDevice, grid: FilterGrid, y, keep_path: bool):
-    """Extended Kalman filter over the grid; (loglik, path or None)."""
+    """Extended Kalman filter over the grid; (loglik, path or the per-step log-likelihood
+    terms)."""
     dtype = jnp.result_type(float)
     R = model.measurement_cov(dtype)
     dt_all, t_starts = _step_starts(grid, dtype)
@@ -497,7 +505,7 @@ def _ekf_run(model: StochasticDevice, grid: FilterGrid, y, keep_path: bool):
         y_hat = h(m_p)
         H = jax.jacfwd(h)(m_p)
         m_f, P_f, ll_i = measurement_update(m_p, P_p, y_i, y_hat, H, R)
-        out = (m_p, P_p, m_f, P_f, y_hat, H @ P_p @ H.T + R) if keep_path else None
+        out = (m_p, P_p, m_f, P_f, y_hat, H @ P_p @ H.T + R) if keep_path else ll_i
         return (m_f, P_f, ll + ll_i), out
 
     init = (model.initial_mean(dtype), model.initial_cov(dtype), jnp.zeros((), dtype))
@@ -507,13 +515,18 @@ def _ekf_run(model: StochasticDevice, grid: FilterGrid, y, keep_path: bool):
 
 
 def _record_loglik(model: StochasticDevice, grid: FilterGrid, t_s, t0, y):
-    """log p(y) of one record (y the readings (N, q) in SI, NaN = dropped)."""
+    """log p(y) of one record (y the readings (N, q) in SI, NaN = dropped); without
+    `model.score_first` the first frame is conditioned on: log p(y_2..y_N | y_1)."""
     y_adj = y - _readout_terms(model.device, t_s, t0, model.n_outputs)
     if model.use_ekf:
-        return _ekf_run(model, grid, y_adj, keep_path=False)[0]
-    from greybox._kalman import _run
+        ll, terms = _ekf_run(model, grid, y_adj, keep_path=False)
+    else:
+        from greybox._kalman import _run
 
-    return _run(model.linear_sde(y_adj.dtype), grid, y_adj, keep_path=False)[0]
+        ll, terms, _, _ = _run(model.linear_sde(y_adj.dtype), grid, y_adj, keep_path=False)
+    if model.score_first:
+        return ll
+    return ll - terms[grid.step[0]]
 
 
 @dataclasses.dataclass(frozen=True)

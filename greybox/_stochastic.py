@@ -11,10 +11,12 @@ noise and the initial state are parameters like any time constant. `fit_stochast
     -log p(y | theta) = 1/2 sum_k (v_k^T S_k^{-1} v_k + log det S_k + m_k log 2 pi)
 
 over all records, v_k and S_k the Kalman filter's innovations and their covariances
-(`greybox._kalman`, exact for a linear output), with optimistix BFGS on transformed
-parameters (log for the positive ones). Standard errors come from the inverse Hessian of the
-negative log-likelihood in the transformed coordinates (exact second derivatives through the
-filter by forward-over-forward AD, `jax.jacfwd(jax.jacfwd(nll))`); 95 % intervals are
+(`greybox._kalman`, exact for a linear output), with the likelihood optimiser of
+`greybox.fit(noise=ProcessNoise(...))` (`greybox._likelihood`: BFGS, then Newton) on
+transformed parameters (log for the positive ones). It is the estimator for a hand-built
+`LinearGaussianSDE`; devices go through `greybox.fit`. Standard errors come from the inverse
+Hessian of the negative log-likelihood in the transformed coordinates (central differences
+of the exact gradient); 95 % intervals are
 +-1.96 se there, mapped back (so asymmetric for positive parameters), and the physical
 standard errors use the delta method.
 
@@ -33,10 +35,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 import scipy.stats
 
 from greybox._kalman import FilterGrid, LinearGaussianSDE, free_run, kalman_filter, log_likelihood
+from greybox._likelihood import _newton
 from greybox._metrics import fit_percent
 from greybox._residuals import LjungBox, ljung_box  # the one portmanteau core
 from greybox._simulate import require_x64
@@ -119,26 +121,11 @@ def _to_raw(positive: bool, value: float) -> float:
     return float(value)
 
 
-def _value_grad_hessian(f, y):
-    """f(y), its gradient and its exact Hessian from one forward-over-forward AD pass.
+class _SpecObjective(eqx.Module):
+    """-log L of the records over the raw vector, in the interface of the likelihood back
+    end's optimiser (`greybox._likelihood._newton`: `total`, `data_nll`, `prior_nll`)."""
 
-    Through the filter's `lax.scan` this compiles in about 60 % of the time of
-    `jax.hessian` (forward-over-reverse) and runs as fast for a handful of parameters.
-    """
-
-    def value(z):
-        v = f(z)
-        return v, v
-
-    def grad(z):
-        g, v = jax.jacfwd(value, has_aux=True)(z)
-        return g, (g, v)
-
-    hess, (g, v) = jax.jacfwd(grad, has_aux=True)(y)
-    return v, g, 0.5 * (hess + hess.T)
-
-
-class _Spec(eqx.Module):
+    data: list
     build: Callable = eqx.field(static=True)
     names: tuple[str, ...] = eqx.field(static=True)
     positive: tuple[bool, ...] = eqx.field(static=True)
@@ -149,24 +136,15 @@ class _Spec(eqx.Module):
             for i, (name, pos) in enumerate(zip(self.names, self.positive))
         }
 
+    def data_nll(self, raw):
+        model = self.build(self.theta(raw))
+        return -sum(log_likelihood(model, grid, y) for grid, y in self.data)
 
-def _nll(spec: _Spec, raw, data):
-    model = spec.build(spec.theta(raw))
-    return -sum(log_likelihood(model, grid, y) for grid, y in data)
+    def prior_nll(self, raw):
+        return jnp.zeros((), raw.dtype)
 
-
-@eqx.filter_jit
-def _solve(spec: _Spec, raw0, data, solver, max_steps: int):
-    sol = optx.minimise(
-        lambda r, args: _nll(spec, r, args),
-        solver,
-        raw0,
-        args=data,
-        max_steps=max_steps,
-        throw=False,
-    )
-    nll, _, hess = _value_grad_hessian(lambda r: _nll(spec, r, data), sol.value)
-    return sol.value, sol.result, sol.stats["num_steps"], nll, hess
+    def total(self, raw):
+        return self.data_nll(raw)
 
 
 def fit_stochastic(
@@ -175,7 +153,6 @@ def fit_stochastic(
     data: Sequence[tuple[FilterGrid, np.ndarray]],
     *,
     positive: Collection[str] = (),
-    solver: optx.AbstractMinimiser | None = None,
     max_steps: int = 1000,
     whiteness_lags: int = 20,
     throw: bool = True,
@@ -195,8 +172,7 @@ def fit_stochastic(
     **Other arguments:**
 
     - `positive`: names fitted as log(value) (time constants, intensities, noise levels).
-    - `solver`: an optimistix minimiser; default `optx.BFGS(rtol=1e-9, atol=1e-9)`.
-    - `max_steps`: optimiser step limit.
+    - `max_steps`: optimiser step limit (per phase: BFGS, then Newton).
     - `whiteness_lags`: lags of the Ljung-Box test.
     - `throw`: raise `RuntimeError` when the optimiser does not report success; with `False`
       the result says `converged=False` and carries the optimiser's message.
@@ -214,16 +190,20 @@ def fit_stochastic(
     if not data:
         raise ValueError("data: give at least one (FilterGrid, y) record")
     pos = tuple(name in positive for name in names)
-    spec = _Spec(build=build, names=names, positive=pos)
+    objective = _SpecObjective(data=data, build=build, names=names, positive=pos)
     raw0 = jnp.asarray([_to_raw(p, float(theta0[n])) for n, p in zip(names, pos)])
-    solver = optx.BFGS(rtol=1e-9, atol=1e-9) if solver is None else solver
-    raw, result, n_steps, nll, hess = _solve(spec, raw0, data, solver, max_steps)
-    converged = bool(result == optx.RESULTS.successful)
-    message = "successful" if converged else str(optx.RESULTS[result])
+    # the one likelihood optimiser (greybox.fit's with ProcessNoise): BFGS, then Newton on
+    # the central-difference Hessian of the exact gradient
+    out = jax.device_get(_newton(objective, raw0, jnp.asarray(int(max_steps))))
+    raw, n_steps, nll = out["raw"], out["steps"], out["data_nll"]
+    converged = bool(out["converged"]) and bool(np.all(np.isfinite(raw)))
+    message = "successful" if converged else (
+        "ran out of steps" if bool(out["ran_out"]) else "stalled (no decreasing step)"
+    )
     if throw and not converged:
         raise RuntimeError(f"fit_stochastic: the optimiser did not converge: {message}")
     raw = np.asarray(raw)
-    hess = np.asarray(hess)
+    hess = np.asarray(out["hessian"])
     hess = 0.5 * (hess + hess.T)
     pd = bool(np.all(np.isfinite(hess)) and np.all(np.linalg.eigvalsh(hess) > 0))
     cov = np.linalg.inv(hess) if pd else np.full_like(hess, np.nan)

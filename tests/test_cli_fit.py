@@ -63,7 +63,9 @@ def truth():
 
 
 def test_params_json_schema(params):
-    assert params["schema"] == "greybox.params/2"
+    assert params["schema"] == "greybox.params/3"
+    assert params["noise_model"]["kind"] == "output error"
+    assert params["noise_model"]["horizons"] == ["simulation"]
     assert params["device"]["name"] == "chevron_laser"
     assert params["device"]["options"]["kinematics"] == "exact"
     options = greybox.get_device("chevron_laser").options
@@ -226,7 +228,7 @@ def test_prior_dominated_parameter_is_reported(tmp_path):
 
     jax.config.update("jax_enable_x64", True)
     from greybox._fit import fit
-    from greybox.cli._fit import render_report
+    from greybox.io._results import report_text
     from greybox.io import load_experiment_set
 
     folder = tmp_path / "prior"
@@ -246,7 +248,7 @@ def test_prior_dominated_parameter_is_reported(tmp_path):
     verdicts = {p.name: p.verdict for p in res.parameters}
     assert verdicts["thermal.resistance_K_per_W"] == "prior-dominated"
     assert verdicts["thermal.tau_s"] == "identifiable"
-    report = render_report(fs, res, None, [])
+    report = report_text(fs, res, None, [])
     assert "| `thermal.resistance_K_per_W` |" in report and "prior-dominated" in report
     ident = report.split("## Identifiability")[1]
     assert "`absorptance` x `thermal.resistance_K_per_W`" in ident
@@ -281,3 +283,23 @@ def test_report_units_prefix_only_plain_leading_factors():
     assert unit == "nJ/K" and f * 2.4e-7 == pytest.approx(240.0)
     assert display_unit("m^2/s", 1e-9) == (1.0, "m^2/s")
     assert display_unit("K^2/s", 1e-4) == (1.0, "K^2/s")
+
+
+def test_a_params_2_file_of_the_previous_version_still_loads(result, tmp_path):
+    """greybox.params/3 is /2 plus the noise_model section: a /2 file (no noise_model) loads
+    to the same least-squares model, raw estimate and covariance."""
+    from greybox.io import load_params
+
+    doc = json.loads((result / "params.json").read_text())
+    doc["schema"] = "greybox.params/2"
+    del doc["noise_model"]
+    old = tmp_path / "params.json"
+    old.write_text(json.dumps(doc))
+    a, b = load_params(result / "params.json"), load_params(old)
+    assert a.noise_model == b.noise_model == "output error"
+    np.testing.assert_array_equal(a.raw, b.raw)
+    np.testing.assert_array_equal(a.covariance_raw, b.covariance_raw)
+    doc["schema"] = "greybox.params/9"
+    old.write_text(json.dumps(doc))
+    with pytest.raises(greybox.InputError, match="reads greybox.params/2 and greybox.params/3"):
+        load_params(old)

@@ -22,7 +22,7 @@ def _documented(key: str) -> bool:
 
 def _loader_keys():
     keys = dict(accepted_keys())
-    from greybox.cli._fit_process import NOISE_KEYS  # [noise] is read by the process fit
+    from greybox.io._noise_table import NOISE_KEYS  # [noise] is read in io
 
     keys["noise"] = set(NOISE_KEYS)
     return keys

@@ -11,6 +11,7 @@ import os
 import string
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -217,6 +218,17 @@ GOOD = {
     "raw": [0.0],  # logit((0.55 - 0.4) / 0.3): the fitted value, raw
     "covariance_raw": [[0.01]],
     "sigma": {"value": [1e-7]},
+    "noise_model": {"kind": "output error"},
+}  # fmt: skip
+# the same fit as a process-noise file (greybox.params/3): the noise section rebuilds it
+GOOD_PROCESS = {
+    **{k: v for k, v in GOOD.items() if k != "sigma"},
+    "noise_model": {
+        "kind": "process noise",
+        "structure": {"process_groups": {"states": [0]}, "disturbances": [],
+                      "walk_initial_sd": 0.0, "filter": "auto", "substeps": None},
+        "values": {"process.states": 1e-12, "measurement.y": 1e-7},
+    },
 }  # fmt: skip
 
 
@@ -229,13 +241,22 @@ GOOD = {
          ("free", 0, "path"), ("free", 0, "lower"), ("covariance_raw", 0, 0), ("raw", 0),
          ("device", "ref"), ("device", "source"), ("device", "location"),
          ("model", "camera", "exposure_s"), ("model", "camera", "fps"),
-         ("model", "fitted", "absorptance"), ("free", 0, "per_experiment")]
+         ("model", "fitted", "absorptance"), ("free", 0, "per_experiment"),
+         ("noise_model",), ("noise_model", "kind"), ("noise_model", "structure"),
+         ("noise_model", "values"), ("noise_model", "structure", "process_groups"),
+         ("noise_model", "values", "measurement.y")]
     ),
     value=json_values,
     whole=st.booleans(),
+    process=st.booleans(),
 )  # fmt: skip
-def test_params_json_loads_or_raises_input_error(tmp_path_factory, path, value, whole):
-    doc = json.loads(json.dumps(GOOD))
+def test_params_json_loads_or_raises_input_error(tmp_path_factory, path, value, whole, process):
+    """Any corruption of a least-squares or a process-noise params.json loads or raises a
+    located InputError, never another exception."""
+    good = GOOD_PROCESS if process else GOOD
+    if path[0] == "sigma" and process or path[0] == "noise_model" and not process and len(path) > 2:
+        path = ("raw", 0)  # not in this kind of file
+    doc = json.loads(json.dumps(good))
     if whole:
         doc = value
     else:
@@ -254,6 +275,14 @@ def test_params_json_loads_or_raises_input_error(tmp_path_factory, path, value, 
         assert np.linalg.eigvalsh(fitted.covariance_raw).min() >= -1e-8 * max(
             1.0, np.abs(fitted.covariance_raw).max()
         )
+
+
+@pytest.mark.parametrize("good", [GOOD, GOOD_PROCESS], ids=["output error", "process noise"])
+def test_the_uncorrupted_params_files_load(tmp_path, good):
+    p = tmp_path / "params.json"
+    p.write_text(json.dumps(good))
+    fitted = load_params(p)
+    assert fitted.noise_model == good["noise_model"]["kind"]
 
 
 # ---- issue 27: [[candidates]], [columns], [noise], design constraints -------------------
@@ -356,7 +385,7 @@ def test_columns_and_data_rules_load_or_raise_input_error(tmp_path_factory, colu
     )
 )  # fmt: skip
 def test_noise_tables_parse_or_raise_input_error(tmp_path_factory, noise):
-    from greybox.cli._fit_process import parse_noise
+    from greybox.io._noise_table import parse_noise
     from greybox.io._toml import TomlDocument
 
     toml = '[fit]\nnoise_model = "process"\n[noise]\n' + "".join(
@@ -367,7 +396,7 @@ def test_noise_tables_parse_or_raise_input_error(tmp_path_factory, noise):
     spec = resolve("chevron_laser").spec
     try:
         doc = TomlDocument(path)
-        parse_noise(doc, doc.data, spec.model(), spec)
+        parse_noise(doc, doc.data.get("noise"), spec.model(), spec)
     except InputError as err:
         _check(err)
 

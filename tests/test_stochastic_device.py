@@ -164,7 +164,7 @@ def data():
 def stochastic_fit(data):
     sd = cli_model()
     free = physical_free() + greybox.noise_parameters(sd, UNITS)
-    return greybox.fit_process(sd, [data], free)
+    return greybox.fit(sd, [data], free, noise=greybox.ProcessNoise(sd.structure), n_starts=1)
 
 
 def test_stochastic_fit_recovers_truth(stochastic_fit):
@@ -396,11 +396,11 @@ def test_cli_fit_and_simulate_process_noise(tmp_path, data, stochastic_fit, caps
     out = tmp_path / "result"
     assert main(["fit", str(folder), "--out", str(out), "--quiet"]) == 0
     doc = json.loads((out / "params.json").read_text())
-    assert doc["noise_model"] == "process"
-    assert doc["likelihood"] == (
+    assert doc["noise_model"]["kind"] == "process noise"
+    assert doc["noise_model"]["likelihood"] == (
         "maximum likelihood, continuous-discrete (extended) Kalman filter, prediction-error form"
     )
-    assert set(doc["noise"]["values"]) == set(NOISE)
+    assert set(doc["noise_model"]["values"]) == set(NOISE)
     # the same likelihood maximum as the library fit on the same record (the CSV rounds
     # temperatures to 1e-6 C)
     by_path = {p["path"]: p for p in doc["parameters"]}
@@ -473,10 +473,13 @@ def test_covariance_hessian_equals_exact_second_derivatives(stochastic_fit, data
     import jax
     import jax.numpy as jnp
 
-    from greybox import _process_fit as sde
+    from greybox import _likelihood
 
     res = stochastic_fit
-    problem = sde._Problem.build(res.model, [data], res.free)
-    exact = np.asarray(jax.jit(jax.jacfwd(jax.jacfwd(problem.data_nll)))(jnp.asarray(res.raw)))
-    fd = sde._hessian(lambda r: sde._data_value_and_grad(problem, jnp.asarray(r)), res.raw)
+    problem = _likelihood._build(res.model, [data], res.free)
+    raw = jnp.asarray(res.raw)
+    exact = np.asarray(jax.jit(jax.jacfwd(jax.jacfwd(problem.data_nll)))(raw))
+    fd = np.asarray(
+        jax.jit(lambda r: _likelihood._fd_hessian(jax.grad(problem.data_nll), r))(raw)
+    )
     assert np.max(np.abs(fd - exact)) <= 1e-6 * np.max(np.abs(exact))

@@ -7,8 +7,8 @@ folder's [model] options, per-run settings and [fit] free list):
 - stochastic grey-box: the linear TCLab (the folder's structure without radiation, so the
   exact Kalman filter applies), process noise on the two heater nodes (one intensity), one
   random-walk ambient/offset state per sensor, measurement noise per sensor; fitted by
-  `greybox.fit_process` on the estimation run, validated on the validation run with the
-  parameters fixed (`greybox.validate_process`);
+  `greybox.fit(..., noise=greybox.ProcessNoise(...))` on the estimation run, validated on the
+  validation run with the parameters fixed (`greybox.validate`);
 - deterministic grey-box: `greybox.fit` (free-run least squares) with the same model and free
   list, validated by `greybox.validate`;
 - ARX [2 2 1] with offset (the paper's structure, `study.fit_arx22`, as compare.py fits it),
@@ -83,8 +83,15 @@ def analyse(folder: str, say=print) -> dict:
         dataclasses.replace(p, **NOISE_PRIORS.get(p.path, {}))
         for p in greybox.noise_parameters(sdev, UNITS)
     ]
-    res = greybox.fit_process(sdev, [est], free, progress=lambda m: say(f"[{folder}] {m}"))
-    (vd,) = greybox.validate_process(res, [val])
+    res = greybox.fit(
+        sdev,
+        [est],
+        free,
+        noise=greybox.ProcessNoise(STRUCTURE),
+        n_starts=1,
+        progress=lambda m: say(f"[{folder}] {m}"),
+    )
+    (vd,) = greybox.validate(res, [val]).runs
     out["stochastic"] = res
     out["stochastic_val"] = vd
     out["t_stochastic"] = time.perf_counter() - t0
@@ -100,10 +107,15 @@ def analyse(folder: str, say=print) -> dict:
         dataclasses.replace(p, **NOISE_PRIORS.get(p.path, {}))
         for p in greybox.noise_parameters(sdev_nl, UNITS)
     ]
-    res_nl = greybox.fit_process(
-        sdev_nl, [est], free_nl, progress=lambda m: say(f"[{folder}] EKF: {m}")
+    res_nl = greybox.fit(
+        sdev_nl,
+        [est],
+        free_nl,
+        noise=greybox.ProcessNoise(STRUCTURE),
+        n_starts=1,
+        progress=lambda m: say(f"[{folder}] EKF: {m}"),
     )
-    (vd_nl,) = greybox.validate_process(res_nl, [val])
+    (vd_nl,) = greybox.validate(res_nl, [val]).runs
     out["ekf"], out["ekf_val"] = res_nl, vd_nl
     out["t_ekf"] = time.perf_counter() - t0
     det_nl = greybox.fit(fs.model, [est], fs.free, **fs.fit_options)
@@ -201,7 +213,7 @@ def report(results) -> str:
         "radiation, so the exact continuous-discrete Kalman filter applies), process noise on "
         "the two heater nodes (one intensity q_heaters), one random-walk ambient/offset state per "
         "sensor (intensities q_T1, q_T2), measurement noise per sensor; likelihood: "
-        f"{results[0]['stochastic'].likelihood} (`greybox.fit_process`).",
+        f"{results[0]['stochastic'].likelihood} (`greybox.fit` with `ProcessNoise`).",
         "- **Deterministic grey-box**: `greybox.fit` with the same linear model and free list "
         "(free-run least squares).",
         "- **The folder's board with radiation** (the structure of results.md): the same noise "

@@ -9,24 +9,34 @@ from pathlib import Path
 
 HELP = """\
 Fit each candidate model structure listed in EXPERIMENT_DIR/experiment.toml to the same
-estimation runs, validate each on the validation runs, and write one table: parameters,
-AIC, BIC, estimation and validation fit % per output (free-run simulation), the residual
-verdict, convergence and bound verdicts. The preferred structure is named by a rule stated
-in the report: the lowest information criterion (--rule aic, default, or bic) on the
+estimation runs, validate each on the validation runs, and write one table: parameters with
+their intervals and verdicts, AIC, BIC, estimation and validation fit % per output
+(free-run simulation), the residual verdict, convergence and bound verdicts, and a
+likelihood-ratio test for every nested pair. The preferred structure is named by a rule
+stated in the report: the lowest information criterion (--rule aic, default, or bic) on the
 estimation data among the candidates whose fit is valid; validation fit % is shown beside it
 and never used to choose.
 
-Candidates in experiment.toml (each a [model] option set and, optionally, a free list; the
-top-level [model] and [fit] free are the defaults a candidate starts from):
+Each candidate carries a whole structure; what it leaves out comes from the top-level
+tables ([model], [experiment] settings, [fit], [fit] free, [noise]):
 
   [[candidates]]
   name = "one node"
-  model = { thermal_nodes = 1 }
+  model = { thermal_nodes = 1 }               # structural options over [model]
+  settings = { "thermal.lag_s" = 0.002 }      # known values over [experiment] settings
+  fit = { n_starts = 4 }                      # [fit] settings over [fit]
+  free = ["absorptance", "thermal.tau_s"]     # replaces [fit] free (bounds, priors: tables)
 
   [[candidates]]
-  name = "two nodes + lag"
-  model = { thermal_nodes = 2, elongation_lag = true }
-  free = ["absorptance", "thermal.resistance_K_per_W[0]", "thermal.lag_s"]
+  name = "two nodes"
+  model = { thermal_nodes = 2 }
+  nests = ["one node"]                        # contains "one node": likelihood-ratio test
+  noise = { process = "all" }                 # its own [noise]: a process-noise fit
+
+Every candidate is loaded and checked before the first fit: problems in any of them are
+listed together (exit 2, nothing fitted). Candidates must share one noise model (their
+log-likelihoods must score the same data model). `greybox fit --candidate NAME` fits one
+candidate exactly as compare does.
 
 Output (--out, written atomically like `greybox fit`): compare.md, compare.json.
 Exit status: 0 done; 1 no candidate gave a valid fit; 2 bad input; 3 a bug.
@@ -53,28 +63,74 @@ def _pct(values) -> str:
     return " / ".join("n/a" if v is None or v != v else f"{v:.1f}" for v in values)
 
 
-def compare_experiment_dir(experiment_dir, say, *, rule: str = "aic"):
-    """(scores, preferred) for every candidate of the folder (see the module help)."""
-    from greybox._compare import nested_pairs, preferred, score
-    from greybox._fit import fit, validate
-    from greybox.io._experiment_set import candidate_names, load_experiment_set
+def load_candidates(experiment_dir) -> list:
+    """Every candidate of the folder loaded and checked (`ExperimentSet`s, in file order),
+    before anything is fitted: the problems of all candidates are raised together."""
+    from greybox._errors import InputError
+    from greybox.io._experiment_set import (
+        InputErrors,
+        candidate_nests,
+        check_problem_size,
+        load_experiment_set,
+    )
 
-    names = candidate_names(experiment_dir)
+    nests = candidate_nests(experiment_dir)
+    loaded, errors = [], []
+    for i in range(len(nests)):
+        try:
+            fs = load_experiment_set(experiment_dir, candidate=i)
+            check_problem_size(fs)
+            loaded.append(fs)
+        except InputErrors as err:
+            errors.extend(err.errors)
+        except InputError as err:
+            errors.append(err)
+    seen = []  # repeated problems (a shared run file) are listed once
+    for e in errors:
+        if str(e) not in map(str, seen):
+            seen.append(e)
+    if not seen:
+        kinds = {fs.noise_model for fs in loaded}
+        if len(kinds) > 1:
+            by = ", ".join(f"{fs.candidate!r}: {fs.noise_model}" for fs in loaded)
+            seen.append(
+                InputError(
+                    "candidates mix noise models (" + by + "); their log-likelihoods score "
+                    "different data models and cannot be compared: give every candidate the "
+                    'same noise_model (a noise table, or [fit] noise_model = "process")',
+                    file=str(Path(experiment_dir) / "experiment.toml"),
+                    field="candidates",
+                )
+            )
+    if len(seen) == 1:
+        raise seen[0]
+    if seen:
+        raise InputErrors(seen)
+    return loaded
+
+
+def compare_experiment_dir(experiment_dir, say, *, rule: str = "aic"):
+    """(scores, preferred, likelihood-ratio tests) for every candidate of the folder (see
+    the module help). Every candidate is checked before the first fit."""
+    from greybox._compare import likelihood_ratios, nested_pairs, preferred, score
+    from greybox.cli._common import fit_loaded
+    from greybox.io._experiment_set import candidate_nests
+
+    nests = candidate_nests(experiment_dir)
+    loaded = load_candidates(experiment_dir)
+    names = [fs.candidate for fs in loaded]
 
     def run_candidate(i, start=None):
-        fs = load_experiment_set(experiment_dir, candidate=i)
-        free = fs.free if start is None else _warm_started(fs.free, start)
-        result = fit(fs.model, fs.estimation, free, progress=say, **fs.fit_options)
-        solver = {k: v for k, v in fs.fit_options.items() if k.startswith("solver_")}
-        validation = validate(result, fs.validation, **solver) if fs.validation else None
-        s = score(names[i], fs.options, result, validation)
+        fs = loaded[i]
+        warm = None if start is None else (lambda free: _warm_started(free, start))
+        result, validation = fit_loaded(fs, say, start=warm)
+        s = score(names[i], fs.options, result, validation, nests=nests[names[i]])
         say(f"candidate {names[i]!r}: AIC {s.aic:.6g}, BIC {s.bic:.6g}, {s.status}")
         return s, result
 
     scores, results = [], []
     for i, name in enumerate(names):
-        fs = load_experiment_set(experiment_dir, candidate=i)
-        say(f"candidate {i + 1}/{len(names)} {name!r}: {fs.options}")
+        say(f"candidate {i + 1}/{len(names)} {name!r}: {loaded[i].options}")
         s, result = run_candidate(i)
         scores.append(s)
         results.append(result)
@@ -105,7 +161,7 @@ def compare_experiment_dir(experiment_dir, say, *, rule: str = "aic"):
                 "can rank the outputs' errors differently."
             )
             scores[big] = dataclasses.replace(scores[big], note=note)
-    return scores, preferred(scores, rule)
+    return scores, preferred(scores, rule), likelihood_ratios(scores)
 
 
 def _warm_started(free, result):
@@ -123,7 +179,7 @@ def _warm_started(free, result):
     return out
 
 
-def report_lines(experiment_dir, scores, best, rule: str) -> list[str]:
+def report_lines(experiment_dir, scores, best, rule: str, tests=()) -> list[str]:
     lines = [f"# Structure comparison: {Path(experiment_dir).resolve().name}", ""]
     if best is None:
         lines += ["**No candidate gave a valid fit**; none is preferred (see each status).", ""]
@@ -133,14 +189,26 @@ def report_lines(experiment_dir, scores, best, rule: str) -> list[str]:
             "the valid fits; validation fit % is shown and was not used to choose).",
             "",
         ]
+    if scores and scores[0].noise_model == "process noise":
+        lines += [
+            "Information criteria from each candidate's maximum log-likelihood (process noise "
+            "and measurement noise, continuous-discrete Kalman filter, prediction-error form) "
+            "over the same readings; k counts every fitted value, noise parameters included. "
+            "Fit % is simulation, per output.",
+            "",
+        ]
+    else:
+        lines += [
+            "Information criteria from the Gaussian log-likelihood of the free-run simulation "
+            "residuals (noise variance per output at its maximum-likelihood value); k counts "
+            "every fitted value and one noise variance per output. Fit % is simulation, per "
+            "output.",
+            "",
+        ]
     lines += [
-        "Information criteria from the Gaussian log-likelihood of the free-run simulation "
-        "residuals (noise variance per output at its maximum-likelihood value); k counts every "
-        "fitted value and one noise variance per output. Fit % is simulation, per output.",
-        "",
-        "| candidate | options (those that differ) | k | AIC | BIC | "
+        "| candidate | options (those that differ) | k | log L | AIC | BIC | "
         "estimation fit % (mean per output) | validation fit % | residuals | status |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     differ = [k for k in scores[0].options if len({repr(s.options[k]) for s in scores}) > 1]
     for s in scores:
@@ -148,16 +216,56 @@ def report_lines(experiment_dir, scores, best, rule: str) -> list[str]:
         val = _mean_fit(s.fit_validation)
         opts = ", ".join(f"{k}={s.options[k]}" for k in differ) or "as [model]"
         lines.append(
-            f"| {s.name} | {opts} | {s.n_params} | {s.aic:.6g} | {s.bic:.6g} | {_pct(est)} | "
-            f"{_pct(val) if s.fit_validation else '-'} | {s.residual_verdict} | {s.status} |"
+            f"| {s.name} | {opts} | {s.n_params} | {s.loglik:.8g} | {s.aic:.8g} | {s.bic:.8g} | "
+            f"{_pct(est)} | {_pct(val) if s.fit_validation else '-'} | {s.residual_verdict} | "
+            f"{s.status} |"
         )
+    if tests:
+        lines += [
+            "",
+            "## Likelihood-ratio tests (nested pairs)",
+            "",
+            "D = 2 (log L of the larger - log L of the nested), against chi-square with the "
+            "difference in k as degrees of freedom (Wilks); p < 0.05: the larger structure "
+            "explains the data better than the nested one can. (A nested variance at its "
+            "zero boundary makes the chi-square p-value conservative.)",
+            "",
+            "| larger | nested | nested by | D | dof | p |",
+            "|---|---|---|---|---|---|",
+        ]
+        for t in tests:
+            p = "n/a" if t.p_value != t.p_value else f"{t.p_value:.3g}"
+            by = "declared (nests)" if t.declared else "options and free set"
+            lines.append(
+                f"| {t.big} | {t.small} | {by} | {t.statistic:.6g} | {t.dof} | {p} |"
+            )
     nested = [s for s in scores if s.note]
     if nested:
         lines += ["", "Nested structures (each must fit at least as well as one nested in it):", ""]
         lines += [f"- {s.name}: {s.note}" for s in nested]
-    lines += ["", "Free parameters per candidate:", ""]
-    lines += [f"- {s.name}: {', '.join(s.free)}" for s in scores]
+    lines += ["", "## Estimates per candidate", ""]
+    for s in scores:
+        lines += [
+            f"### {s.name}",
+            "",
+            f"Status **{s.status}**{'' if s.valid else ' (not valid)'}: {s.message}",
+            "",
+            "| parameter | run | value | unit | std. error | 95 % interval | verdict |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for e in s.estimates:
+            ci = e["ci95"]
+            interval = "n/a" if None in ci else f"[{ci[0]:.5g}, {ci[1]:.5g}]"
+            lines.append(
+                f"| `{e['path']}` | {e['run'] or '-'} | {_g(e['value'])} | {e['unit']} | "
+                f"{_g(e['se'])} | {interval} | {e['verdict']} |"
+            )
+        lines.append("")
     return lines + [""]
+
+
+def _g(x) -> str:
+    return "n/a" if x is None else f"{x:.5g}"
 
 
 def _num(x):
@@ -180,44 +288,64 @@ def _mean_fit(per_run: dict):
     return [float(np.nanmean(col)) if np.isfinite(col).any() else None for col in arr.T]
 
 
+def candidate_record(s) -> dict:
+    """One candidate's row of compare.json (what `greybox fit --candidate` reproduces)."""
+    return {
+        "name": s.name,
+        "options": s.options,
+        "free": list(s.free),
+        "noise_model": s.noise_model,
+        "nests": list(s.nests),
+        "k": s.n_params,
+        "n": s.n_data,
+        "loglik": _num(s.loglik),
+        "aic": _num(s.aic),
+        "bic": _num(s.bic),
+        "estimates": list(s.estimates),
+        "fit_percent_estimation": _per_run(s.fit_estimation),
+        "fit_percent_validation": _per_run(s.fit_validation),
+        "residuals": s.residual_verdict,
+        "status": s.status,
+        "valid": s.valid,
+        "message": s.message,
+        "note": s.note,
+    }
+
+
 def run(args) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from greybox.cli._fit import Progress, usual_permissions
+    from greybox.cli._common import Progress, print_input_errors
     from greybox.io._atomic import atomic_output_dir, check_output_dir
+    from greybox.io._experiment_set import InputErrors
+    from greybox.io._results import usual_permissions
 
     say = Progress(args.quiet)
     out = Path(args.out or Path("results") / f"{Path(args.experiment_dir).resolve().name}-compare")
     out = check_output_dir(out, force=args.force, inputs=[args.experiment_dir])
-    from greybox.io._experiment_set import check_candidates
-
-    check_candidates(args.experiment_dir)  # all load and fit in memory, before any fit
-    scores, best = compare_experiment_dir(args.experiment_dir, say, rule=args.rule)
-    lines = report_lines(args.experiment_dir, scores, best, args.rule)
+    try:
+        scores, best, tests = compare_experiment_dir(args.experiment_dir, say, rule=args.rule)
+    except InputErrors as err:  # every candidate's problems, one per line; nothing fitted
+        print_input_errors("compare", args.experiment_dir, err)
+        return 2
+    lines = report_lines(args.experiment_dir, scores, best, args.rule, tests)
     doc = {
         "rule": args.rule,
         "preferred": None if best is None else best.name,
         "horizon": "simulation",
-        "candidates": [
+        "noise_model": scores[0].noise_model,
+        "candidates": [candidate_record(s) for s in scores],
+        "likelihood_ratio_tests": [
             {
-                "name": s.name,
-                "options": s.options,
-                "free": list(s.free),
-                "k": s.n_params,
-                "n": s.n_data,
-                "loglik": _num(s.loglik),
-                "aic": _num(s.aic),
-                "bic": _num(s.bic),
-                "fit_percent_estimation": _per_run(s.fit_estimation),
-                "fit_percent_validation": _per_run(s.fit_validation),
-                "residuals": s.residual_verdict,
-                "status": s.status,
-                "valid": s.valid,
-                "message": s.message,
-                "note": s.note,
+                "larger": t.big,
+                "nested": t.small,
+                "declared": t.declared,
+                "statistic": _num(t.statistic),
+                "dof": t.dof,
+                "p_value": _num(t.p_value),
             }
-            for s in scores
+            for t in tests
         ],
     }
     with atomic_output_dir(out, kind="compare", force=args.force) as tmp:

@@ -94,7 +94,8 @@ def truth_rows(outcome, truth: dict) -> tuple[list[str], bool]:
 def run(args) -> int:
     import jax
 
-    from greybox.cli._fit import Progress
+    from greybox._errors import InputError
+    from greybox.cli._common import Progress, fit_experiment_dir, fit_lines
     from greybox.cli._ticker import Ticker
 
     jax.config.update("jax_enable_x64", True)

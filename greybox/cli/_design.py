@@ -278,7 +278,7 @@ def _run(args) -> int:
         "energy_J": {"design": design.energy_J, "baseline": baseline.energy_J},
     }
     with atomic_output_dir(args.out) as tmp:
-        from greybox.cli._fit import usual_permissions
+        from greybox.io._results import usual_permissions
 
         usual_permissions(tmp)
         (tmp / "experiment.toml").write_text(toml)

@@ -168,9 +168,27 @@ def fit_devices(loaded, args, say):
     from greybox._errors import InputError
 
     by_options: dict = {}
-    for name, fs in loaded:
-        by_options.setdefault(_option_key(fs), []).append((name, fs))
     results, failed = {}, {}
+    process = [(name, fs) for name, fs in loaded if fs.noise is not None]
+    if process and args.scheduler:
+        raise InputError(
+            f"{process[0][0]} is a process-noise fit, which --scheduler does not distribute; "
+            "leave --scheduler out (process-noise devices are fitted one after another)",
+            field="--scheduler",
+        )
+    for name, fs in process:  # the likelihood back end: one `fit` per device
+        from greybox.cli._common import fit_loaded
+
+        say(f"{name}: process-noise fit")
+        try:
+            results[name], _ = fit_loaded(fs, say, validate_runs=False)
+        except (InputError, KeyboardInterrupt):
+            raise
+        except Exception as err:
+            failed[name] = _why(err)
+    for name, fs in loaded:
+        if fs.noise is None:
+            by_options.setdefault(_option_key(fs), []).append((name, fs))
     for members in by_options.values():
         try:
             results.update(_fit_group(members, args, say))
@@ -228,13 +246,10 @@ def _fit_group(members, args, say) -> dict:
 
 
 def write_device(folder: Path, fs, result, validation, figures: bool) -> None:
-    from greybox.cli._fit import render_report, write_figures
-    from greybox.io._params_file import params_document, write_params
+    from greybox.io._results import write_fit_files
 
     folder.mkdir(parents=True)
-    names = write_figures(folder, fs, result, validation) if figures else []
-    write_params(folder / "params.json", params_document(fs, result, validation))
-    (folder / "report.md").write_text(render_report(fs, result, validation, names))
+    write_fit_files(folder, fs, result, validation, figures=figures, tables=False)
 
 
 def batch_csv(rows) -> str:
@@ -367,7 +382,8 @@ def run(args) -> int:
 
     jax.config.update("jax_enable_x64", True)
     from greybox._errors import InputError
-    from greybox.cli._fit import Progress, usual_permissions
+    from greybox.cli._common import Progress
+    from greybox.io._results import usual_permissions
     from greybox.io._atomic import atomic_output_dir, check_output_dir
 
     say = Progress(args.quiet)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 from pathlib import Path
@@ -218,7 +219,7 @@ def write_simulation(
 ):
     """simulation.csv, simulation.json and simulation.<fmt>, written atomically to `out`."""
     from greybox import _plots as plots
-    from greybox.cli._fit import usual_permissions
+    from greybox.io._results import usual_permissions
     from greybox.io._atomic import atomic_output_dir
 
     table = np.column_stack(cols)
@@ -260,29 +261,31 @@ def _run(args, tick) -> int:
     if args.dt_ms is not None and not (math.isfinite(args.dt_ms) and args.dt_ms > 0):
         raise InputError(f"must be a positive number of ms, got {args.dt_ms}", field="--dt-ms")
     check_output_dir(args.out, force=args.force, inputs=[args.params])
-    from greybox.cli import _fit_process
-
     from greybox._usercode import trusted_devices
 
+    if args.duration_s is not None and not (math.isfinite(args.duration_s) and args.duration_s > 0):
+        raise InputError(
+            f"must be a positive number of seconds, got {args.duration_s}", field="--duration-s"
+        )
     with trusted_devices(args.params, args.trust_device):
-        if _fit_process.is_process_params(args.params):  # a process-noise fit: sample paths
-            return _fit_process.simulate_process(args)
-        if args.duration_s is not None and not (
-            math.isfinite(args.duration_s) and args.duration_s > 0
-        ):
-            raise InputError(
-                f"must be a positive number of seconds, got {args.duration_s}",
-                field="--duration-s",
-            )
+        # least squares or process noise (params/2 and /3)
         fitted = with_initial_state(load_params(args.params), args.initial_state)
     inputs, outputs = tuple(fitted.spec.inputs), tuple(fitted.spec.outputs)
     wave, text, specs = read_waveform(args.waveform, inputs)
+    process = fitted.noise is not None
     t = sample_times(
-        wave, args.dt_ms, n_default=5000, n_max=2_000_000, duration_s=args.duration_s
+        wave,
+        args.dt_ms,
+        n_default=2000 if process else 5000,
+        n_max=200_000 if process else 2_000_000,
+        duration_s=args.duration_s,
     )
     n = t.size
     tick.phase_is("computing the response and its band (compiling the model first)")
-    band = fitted.posterior.band(wave, t, noise=args.noise)
+    if process:
+        band = process_band(fitted, wave, t, bool(args.noise))
+    else:
+        band = fitted.posterior.band(wave, t, noise=args.noise)
     y, lo, hi = (np.asarray(a).reshape(n, -1) for a in (band.y, band.lower, band.upper))
     for name, arr in (("response", y), ("band", lo), ("band", hi)):
         if not np.all(np.isfinite(arr)):
@@ -303,10 +306,13 @@ def _run(args, tick) -> int:
         "params": str(args.params),
         "device": fitted.device_name,
         "waveform": {"spec": specs if len(specs) > 1 else specs[0], "description": text},
+        "noise_model": fitted.noise_model,
         "band": {
             "kind": band.kind,
             "level": band.level,
             "includes_noise": band.includes_noise,
+            "includes_process_noise": process,
+            "n_paths": N_PATHS if process else None,
             "sigma_m": [float(s) for s in fitted.sigma] if args.noise else None,
         },
         "columns": described,
@@ -397,3 +403,59 @@ def with_initial_state(fitted, specs):
             )
     model = set_values(fitted.model, [p for p, _ in values], [v for _, v in values])
     return dataclasses.replace(fitted, model=model)
+
+
+N_PATHS = 200  # sample paths behind a process-noise band
+
+
+def process_band(fitted, wave, t, measurement_noise: bool):
+    """The 95 % pointwise band of `N_PATHS` sample paths of a process-noise fit: process noise
+    by exact discretisation of the SDE, parameters drawn from the fit's covariance (at the
+    estimate when it is not finite), measurement noise if asked."""
+    from greybox._sde_device import draw_paths
+    from greybox._simulate import simulate
+
+    sd = fitted.model
+    shared = [p for p in fitted.free if not p.per_experiment]
+    k = len(shared)
+    raw, cov = fitted.raw[:k], fitted.covariance_raw[:k, :k]
+    rng = np.random.default_rng(0)
+    if cov.size and np.all(np.isfinite(cov)):
+        draws = rng.multivariate_normal(raw, 0.5 * (cov + cov.T), size=N_PATHS)
+        what = "parameter draws from the fit's covariance"
+    else:
+        draws = np.tile(raw, (N_PATHS, 1))
+        what = "parameters at the estimate (their covariance is not finite)"
+    paths = draw_paths(sd, shared, draws, wave, t, measurement_noise=measurement_noise)
+    n = t.size
+    y = np.asarray(simulate(sd.device, wave, t)).reshape(n, -1)
+    lo, hi = np.percentile(paths, [2.5, 97.5], axis=0)
+    kind = (
+        f"95 % band of {N_PATHS} sample paths: process noise (exact discretisation of the SDE) "
+        f"and {what}" + ("; measurement noise added" if measurement_noise else "")
+    )
+    sdv = (hi - lo) / (2 * 1.96)
+    return _SampledBand(t, y, lo, hi, sdv, sdv, 0.95, measurement_noise, kind)
+
+
+@functools.lru_cache(maxsize=1)
+def _sampled_band_class():  # defined on first use: greybox._prediction imports JAX
+    import dataclasses
+
+    from greybox._prediction import Band
+
+    @dataclasses.dataclass(frozen=True)
+    class SampledBand(Band):
+        """A band from sample paths, which says so."""
+
+        description: str = ""
+
+        @property
+        def kind(self) -> str:
+            return self.description
+
+    return SampledBand
+
+
+def _SampledBand(*args):  # noqa: N802 (a constructor)
+    return _sampled_band_class()(*args)

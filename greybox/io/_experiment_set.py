@@ -35,6 +35,7 @@ from greybox.io._csv import (
     read_csv,
     time_column,
 )
+from greybox.io._noise_table import NOISE_MODELS, REFUSED_WITH_PROCESS, parse_noise
 from greybox.io._toml import TOML_NAME, TomlDocument, excerpt
 from greybox.io._waveform_spec import (
     WAVEFORM_TYPES,
@@ -48,12 +49,14 @@ MAX_STARTS = 1000
 MAX_FIT_STEPS = 100_000
 MAX_PROBLEM_BYTES = 4e9  # estimated working memory of a fit (GREYBOX_MAX_PROBLEM_GB overrides)
 _TOP_KEYS = {"experiment", "model", "camera", "fit", "runs", "columns", "data", "candidates"}
-_TOP_KEYS |= {"noise"}  # [noise]: the process-noise structure (greybox/cli/_fit_process.py)
+_TOP_KEYS |= {"noise"}  # [noise]: the process-noise structure (greybox/io/_noise_table.py)
 _TOP_KEYS |= {"physical_ranges"}  # overrides of the device's physical ranges (_plausibility)
 _TOP_KEYS |= {"csv"}  # [csv] delimiter: the cell separator of every run file (else detected)
 # the delimiter as written in [csv] (a tab may be spelled out: TOML's "\t" or "tab")
 _DELIMITER_SPELLINGS = {",": ",", ";": ";", "\t": "\t", "comma": ",", "semicolon": ";", "tab": "\t"}
-_CANDIDATE_KEYS = {"name", "model", "free"}
+# a candidate carries a whole structure: options, free list (with bounds and priors), known
+# values (settings over [experiment] settings), [fit] settings over [fit], its own [noise]
+_CANDIDATE_KEYS = {"name", "model", "free", "settings", "fit", "noise", "nests"}
 # how a run's file is read and its clock and inputs interpreted: [data] for every run, or
 # the same keys in a [[runs]] table for that run (a run's `columns` mapping is merged
 # over [columns] key by key)
@@ -158,7 +161,10 @@ class ExperimentSet:
     - `camera`: the [camera] values given, in SI ({"fps", "exposure_s", "m_per_px"}, each
       optional); `fixed`: {path: SI value} applied to every run.
     - `estimation`, `validation`: `Experiment`s by role; `runs`: `RunInfo` per run.
-    - `free`: `FreeParameter`s to fit; `fit_options`: keyword arguments for `greybox._fit`.
+    - `free`: `FreeParameter`s to fit; `fit_options`: keyword arguments for `greybox._fit`
+      (for a process-noise fit only those that apply to it: n_starts, seed, max_steps).
+    - `noise`: the checked `[noise]` table (`NoiseTable`) of a process-noise fit, else None;
+      `candidate`: the name of the ``[[candidates]]`` entry loaded, else None.
     """
 
     name: str
@@ -175,6 +181,13 @@ class ExperimentSet:
     free: tuple
     fit_options: dict
     physical_ranges: dict = dataclasses.field(default_factory=dict)  # path -> PhysicalRange
+    # `[noise]` (a `NoiseTable`) for a process-noise fit; None: least squares
+    noise: object = None
+    candidate: str | None = None  # the ``[[candidates]]`` entry loaded, if one was
+
+    @property
+    def noise_model(self) -> str:
+        return "none" if self.noise is None else "process"
 
     def run_info(self, name: str) -> RunInfo:
         return next(r for r in self.runs if r.name == name)
@@ -263,10 +276,14 @@ def _flatten(table: dict, prefix: str) -> dict:
     return out
 
 
-def _free_parameters(doc: TomlDocument, entries, spec, options: dict, model, fixed: dict) -> tuple:
-    """[fit] free: paths from the device's parameter table (a bare path takes the standard
-    fit's settings, or the table's bounds), or tables that define a free parameter (bounds,
-    prior) in full. Absent: the device's standard list."""
+def _free_parameters(
+    doc: TomlDocument, entries, spec, options: dict, model, fixed: dict, where=("fit", "free")
+) -> tuple:
+    """[fit] free (or a candidate's free, at TOML path `where`): paths from the device's
+    parameter table (a bare path takes the standard fit's settings, or the table's bounds), or
+    tables that define a free parameter (bounds, prior) in full. Absent: the device's standard
+    list."""
+    list_where = where
     defaults = {p.path: p for p in spec.free_parameters(options)}
     if entries is None:
         return tuple(defaults.values())
@@ -274,14 +291,13 @@ def _free_parameters(doc: TomlDocument, entries, spec, options: dict, model, fix
         raise doc.error(
             "must be a non-empty list of parameter paths (or tables); leave it "
             "out for the device's standard fit",
-            "fit",
-            "free",
+            *list_where,
         )
     table = {p.path: p for p in spec.parameter_table(options)}
     allowed = ", ".join(table)
     out, seen = [], set()
     for i, e in enumerate(entries):
-        where = ("fit", "free", i)
+        where = (*list_where, i)
         path = e if isinstance(e, str) else (e.get("path") if isinstance(e, dict) else None)
         if isinstance(e, dict):
             doc.check_keys(e, _FREE_KEYS, *where)
@@ -1096,22 +1112,36 @@ def _load_run(
     return exp, info
 
 
-def _candidate(doc: TomlDocument, data: dict, index: int) -> tuple[dict, object]:
-    """([model] options, free list or None) of ``[[candidates]]`` entry `index`, checked."""
+def _candidate(doc: TomlDocument, data: dict, index: int) -> dict:
+    """``[[candidates]]`` entry `index`, its keys checked (each part is checked where it is
+    used, at the candidate's own TOML path)."""
     entries = data.get("candidates")
     if not isinstance(entries, list) or not entries:
         raise doc.error(
             "no [[candidates]] tables; add one per structure to compare "
-            '(name = "...", model = { ... }, optional free = [...])',
+            '(name = "...", model = { ... }, optional free = [...], settings = { ... }, '
+            "fit = { ... }, noise = { ... })",
             "candidates",
         )
+    if not 0 <= index < len(entries):
+        raise doc.error(f"there are {len(entries)} candidates, not {index + 1}", "candidates")
     entry = entries[index]
     if not isinstance(entry, dict):
         raise doc.error("each candidate is a [[candidates]] table", "candidates", index)
     doc.check_keys(entry, _CANDIDATE_KEYS, "candidates", index)
     doc.string(entry, "name", "candidates", index, required=True)
-    model = doc.table(entry, "model", "candidates", index, required=False)
-    return model, entry.get("free")
+    doc.table(entry, "model", "candidates", index, required=False)
+    for key in ("settings", "fit"):
+        doc.table(entry, key, "candidates", index, required=False)
+    if "fit" in entry and "free" in entry["fit"]:
+        raise doc.error(
+            "give the candidate's free list as its own key (free = [...]), not inside fit",
+            "candidates",
+            index,
+            "fit",
+            "free",
+        )
+    return entry
 
 
 MAX_CANDIDATES = 32
@@ -1128,6 +1158,12 @@ def check_candidates(directory) -> list[str]:
 
 def candidate_names(directory) -> list[str]:
     """Names of the ``[[candidates]]`` structures of an experiment folder (loader-checked)."""
+    return list(candidate_nests(directory))
+
+
+def candidate_nests(directory) -> dict:
+    """{name: names of the candidates it declares nested in it (``nests = [...]``)} of every
+    ``[[candidates]]`` entry, in file order (names unique, `nests` naming other candidates)."""
     doc = TomlDocument(Path(directory) / TOML_NAME)
     entries = doc.data.get("candidates")
     if not isinstance(entries, list) or not entries:
@@ -1143,7 +1179,21 @@ def candidate_names(directory) -> list[str]:
         names.append(entries[i]["name"])
     if len(set(names)) != len(names):
         raise doc.error(f"candidate names repeat ({names}); name each once", "candidates")
-    return names
+    out = {}
+    for i, name in enumerate(names):
+        nests = entries[i].get("nests", [])
+        where = ("candidates", i, "nests")
+        if not isinstance(nests, list) or not all(isinstance(n, str) for n in nests):
+            raise doc.error("give a list of candidate names, e.g. [\"one node\"]", *where)
+        for n in nests:
+            if n == name or n not in names:
+                raise doc.error(
+                    f"{n!r} is not another candidate; the candidates are: "
+                    + ", ".join(repr(m) for m in names if m != name),
+                    *where,
+                )
+        out[name] = tuple(nests)
+    return out
 
 
 _NO_CAMERA = ("fps", "exposure_s", "m_per_px", "noise_m")
@@ -1205,41 +1255,77 @@ def _base_model(doc: TomlDocument, spec, options: dict, camera: dict):
         raise doc.error(f"cannot build the model ({err})", "model") from None
 
 
-def _fit_options(doc: TomlDocument, data: dict, model) -> dict:
-    """[fit]: keyword arguments for `greybox._fit.fit` (its free list is read separately)."""
+_FIT_DEFAULTS = {"loss": "huber", "n_starts": None, "seed": 0, "max_steps": 200}
+
+
+def _fit_table(doc: TomlDocument, fitopt: dict, model, *where) -> dict:
+    """The settings a [fit] table (or a candidate's `fit`, at `where`) gives, checked; only
+    those given (the defaults are filled in after a candidate's are merged over [fit])."""
     from greybox._fit import LOSSES
 
-    fitopt = doc.table(data, "fit", required=False)
-    doc.check_keys(fitopt, _FIT_KEYS, "fit")
-    method = doc.string(fitopt, "method", "fit")
-    try:
-        method = check_method(model, method)
-    except ValueError as err:
-        raise doc.error(str(err).split(": ", 1)[-1], "fit", "method") from None
-    noise_model = doc.string(
-        fitopt, "noise_model", "fit", default="none", choices=("none", "process")
-    )
-    if noise_model == "none" and "noise" in data:
-        raise doc.error('needs [fit] noise_model = "process" (or remove [noise])', "noise")
-    fit_options = {
-        "method": method,
-        "loss": doc.string(fitopt, "loss", "fit", default="huber", choices=LOSSES),
-        # None: the fit's own rule (several starts when more than two shared values are free)
-        "n_starts": doc.integer(fitopt, "n_starts", "fit", default=None),
-        "seed": doc.integer(fitopt, "seed", "fit", default=0, minimum=0),
-        "max_steps": doc.integer(fitopt, "max_steps", "fit", default=200),
-    }
-    solver_steps = doc.integer(fitopt, "solver_max_steps", "fit", default=None, minimum=16)
-    if solver_steps is not None:  # the adaptive ODE solver's step budget (stiff devices)
-        fit_options["solver_max_steps"] = solver_steps
+    doc.check_keys(fitopt, _FIT_KEYS - ({"free"} if where != ("fit",) else set()), *where)
+    out = {}
+    if "method" in fitopt:
+        method = doc.string(fitopt, "method", *where)
+        try:
+            out["method"] = check_method(model, method)
+        except ValueError as err:
+            raise doc.error(str(err).split(": ", 1)[-1], *where, "method") from None
+    if "noise_model" in fitopt:
+        out["noise_model"] = doc.string(fitopt, "noise_model", *where, choices=NOISE_MODELS)
+    if "loss" in fitopt:
+        out["loss"] = doc.string(fitopt, "loss", *where, choices=LOSSES)
+    # n_starts absent: the fit's own rule (several starts when more than two shared values
+    # are free)
+    for key, minimum in (("n_starts", 1), ("seed", 0), ("max_steps", 1), ("solver_max_steps", 16)):
+        if key in fitopt:
+            out[key] = doc.integer(fitopt, key, *where, minimum=minimum)
     for key, cap, fix in (
         ("n_starts", MAX_STARTS, "a few starts (3-20) are enough; more only cost time"),
         ("max_steps", MAX_FIT_STEPS, "the optimiser's step budget; 200-2000 is usual"),
         ("solver_max_steps", 10_000_000, "the ODE solver's step budget per run"),
     ):
-        if (fit_options.get(key) or 0) > cap:
-            raise doc.error(f"{fit_options[key]} is more than {cap}; {fix}", "fit", key)
-    return fit_options
+        if (out.get(key) or 0) > cap:
+            raise doc.error(f"{out[key]} is more than {cap}; {fix}", *where, key)
+    return out
+
+
+def _fit_settings(doc: TomlDocument, data: dict, model, entry, index) -> tuple:
+    """(fit_options, noise_model, noise table, its TOML path, the [fit] settings refused for
+    a process-noise fit as `InputError`s) of the folder, or of candidate
+    `index` (`entry`): its `fit` over [fit], its `noise` instead of [noise] (a candidate with
+    its own `noise` is a process-noise fit unless its `fit` says otherwise)."""
+    top = doc.table(data, "fit", required=False)
+    given = _fit_table(doc, top, model, "fit")
+    where_of = dict.fromkeys(given, ("fit",))
+    noise_table, noise_where = data.get("noise"), ("noise",)
+    if entry is not None:
+        cand_where = ("candidates", index, "fit")
+        own = _fit_table(doc, entry.get("fit") or {}, model, *cand_where)
+        given.update(own)
+        where_of.update(dict.fromkeys(own, cand_where))
+        if "noise" in entry:
+            noise_table, noise_where = entry["noise"], ("candidates", index, "noise")
+            given.setdefault("noise_model", "process")
+    noise_model = given.pop("noise_model", "none")
+    if noise_model == "none" and noise_table is not None:
+        raise doc.error('needs noise_model = "process" (or remove the noise table)', *noise_where)
+    refused = []  # reported with the rest of the folder's problems (the noise table too)
+    if noise_model == "process":
+        for key, why in REFUSED_WITH_PROCESS.items():
+            if key in given:
+                refused.append(
+                    doc.error(
+                        f'does not apply with noise_model = "process": {why}', *where_of[key], key
+                    )
+                )
+        # max_steps absent: the likelihood back end's own budget (damped Newton steps)
+        fit_options = {k: given.get(k, _FIT_DEFAULTS[k]) for k in ("n_starts", "seed")}
+        fit_options["max_steps"] = given.get("max_steps")
+    else:
+        fit_options = {**_FIT_DEFAULTS, **given}
+        fit_options["method"] = check_method(model, given.get("method"))
+    return fit_options, noise_model, (noise_table or {}), noise_where, refused
 
 
 def _all_data_rules(doc: TomlDocument, data: dict, spec) -> dict:
@@ -1271,7 +1357,8 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
     """Load and check an experiment folder (``experiment.toml`` + run CSVs).
 
     With `candidate` (an index into ``[[candidates]]``), that candidate's ``model`` options
-    are applied over [model] and its ``free`` list (if given) replaces [fit] free.
+    are applied over [model], its ``settings`` over [experiment] settings, its ``fit`` over
+    [fit]; its ``free`` list and ``noise`` table (if given) replace [fit] free and [noise].
     Raises `InputError` (``file:line: field: problem and fix``) for one problem and
     `InputErrors` listing every problem (TOML and CSV, up to `MAX_ERRORS`) for several.
     """
@@ -1298,12 +1385,11 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
         _raise_collected(errors)
     spec = device.spec
     model_table = _attempt(errors, doc.table, data, "model", required=False, fallback={})
-    free_entries = None
+    chosen = None
     if candidate is not None:
         chosen = _attempt(errors, _candidate, doc, data, candidate)
         if chosen is not None:
-            model_table = {**model_table, **chosen[0]}
-            free_entries = chosen[1]
+            model_table = {**model_table, **(chosen.get("model") or {})}
     options = _attempt(errors, _options, doc, device, model_table)
     if options is None:  # check the rest against the device's default structure
         options = spec.resolve_options({})
@@ -1322,12 +1408,6 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
     fixed = _attempt(
         errors, _settings, doc, exp.get("settings", {}), base, "experiment", "settings", fallback={}
     )
-    model = configure_model(spec, options, camera, fixed)
-    fit_options = _attempt(errors, _fit_options, doc, data, model)
-    fitopt = data.get("fit") if isinstance(data.get("fit"), dict) else {}
-    if free_entries is None:
-        free_entries = fitopt.get("free")
-    free = _attempt(errors, _free_parameters, doc, free_entries, spec, options, model, fixed)
     ranges = _attempt(
         errors,
         _physical_ranges,
@@ -1338,6 +1418,31 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
         fallback=physical_ranges(spec.parameter_table(options)),
     )
     _attempt(errors, _check_ranges, doc, ranges, fixed, "experiment", "settings")
+    if chosen is not None and isinstance(chosen.get("settings"), dict):  # its known values
+        where = ("candidates", candidate, "settings")
+        own = _attempt(errors, _settings, doc, chosen["settings"], base, *where, fallback={})
+        _attempt(errors, _check_ranges, doc, ranges, own, *where)
+        fixed = {**fixed, **own}
+    model = configure_model(spec, options, camera, fixed)
+    settings = _attempt(errors, _fit_settings, doc, data, model, chosen, candidate)
+    fit_options, noise_model, noise_table, noise_where, refused = settings or (
+        {},
+        "none",
+        {},
+        (),
+        [],
+    )
+    errors.extend(refused)
+    fitopt = data.get("fit") if isinstance(data.get("fit"), dict) else {}
+    free_entries, free_where = fitopt.get("free"), ("fit", "free")
+    if chosen is not None and "free" in chosen:
+        free_entries, free_where = chosen["free"], ("candidates", candidate, "free")
+    free = _attempt(
+        errors, _free_parameters, doc, free_entries, spec, options, model, fixed, free_where
+    )
+    noise = None
+    if noise_model == "process":
+        noise = _attempt(errors, parse_noise, doc, noise_table, model, spec, *noise_where)
 
     runs = data.get("runs")
     data_rules = _attempt(errors, _all_data_rules, doc, data, spec)
@@ -1398,7 +1503,21 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
             0,
             "role",
         )
-    _known_noise(doc, spec, camera, fit_options, experiments)
+    if noise is None:  # the likelihood fit estimates the measurement noise itself
+        _known_noise(doc, spec, camera, fit_options, experiments)
+    else:
+        _check_instantaneous(doc, model, noise_where)
+        if camera.get("noise_m") is not None:
+            errors.append(
+                doc.error(
+                    'does not apply with noise_model = "process" (the likelihood fit '
+                    "estimates the measurement sd); hold it in the noise table instead: "
+                    'fixed = { "measurement.<output>" = sd in m }',
+                    "camera",
+                    "noise_um",
+                )
+            )
+            _raise_collected(errors)
     if spec.start_values is not None:
         free = tuple(spec.start_values(model, free, estimation))
     return ExperimentSet(
@@ -1416,4 +1535,16 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
         free=free,
         fit_options=fit_options,
         physical_ranges=ranges,
+        noise=noise,
+        candidate=None if chosen is None else chosen["name"],
     )
+
+
+def _check_instantaneous(doc: TomlDocument, model, where) -> None:
+    """The Kalman filter reads each output at an instant (no exposure average)."""
+    offsets, _ = model.readout.quadrature()
+    if np.size(offsets) != 1 or float(np.ravel(offsets)[0]) != 0.0:
+        raise doc.error(
+            "the Kalman filter needs instantaneous readings: set [camera] exposure_ms = 0",
+            *where,
+        )

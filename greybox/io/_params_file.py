@@ -1,31 +1,42 @@
 """`params.json`: what a fit established, enough to rebuild the fitted model without the data.
 
-Written by `greybox fit`, read by `greybox simulate`. All values are SI, in the unit named
-by each entry. Non-finite numbers (a "not identifiable" parameter's interval) are `null`.
+Written by `greybox fit` (least squares and process noise alike), read by `greybox simulate`
+and `load_params`. All values are SI, in the unit named by each entry. Non-finite numbers (a
+"not identifiable" parameter's interval) are `null`.
 
-Schema (``"schema": "greybox.params/1"``):
+Schema ``"schema": "greybox.params/3"`` (``greybox.params/2``, the least-squares file of the
+previous version, is read as well: it is /3 without ``noise_model``):
 
-- ``greybox_version``: the version that wrote it.
+- ``greybox_version``: the version that wrote it; ``experiment``: name, description and the
+  ``[[candidates]]`` entry fitted (or null).
 - ``device``: ``name`` (the spec's name), ``ref`` (the reference as written in
   experiment.toml), ``source`` ("builtin", "file", "module", "entry point"), ``location``
   (absolute path of a device file, else the module or name), ``options`` (every structural
   option, defaults filled in). ``model``: what rebuilds the fitted model: ``camera``
   (m_per_px, exposure_s), ``fixed`` ({path: SI value} from [experiment] settings), ``fitted``
-  ({path: SI value} for every shared free parameter), ``method``.
+  ({path: SI value} for every shared free parameter, noise parameters included), ``method``.
+- ``noise_model``: ``kind`` ("output error": least squares on the simulation error, with its
+  ``loss``; "process noise": maximum likelihood through a Kalman filter, with ``likelihood``,
+  ``filter``, ``structure`` (the checked [noise] table: process groups, disturbances,
+  initial state, fixed values, priors), ``values`` ({noise path: SI value}, fixed ones
+  included), ``k_step``); ``horizons``: the prediction horizons the result reports.
 - ``parameters``: one entry per fitted value: name, path, unit, value, se, ci95 [lo, hi],
-  verdict ("identifiable" | "prior-dominated" | "not identifiable"), experiment (the run
-  that owns a per-run value, else null), prior ({median, log_sd} or null).
+  verdict ("identifiable" | "prior-dominated" | "not identifiable" | "at bound" | "not
+  needed"), experiment (the run that owns a per-run value, else null), prior.
 - ``free``: the free-parameter specs (path, unit, bounds, per_experiment, prior, initial,
   scale) in the order of ``raw``; ``raw`` and ``covariance_raw``: the optimiser's
   transformed coordinates and their posterior covariance (shared parameters first, then one
   block per estimation run), from which `greybox._prediction` rebuilds a band;
   ``null_directions_raw``: directions of ``raw`` that nothing determined (usually none).
-- ``sigma``: noise scale per output [SI] and whether it was estimated.
-- ``fit_percent`` (every valid frame) and ``fit_percent_robust`` (flagged outliers left
-  out): ``{"horizon": "simulation", "estimation": {run: %}, "validation":
-  {run: %}}``; ``runs``: frames, valid frames, outliers flagged per run.
-- ``convergence``: converged, message, steps, cost, loss, multi-start costs.
-- ``identifiability``: singular values, condition number, weak directions, summary lines.
+- ``convergence``: status, valid, converged, message, steps, multi-start costs;
+  ``identifiability``: singular values, condition number, weak directions, summary lines.
+- Output error only: ``sigma`` (noise scale per output [SI] and whether it was estimated),
+  ``fit_percent`` (every valid frame) and ``fit_percent_robust`` (flagged outliers left
+  out): ``{"horizon": "simulation", "estimation": {run: %}, "validation": {run: %}}``;
+  ``runs``: frames, valid frames, outliers flagged per run; ``residuals``.
+- Process noise only: ``log_likelihood``, ``aic``, ``bic``, ``n_observations``; ``runs``:
+  per run its role, log-likelihood, the innovations' Ljung-Box test per output and fit %
+  per horizon (simulation, one-step, k-step prediction).
 """
 
 from __future__ import annotations
@@ -39,8 +50,10 @@ import numpy as np
 
 from greybox._errors import InputError
 from greybox._freeparams import FreeParameter
+from greybox.io._noise_table import NoiseTable
 
-SCHEMA = "greybox.params/2"
+SCHEMA = "greybox.params/3"
+READABLE = ("greybox.params/2", SCHEMA)  # /2: a least-squares params.json of greybox < 0.x
 _FREE_FIELDS = [f.name for f in dataclasses.fields(FreeParameter)]
 
 
@@ -84,13 +97,119 @@ def _fit_scores(field: str, frames: str, result, validation) -> dict:
     }
 
 
-def params_document(fitset, result, validation=None) -> dict:
-    """The `params.json` content (a plain dict) for a fit of `fitset` (an `ExperimentSet`)."""
+def _common_document(fitset, result) -> dict:
+    """What every params.json holds, whatever the noise model: the device and how to rebuild
+    it, every fitted value with its uncertainty, the raw estimate and its covariance."""
     import greybox
     from greybox._verdict import fit_headline
 
     shared = [p for p in result.free if not p.per_experiment]
     fitted = {p.path: _num(result.estimate(p.path).value) for p in shared}
+    return {
+        "schema": SCHEMA,
+        "greybox_version": greybox.__version__,
+        "experiment": {
+            "name": fitset.name,
+            "description": fitset.description,
+            "candidate": getattr(fitset, "candidate", None),
+        },
+        "device": {
+            "name": fitset.spec.name,
+            "ref": fitset.device.ref,
+            "source": fitset.device.source,
+            "location": fitset.device.location,
+            "options": dict(fitset.options),
+        },
+        "model": {
+            "camera": {
+                "m_per_px": fitset.camera["m_per_px"],
+                "exposure_s": fitset.camera["exposure_s"],
+                "fps": fitset.camera["fps"],
+            },
+            "fixed": dict(fitset.fixed),
+            "fitted": fitted,
+            "method": result.method,
+        },
+        "parameters": [parameter_record(p) for p in result.parameters],
+        "free": [{k: getattr(p, k) for k in _FREE_FIELDS} for p in result.free],
+        "raw": _nums(result.raw),
+        "covariance_raw": _nums(result.covariance_raw),
+    }
+
+
+def _process_document(fitset, result, validation) -> dict:
+    """params.json of a process-noise fit: the common part, the noise model (structure, every
+    noise value, the likelihood and criteria) and per-run diagnostics."""
+    from greybox._parameters import get_value
+    from greybox.io._results import diagnostics_doc, horizon_labels
+
+    outputs = [c.name for c in fitset.spec.outputs]
+    noise_paths = [
+        f"{f}.{nm}"
+        for f in ("process", "measurement", "output_walk", "input_walk")
+        for nm in getattr(result.model, f).names
+    ]
+    runs = {}
+    for e in result.experiments:
+        runs[e.name] = {"role": "estimation", "frames": e.n_frames}
+    for e in getattr(validation, "experiments", ()) or ():
+        runs[e.name] = {"role": "validation", "frames": e.n_frames}
+    for r in (*result.runs, *(getattr(validation, "runs", ()) or ())):
+        runs.setdefault(r.name, {}).update(diagnostics_doc(r, outputs))
+    ident = getattr(result, "identifiability", None)
+    doc = _common_document(fitset, result)
+    doc["model"]["fitted"] = {
+        p.path: _num(p.value) for p in result.parameters if p.experiment is None
+    }
+    doc["noise_model"] = {
+        "kind": "process noise",
+        "likelihood": result.likelihood,
+        "filter": result.filter_name,
+        "ekf_substeps": int(result.model.ekf_substeps) if result.model.use_ekf else None,
+        "structure": fitset.noise.to_json(),
+        "values": {p: _num(get_value(result.model, p)) for p in noise_paths},
+        "horizons": list(horizon_labels(result).values()),
+        "k_step": int(result.k_step),
+    }
+    doc.update(
+        {
+            "log_likelihood": _num(result.log_likelihood),
+            "aic": _num(result.aic),
+            "bic": _num(result.bic),
+            "n_observations": int(result.n_observations),
+            "runs": runs,
+            "convergence": {
+                "status": result.status,
+                "valid": bool(result.valid),
+                "converged": bool(result.converged),
+                "message": result.message,
+                "steps": int(result.n_steps),
+                "multistart": [
+                    {"cost": _num(c), "converged": bool(ok)}
+                    for c, ok in getattr(result, "multistart_costs", ())
+                ],
+            },
+            "identifiability": None
+            if ident is None
+            else {
+                "singular_values": _nums(ident.singular_values),
+                "condition_number": _num(ident.condition_number),
+                "weak_directions": [
+                    {"combination": w.combination, "sd_raw": _num(w.sd_raw), "text": w.describe()}
+                    for w in ident.weak_directions
+                ],
+                "summary": ident.summary(),
+            },
+        }
+    )
+    return doc
+
+
+def params_document(fitset, result, validation=None) -> dict:
+    """The `params.json` content (a plain dict) for a fit of `fitset` (an `ExperimentSet`),
+    least squares or process noise (`result.noise`)."""
+    if getattr(getattr(result, "noise", None), "name", "") == "process noise":
+        return _process_document(fitset, result, validation)
     runs = {}
     for e in result.experiments:
         runs[e.name] = {
@@ -162,31 +281,13 @@ def params_document(fitset, result, validation=None) -> dict:
         }
 
     return {
-        "schema": SCHEMA,
-        "greybox_version": greybox.__version__,
-        "experiment": {"name": fitset.name, "description": fitset.description},
-        "device": {
-            "name": fitset.spec.name,
-            "ref": fitset.device.ref,
-            "source": fitset.device.source,
-            "location": fitset.device.location,
-            "options": dict(fitset.options),
+        **_common_document(fitset, result),
+        "noise_model": {
+            "kind": "output error",
+            "loss": result.loss,
+            "horizons": ["simulation"],
         },
-        "model": {
-            "camera": {
-                "m_per_px": fitset.camera["m_per_px"],
-                "exposure_s": fitset.camera["exposure_s"],
-                "fps": fitset.camera["fps"],
-            },
-            "fixed": dict(fitset.fixed),
-            "fitted": fitted,
-            "method": result.method,
-        },
-        "parameters": [parameter_record(p) for p in result.parameters],
-        "free": [{k: getattr(p, k) for k in _FREE_FIELDS} for p in result.free],
-        "raw": _nums(result.raw),
         "raw_labels": list(ident.raw_labels),
-        "covariance_raw": _nums(result.covariance_raw),
         "covariance_gauss_newton_raw": _nums(result.covariance_gauss_newton_raw),
         "covariance_hac_raw": _nums(result.covariance_hac_raw),
         "standard_errors": {
@@ -279,6 +380,12 @@ class FittedModel:
     sigma: np.ndarray
     method: str
     document: dict
+    noise: object = None  # the `NoiseTable` of a process-noise fit (`model` is stochastic)
+
+    @property
+    def noise_model(self) -> str:
+        """"output error" (least squares) or "process noise" (a stochastic model)."""
+        return "output error" if self.noise is None else "process noise"
 
     @property
     def spec(self):
@@ -411,8 +518,21 @@ def load_params(path, trust_device=()) -> FittedModel:
         return obj[key]
 
     schema = need(doc, "schema", str, "")
-    if schema != SCHEMA:
-        raise InputError(f"{schema[:40]!r}: this greybox reads {SCHEMA}", file=file, field="schema")
+    if schema not in READABLE:
+        raise InputError(
+            f"{schema[:40]!r}: this greybox reads {' and '.join(READABLE)}",
+            file=file,
+            field="schema",
+        )
+    kind = "output error"
+    if schema == SCHEMA:
+        kind = need(need(doc, "noise_model", dict, ""), "kind", str, "noise_model.")
+        if kind not in ("output error", "process noise"):
+            raise InputError(
+                f"{kind[:40]!r}: use 'output error' or 'process noise'",
+                file=file,
+                field="noise_model.kind",
+            )
     dev = need(doc, "device", dict, "")
     ref = need(dev, "ref", str, "device.")
     location = need(dev, "location", str, "device.")
@@ -462,9 +582,20 @@ def load_params(path, trust_device=()) -> FittedModel:
     try:
         raw = _finite_vector(need(doc, "raw", list, ""), "raw", file)
         cov_list = need(doc, "covariance_raw", list, "")
-        sigma = _finite_vector(
-            need(need(doc, "sigma", dict, ""), "value", list, "sigma."), "sigma.value", file
-        )
+        noise = None
+        if kind == "process noise":
+            nm = doc["noise_model"]
+            values = need(nm, "values", dict, "noise_model.")
+            noise = NoiseTable.from_json(need(nm, "structure", dict, "noise_model."))
+            sigma = _finite_vector(
+                [values.get(f"measurement.{c.name}") for c in device.spec.outputs],
+                "noise_model.values",
+                file,
+            )
+        else:
+            sigma = _finite_vector(
+                need(need(doc, "sigma", dict, ""), "value", list, "sigma."), "sigma.value", file
+            )
         if np.any(sigma < 0):
             raise InputError("noise sigma cannot be negative", file=file, field="sigma.value")
         for k, v in list(fitted.items()) + list(fixed.items()):
@@ -486,6 +617,21 @@ def load_params(path, trust_device=()) -> FittedModel:
         cov = np.array([[np.nan if v is None else v for v in row] for row in cov_list], dtype=float)
         nulls = np.array(doc.get("null_directions_raw") or [], dtype=float).reshape(-1, raw.size)
         model = configure_model(device.spec, options, camera, fixed)
+        if noise is not None:  # the stochastic model: device, noise structure and values
+            from greybox.io._noise_table import structure
+            from greybox._sde_device import stochastic_device
+
+            model = stochastic_device(
+                model, structure(noise), outputs=device.spec.outputs, inputs=device.spec.inputs
+            )
+            for k, v in values.items():
+                if v is None or isinstance(v, bool) or not isinstance(v, (int, float)):
+                    raise InputError(
+                        f"{str(v)[:40]} is not a finite number",
+                        file=file,
+                        field=f"noise_model.values.{k[:60]}",
+                    )
+            model = set_values(model, list(values), [float(v) for v in values.values()])
         model = set_values(model, list(fitted), [float(v) for v in fitted.values()])
         from greybox._parameters import check_scalar_path
 
@@ -495,6 +641,8 @@ def load_params(path, trust_device=()) -> FittedModel:
     except InputError:
         raise
     except (TypeError, ValueError, KeyError, AttributeError, IndexError, OverflowError) as err:
+        if isinstance(err, InputError):
+            raise
         raise InputError(
             f"cannot rebuild the fitted model ({str(err)[:120]}); is it a params.json of "
             f"device {device.spec.name!r}? Regenerate it with `greybox fit`",
@@ -518,4 +666,4 @@ def load_params(path, trust_device=()) -> FittedModel:
             field="free",
         )
     _check_covariance(cov, file)
-    return FittedModel(device, options, model, free, raw, cov, nulls, sigma, method, doc)
+    return FittedModel(device, options, model, free, raw, cov, nulls, sigma, method, doc, noise)

@@ -1,0 +1,335 @@
+"""`greybox fit`, `compare`, `simulate` and `load_params` on process-noise experiment folders,
+checked against the numpy/scipy reference of tests/rc3_reference.py (a three-state stochastic
+RC building model: exact discretisation of the SDE, irregular frames, dropped readings).
+
+- `greybox fit` on a folder with `noise_model = "process"` converges, every physical parameter
+  (and every identifiable noise parameter) lies within 3 standard errors of the truth, and
+  the log-likelihood in params.json is the reference numpy Kalman filter's at the estimate.
+- The process-noise params.json loads through `greybox.io.load_params` and drives
+  `greybox simulate`, whose response is the reference's exact ZOH discretisation.
+- `greybox compare` with one-, two- and three-state candidates (the air temperature read
+  alone, each candidate with its own noise table) prefers the three-state structure; its
+  likelihood-ratio p-values are chi-square tail areas of the candidates' log-likelihoods.
+- A folder whose third candidate is invalid exits 2 at once, fitting nothing, with every
+  problem listed; `greybox fit --candidate` reproduces that candidate's row of compare.json.
+
+Records are short (300 frames) so the four fits stay within a few minutes on two cores.
+"""
+
+import json
+import time
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+from scipy.stats import chi2
+
+from greybox.cli import main
+
+from tests import rc3_reference as ref
+from tests.rc_folder import CANDIDATES, write_candidates_folder, write_folder
+
+N_FRAMES = 300
+PHYSICAL = ("Ci", "Ce", "Ch", "Rie", "Rea", "Rih", "Aw")
+NOISE = {
+    "process.air": "q_i",
+    "process.envelope": "q_e",
+    "process.heater": "q_h",
+    "measurement.Ti": "sd_Ti",
+    "measurement.Te": "sd_Te",
+}
+
+@pytest.fixture(scope="module")
+def data():
+    return ref.simulate(seed=0, n=N_FRAMES)
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory, data):
+    root = tmp_path_factory.mktemp("rc3")
+    folder = write_folder(root, data, validation=ref.simulate(seed=1, n=100))
+    out = root / "result"
+    code = main(["fit", str(folder), "--out", str(out), "--quiet"])
+    return code, folder, out, json.loads((out / "params.json").read_text())
+
+
+@pytest.mark.slow
+def test_process_noise_fit_recovers_the_truth(fitted, data):
+    code, _, out, doc = fitted
+    assert code == 0
+    assert doc["schema"] == "greybox.params/3"
+    assert doc["noise_model"]["kind"] == "process noise"
+    assert doc["convergence"]["status"] == "converged"
+    by_path = {p["path"]: p for p in doc["parameters"]}
+    truth = data["truth"]
+    for path in PHYSICAL:
+        p = by_path[path]
+        assert abs(p["value"] - truth[path]) < 3 * p["se"], (path, p["value"], p["se"])
+    for path, name in NOISE.items():
+        p = by_path[path]
+        if p["verdict"] == "identifiable":
+            assert abs(p["value"] - truth[name]) < 3 * p["se"], (path, p["value"], p["se"])
+    # the likelihood the CLI reports is the independent numpy Kalman filter's at the estimate
+    estimate = {k: by_path[k]["value"] for k in PHYSICAL}
+    estimate.update({name: by_path[path]["value"] for path, name in NOISE.items()})
+    assert doc["log_likelihood"] == pytest.approx(ref.loglik(estimate, data), abs=1e-6)
+
+
+@pytest.mark.slow
+def test_process_noise_result_folder(fitted):
+    _, _, out, doc = fitted
+    metrics = (out / "metrics.csv").read_text().splitlines()
+    assert metrics[0] == "run,role,output,horizon,unit,n,fit_percent,rmse,mae,sae"
+    horizons = {line.split(",")[3] for line in metrics[1:]}
+    assert horizons == {"simulation", "one-step prediction", "10-step prediction"}
+    header = (out / "predictions" / "rc3.csv").read_text().splitlines()[0].split(",")
+    for col in ("Ti_K", "Ti_sim_K", "Ti_onestep_K", "Ti_10step_K", "Ti_innovation_K"):
+        assert col in header
+    # the innovations in the CSV are measured - one-step prediction (10 significant digits)
+    table = np.genfromtxt(out / "predictions" / "rc3.csv", delimiter=",", names=True)
+    ok = np.isfinite(table["Ti_K"])
+    np.testing.assert_allclose(
+        table["Ti_innovation_K"][ok], (table["Ti_K"] - table["Ti_onestep_K"])[ok], atol=2e-7
+    )
+    report = (out / "report.md").read_text()
+    assert "prediction-error form" in report and "one-step prediction" in report
+    assert doc["runs"]["rc3"]["whiteness"]["Ti"]["test"] == "Ljung-Box"
+    assert (out / "figures" / "innovations_Ti.png").is_file()
+    # the validation run: filtered at the estimate, scored at every horizon
+    assert {tuple(line.split(",")[:2]) for line in metrics[1:]} == {
+        ("rc3", "estimation"),
+        ("val", "validation"),
+    }
+    val = json.loads((out / "validation_runs.json").read_text())["runs"]["val"]
+    assert set(val["fit_percent"]) == horizons and val["whiteness"]["Te"]["test"] == "Ljung-Box"
+    assert np.isfinite(val["log_likelihood"]) and val["refitted"] == {}
+
+
+def _numpy_response(p: dict, x0, t, levels):
+    """The deterministic response (air, envelope) of the reference model with inputs held
+    constant on each step (exact ZOH discretisation, scipy's expm)."""
+    A, B, *_ = ref.matrices({**ref.TRUTH, **p})
+    x, out = np.asarray(x0, float), [np.asarray(x0, float)[:2]]
+    for k in range(t.size - 1):
+        h = t[k + 1] - t[k]
+        m = np.zeros((6, 6))
+        m[:3, :3], m[:3, 3:] = A * h, B * h
+        e = sla.expm(m)
+        x = e[:3, :3] @ x + e[:3, 3:] @ levels[k]
+        out.append(x[:2])
+    return np.array(out)
+
+
+@pytest.mark.slow
+def test_process_params_load_and_drive_simulate(fitted, data, tmp_path):
+    from greybox.io import load_params
+
+    _, _, out, doc = fitted
+    loaded = load_params(out / "params.json")
+    assert loaded.noise_model == "process noise"
+    from greybox._parameters import get_value
+
+    for path, value in doc["noise_model"]["values"].items():
+        assert float(get_value(loaded.model, path)) == pytest.approx(value, rel=1e-12)
+    sim = tmp_path / "sim"
+    args = ["simulate", "--params", str(out / "params.json"), "--out", str(sim)]
+    args += ["--dt-ms", "600000", "--waveform", "Ta=const:280", "--waveform", "Ps=const:0"]
+    args += ["--waveform", "Ph=pulse:Ph_W=1500,period_s=86400,duty=0.5,n=2"]
+    assert main(args) == 0
+    meta = json.loads((sim / "simulation.json").read_text())
+    assert meta["noise_model"] == "process noise"
+    assert "process noise" in meta["band"]["kind"]
+    table = np.genfromtxt(sim / "simulation.csv", delimiter=",", names=True)
+    t = table["t_s"]
+    levels = np.column_stack(
+        [np.full(t.size, 280.0), np.where((t % 86400) < 43200, 1500.0, 0.0), np.zeros(t.size)]
+    )
+    by_path = {p["path"]: p["value"] for p in doc["parameters"]}
+    y = _numpy_response({k: by_path[k] for k in PHYSICAL}, data["x0"], t, levels)
+    # simulation.csv holds 6 significant digits: 1e-3 K at 293 K
+    np.testing.assert_allclose(table["Ti_K"], y[:, 0], atol=5.1e-4)
+    np.testing.assert_allclose(table["Te_K"], y[:, 1], atol=5.1e-4)
+    width = table["Ti_hi95_K"] - table["Ti_lo95_K"]
+    assert width[0] < 1e-6  # the initial state is known
+    assert width[-1] > 0.1  # process noise and the parameters' spread widen it
+
+
+# ------------------------------------------------------------------------------------------
+# compare
+
+
+@pytest.fixture(scope="module")
+def compared(tmp_path_factory, data):
+    root = tmp_path_factory.mktemp("rc3cands")
+    folder = write_candidates_folder(root, data)
+    out = root / "compare"
+    code = main(["compare", str(folder), "--out", str(out), "--quiet"])
+    return code, folder, out, json.loads((out / "compare.json").read_text())
+
+
+@pytest.mark.slow
+def test_compare_prefers_three_states_and_lr_tests_match_chi_square(compared):
+    code, _, out, doc = compared
+    assert code == 0
+    assert doc["preferred"] == "three states"
+    cands = {c["name"]: c for c in doc["candidates"]}
+    # k: the fitted values of each structure (physics + process intensities + sensor sd)
+    assert {n: c["k"] for n, c in cands.items()} == {
+        "one state": 3 + 1 + 1,
+        "two states": 5 + 2 + 1,
+        "three states": 7 + 3 + 1,
+    }
+    tests = {(t["larger"], t["nested"]): t for t in doc["likelihood_ratio_tests"]}
+    assert set(tests) == {("two states", "one state"), ("three states", "two states")}
+    for (big, small), t in tests.items():
+        stat = 2 * (cands[big]["loglik"] - cands[small]["loglik"])
+        dof = cands[big]["k"] - cands[small]["k"]
+        assert t["statistic"] == pytest.approx(stat, rel=1e-12)
+        assert t["dof"] == dof
+        assert t["p_value"] == pytest.approx(chi2.sf(stat, dof), rel=1e-9, abs=1e-300)
+    for c in doc["candidates"]:  # every candidate lists its estimates with intervals
+        assert {e["path"] for e in c["estimates"]} >= {"Ci", "process.air", "measurement.Ti"}
+        assert all(len(e["ci95"]) == 2 and e["verdict"] for e in c["estimates"])
+    md = (out / "compare.md").read_text()
+    assert "Likelihood-ratio tests" in md and "### three states" in md
+
+
+@pytest.mark.slow
+def test_fit_candidate_reproduces_its_compare_row(compared, tmp_path):
+    _, folder, _, doc = compared
+    out = tmp_path / "one"
+    assert main(["fit", str(folder), "--candidate", "one state", "--out", str(out), "--quiet"]) == 0
+    params = json.loads((out / "params.json").read_text())
+    row = next(c for c in doc["candidates"] if c["name"] == "one state")
+    assert params["experiment"]["candidate"] == "one state"
+    assert params["log_likelihood"] == pytest.approx(row["loglik"], rel=1e-9)
+    assert params["aic"] == pytest.approx(row["aic"], rel=1e-9)
+    values = {p["path"]: p["value"] for p in params["parameters"]}
+    for e in row["estimates"]:
+        assert values[e["path"]] == pytest.approx(e["value"], rel=1e-7), e["path"]
+
+
+def test_invalid_third_candidate_exits_2_before_any_fit(tmp_path, data, capsys):
+    third = CANDIDATES.index('name = "three states"')
+    bad = CANDIDATES[:third] + (
+        CANDIDATES[third:]
+        .replace('path = "Rih"', 'path = "Xyz"')
+        .replace("heater = [2] }", "heater = [7] }")
+        .replace('nests = ["two states"]', 'nests = ["two states"]\nfit = { loss = "l2" }')
+    )
+    folder = write_candidates_folder(tmp_path, data, bad)
+    out = tmp_path / "out"
+    t0 = time.perf_counter()
+    assert main(["compare", str(folder), "--out", str(out), "--quiet"]) == 2
+    assert time.perf_counter() - t0 < 10
+    assert not out.exists()
+    err = capsys.readouterr().err
+    assert "candidates[2].free[5].path: 'Xyz' is not a parameter" in err, err
+    assert "candidates[2].fit.loss: does not apply" in err
+    assert "candidates[2].noise.process.heater: state(s) [7] do not exist" in err
+
+
+# ------------------------------------------------------------------------------------------
+# [noise] and [fit] checked in io, before any fit (fast: nothing is compiled)
+
+
+def _folder_with(tmp_path, data, extra="", noise=None, fit_extra=""):
+    from tests.rc_folder import THREE_STATE_NOISE
+
+    folder = write_folder(tmp_path, data, noise=noise or THREE_STATE_NOISE, extra=extra)
+    toml = folder / "experiment.toml"
+    toml.write_text(toml.read_text().replace("n_starts = 1\n", f"n_starts = 1\n{fit_extra}"))
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("fit_extra", "noise_extra", "field"),
+    [
+        ('loss = "l2"\n', "", "fit.loss: does not apply"),
+        ('method = "zoh"\n', "", "fit.method: does not apply"),
+        ("", "initial_state = { sd = [0.1, 0.2] }\n", "noise.initial_state.sd: give one sd"),
+        ("", 'initial_state = "estimated"\n', "noise.initial_state: 'estimated'"),
+        ("", 'fixed = { "measurement.T9" = 0.1 }\n', "noise.fixed.measurement.T9: not a noise"),
+    ],
+)
+def test_noise_and_fit_settings_are_checked_by_name(
+    tmp_path, data, capsys, fit_extra, noise_extra, field
+):
+    from tests.rc_folder import THREE_STATE_NOISE
+
+    folder = _folder_with(tmp_path, data, noise=THREE_STATE_NOISE + noise_extra, fit_extra=fit_extra)
+    out = tmp_path / "out"
+    assert main(["fit", str(folder), "--out", str(out), "--quiet"]) == 2
+    assert field in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_noise_table_maps_once_to_the_engine_objects(tmp_path, data):
+    import greybox
+    from greybox.io import load_experiment_set
+    from greybox.io._noise_table import noise_model
+    from tests.rc_folder import THREE_STATE_NOISE
+
+    noise = THREE_STATE_NOISE + 'initial_state = "diffuse"\nfilter = "kalman"\n'
+    noise += 'fixed = { "measurement.Te" = 0.08 }\nk_step = 5\n'
+    fs = load_experiment_set(_folder_with(tmp_path, data, noise=noise, fit_extra="seed = 3\n"))
+    assert fs.fit_options == {"n_starts": 1, "seed": 3, "max_steps": None}
+    model, config, free = noise_model(fs.noise, fs.model, fs.spec)
+    assert config.initial_state == greybox.InitialState(diffuse=True)
+    assert config.filter == greybox.KalmanFilter() and config.k_step == 5
+    assert [p.path for p in free] == [
+        "process.air",
+        "process.envelope",
+        "process.heater",
+        "measurement.Ti",
+    ]
+    from greybox._parameters import get_value
+
+    assert float(get_value(model, "measurement.Te")) == 0.08
+
+
+@pytest.mark.slow
+def test_fit_many_fits_process_noise_devices(tmp_path):
+    """Two devices (records of two seeds), each a one-node process-noise folder of the air
+    temperature: fit-many writes each device's params.json (a process-noise file) and the
+    batch table; each device's log-likelihood is the one `greybox fit` gives that folder."""
+    one_node = '[model]\nnodes = 1\n\n[noise]\nprocess = { air = [0] }\n'
+    folders = []
+    for seed in (0, 2):
+        d = ref.simulate(seed=seed, n=150)
+        folders.append(
+            write_folder(
+                tmp_path / f"s{seed}", d, spec="SPEC_AIR", outputs=("Ti",), noise=one_node,
+                name=f"house{seed}",
+            )
+        )
+    out = tmp_path / "batch"
+    assert main(["fit-many", *map(str, folders), "--out", str(out), "--quiet"]) in (0, 1)
+    rows = (out / "batch.csv").read_text().splitlines()
+    assert rows[0].startswith("device,status") and len(rows) == 3
+    single = tmp_path / "single"
+    assert main(["fit", str(folders[1]), "--out", str(single), "--quiet"]) in (0, 1)
+    one = json.loads((single / "params.json").read_text())
+    batch = json.loads((out / "devices" / "house2" / "params.json").read_text())
+    assert batch["noise_model"]["kind"] == "process noise"
+    assert batch["log_likelihood"] == pytest.approx(one["log_likelihood"], rel=1e-9)
+
+
+def test_cli_commands_import_no_other_command():
+    """The CLI is thin and has no import circle: a command module imports, from greybox.cli,
+    only the shared helpers (cli/_common.py), which import no command."""
+    import ast
+    from pathlib import Path
+
+    cli = Path(__file__).resolve().parents[1] / "greybox" / "cli"
+    for path in cli.glob("_*.py"):
+        names = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                names.add(node.module)
+            elif isinstance(node, ast.Import):
+                names.update(a.name for a in node.names)
+        inside = {n for n in names if n.startswith("greybox.cli")}
+        allowed = set() if path.name == "_common.py" else {"greybox.cli._common"}
+        assert inside <= allowed, (path.name, inside)
+    assert not (cli / "_fit_process.py").exists()

@@ -297,6 +297,10 @@ def test_residual_test_flags_the_wrong_structure_and_compare_prefers_the_right_o
     aic = {c["name"]: c["aic"] for c in doc["candidates"]}
     assert aic["two nodes + lag"] < aic["one node"] - 100
     assert "Preferred: two nodes + lag" in (out / "compare.md").read_text()
+    # every candidate carries its headline verdict; the preferred one is a usable fit
+    heads = {c["name"]: c["headline"] for c in doc["candidates"]}
+    assert heads["two nodes + lag"]["verdict"] == "valid", heads["two nodes + lag"]
+    assert heads["one node"]["verdict"] in ("structure rejected", "physically implausible")
 
 
 def test_a_structure_that_fits_worse_than_one_nested_in_it_is_flagged():

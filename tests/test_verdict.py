@@ -22,6 +22,7 @@ from greybox._verdict import (
     headline,
     interval_factor,
     no_valid_candidate_lines,
+    preferred_plausible,
     refined_verdict,
     standard_error_text,
 )
@@ -145,3 +146,24 @@ def test_compare_says_when_the_residual_test_rejects_every_candidate():
     assert "rejects every candidate" in lines[0] and "BIC" in lines[0]
     assert "never used to choose" in lines[0]
     assert not all_rejected_lines([vs[0], _cv("c", VALID)])
+
+
+def test_compare_never_prefers_an_implausible_candidate_with_the_lowest_aic():
+    # the implausible candidate has the lowest AIC (and BIC), and one not valid the next:
+    # the preferred one is the lowest-criterion candidate among the usable ones
+    def score(name, aic, valid=True):
+        return types.SimpleNamespace(name=name, aic=aic, bic=aic + 5.0, valid=valid)
+
+    implausible = (types.SimpleNamespace(name="alpha", text="alpha = -3 < 0"),)
+    vs = [
+        _cv("too good", IMPLAUSIBLE, implausible=implausible),
+        _cv("pinned", NOT_VALID, at_bound=(("alpha", "lower", 0.0),), status="at bound"),
+        _cv("rejected", REJECTED, rejected=True),
+        _cv("plain", VALID),
+    ]
+    scores = [score("too good", -500.0), score("pinned", -400.0, valid=False),
+              score("rejected", -300.0), score("plain", -200.0)]  # fmt: skip
+    assert preferred_plausible(scores, vs, "aic").name == "rejected"
+    assert preferred_plausible(scores, vs, "bic").name == "rejected"
+    assert preferred_plausible(scores[:2], vs[:2]) is None
+    assert "physically implausible: alpha = -3 < 0" in no_valid_candidate_lines(vs[:2])[2]

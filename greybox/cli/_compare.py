@@ -39,7 +39,12 @@ log-likelihoods must score the same data model). `greybox fit --candidate NAME` 
 candidate exactly as compare does.
 
 Output (--out, written atomically like `greybox fit`): compare.md, compare.json.
-Exit status: 0 done; 1 no candidate gave a valid fit; 2 bad input; 3 a bug.
+The preferred candidate is the one with the lowest criterion among those whose fit is valid
+and physically plausible; compare.md opens with why no candidate is, or with what it means
+when the residual test rejects every one, and each candidate in compare.json carries its
+headline verdict (as params.json of `greybox fit`).
+Exit status: 0 done; 1 no valid, physically plausible candidate (with --strict also a
+preferred candidate whose structure the residual test rejects); 2 bad input; 3 a bug.
 """
 
 
@@ -55,6 +60,12 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--rule", choices=("aic", "bic"), default="aic", help="selection rule")
     p.add_argument("--force", action="store_true", help="replace a non-result --out folder")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument(
+        "--strict",
+        action="store_true",
+        help="exit 1 also when the preferred candidate's structure is rejected by the residual "
+        "test (every candidate's is, or none is preferred)",
+    )
     p.set_defaults(func=run)
     return p
 
@@ -110,9 +121,11 @@ def load_candidates(experiment_dir) -> list:
 
 
 def compare_experiment_dir(experiment_dir, say, *, rule: str = "aic"):
-    """(scores, preferred, likelihood-ratio tests) for every candidate of the folder (see
-    the module help). Every candidate is checked before the first fit."""
-    from greybox._compare import likelihood_ratios, nested_pairs, preferred, score
+    """(scores, preferred, likelihood-ratio tests, verdicts) for every candidate of the
+    folder (see the module help). Every candidate is checked before the first fit; the
+    preferred one is never an invalid or physically implausible fit (`preferred_plausible`)."""
+    from greybox._compare import likelihood_ratios, nested_pairs, score
+    from greybox._verdict import candidate_verdict, preferred_plausible
     from greybox.cli._common import fit_loaded
     from greybox.io._experiment_set import candidate_nests
 
@@ -125,15 +138,20 @@ def compare_experiment_dir(experiment_dir, say, *, rule: str = "aic"):
         warm = None if start is None else (lambda free: _warm_started(free, start))
         result, validation = fit_loaded(fs, say, start=warm)
         s = score(names[i], fs.options, result, validation, nests=nests[names[i]])
-        say(f"candidate {names[i]!r}: AIC {s.aic:.6g}, BIC {s.bic:.6g}, {s.status}")
-        return s, result
+        v = candidate_verdict(names[i], result, fs.physical_ranges)
+        say(
+            f"candidate {names[i]!r}: AIC {s.aic:.6g}, BIC {s.bic:.6g}, {s.status}, "
+            f"{v.headline.verdict}"
+        )
+        return s, result, v
 
-    scores, results = [], []
+    scores, results, verdicts = [], [], []
     for i, name in enumerate(names):
         say(f"candidate {i + 1}/{len(names)} {name!r}: {loaded[i].options}")
-        s, result = run_candidate(i)
+        s, result, v = run_candidate(i)
         scores.append(s)
         results.append(result)
+        verdicts.append(v)
     # a structure that fits worse than one nested in it may have stopped at a local optimum:
     # re-start it once from the nested estimate (which it contains) and say what happened
     for big, small in nested_pairs(scores):
@@ -144,7 +162,7 @@ def compare_experiment_dir(experiment_dir, say, *, rule: str = "aic"):
             f"it (log L {scores[big].loglik:.6g} < {scores[small].loglik:.6g}); re-starting "
             "it from that estimate"
         )
-        s, result = run_candidate(big, start=results[small])
+        s, result, v = run_candidate(big, start=results[small])
         if s.loglik > scores[big].loglik:
             note = (
                 f"Re-started from the estimate of the nested candidate {names[small]!r}: the "
@@ -152,6 +170,7 @@ def compare_experiment_dir(experiment_dir, say, *, rule: str = "aic"):
             )
             scores[big] = dataclasses.replace(s, note=note)
             results[big] = result
+            verdicts[big] = v
         else:
             note = (
                 f"Fits worse than the nested candidate {names[small]!r} by the criterion's "
@@ -161,7 +180,8 @@ def compare_experiment_dir(experiment_dir, say, *, rule: str = "aic"):
                 "can rank the outputs' errors differently."
             )
             scores[big] = dataclasses.replace(scores[big], note=note)
-    return scores, preferred(scores, rule), likelihood_ratios(scores)
+    best = preferred_plausible(scores, verdicts, rule)
+    return scores, best, likelihood_ratios(scores), verdicts
 
 
 def _warm_started(free, result):
@@ -179,14 +199,25 @@ def _warm_started(free, result):
     return out
 
 
-def report_lines(experiment_dir, scores, best, rule: str, tests=()) -> list[str]:
+def report_lines(experiment_dir, scores, best, rule: str, tests=(), verdicts=()) -> list[str]:
+    from greybox._verdict import all_rejected_lines, no_valid_candidate_lines
+
     lines = [f"# Structure comparison: {Path(experiment_dir).resolve().name}", ""]
+    warning = no_valid_candidate_lines(verdicts) or all_rejected_lines(verdicts, rule)
+    if warning:
+        lines += [*warning, ""]
     if best is None:
-        lines += ["**No candidate gave a valid fit**; none is preferred (see each status).", ""]
+        if not warning:
+            lines += [
+                "**No candidate gave a valid fit**; none is preferred (see each status).",
+                "",
+            ]
     else:
+        head = {v.name: v.headline for v in verdicts}.get(best.name)
         lines += [
             f"**Preferred: {best.name}** (lowest {rule.upper()} on the estimation runs among "
-            "the valid fits; validation fit % is shown and was not used to choose).",
+            "the valid, physically plausible fits; validation fit % is shown and was not "
+            "used to choose)." + ("" if head is None else f" Its verdict: {head.text}."),
             "",
         ]
     if scores and scores[0].noise_model == "process noise":
@@ -244,12 +275,14 @@ def report_lines(experiment_dir, scores, best, rule: str, tests=()) -> list[str]
         lines += ["", "Nested structures (each must fit at least as well as one nested in it):", ""]
         lines += [f"- {s.name}: {s.note}" for s in nested]
     lines += ["", "## Estimates per candidate", ""]
+    heads = {v.name: [*v.headline.lines, ""] for v in verdicts}
     for s in scores:
         lines += [
             f"### {s.name}",
             "",
             f"Status **{s.status}**{'' if s.valid else ' (not valid)'}: {s.message}",
             "",
+            *heads.get(s.name, []),
             "| parameter | run | value | unit | std. error | 95 % interval | verdict |",
             "|---|---|---|---|---|---|---|",
         ]
@@ -288,8 +321,9 @@ def _mean_fit(per_run: dict):
     return [float(np.nanmean(col)) if np.isfinite(col).any() else None for col in arr.T]
 
 
-def candidate_record(s) -> dict:
-    """One candidate's row of compare.json (what `greybox fit --candidate` reproduces)."""
+def candidate_record(s, verdict=None) -> dict:
+    """One candidate's row of compare.json (what `greybox fit --candidate` reproduces), with
+    its headline verdict (`greybox._verdict.candidate_verdict`)."""
     return {
         "name": s.name,
         "options": s.options,
@@ -309,6 +343,7 @@ def candidate_record(s) -> dict:
         "valid": s.valid,
         "message": s.message,
         "note": s.note,
+        **({} if verdict is None else {"headline": verdict.headline.as_json()}),
     }
 
 
@@ -325,17 +360,19 @@ def run(args) -> int:
     out = Path(args.out or Path("results") / f"{Path(args.experiment_dir).resolve().name}-compare")
     out = check_output_dir(out, force=args.force, inputs=[args.experiment_dir])
     try:
-        scores, best, tests = compare_experiment_dir(args.experiment_dir, say, rule=args.rule)
+        scores, best, tests, verdicts = compare_experiment_dir(
+            args.experiment_dir, say, rule=args.rule
+        )
     except InputErrors as err:  # every candidate's problems, one per line; nothing fitted
         print_input_errors("compare", args.experiment_dir, err)
         return 2
-    lines = report_lines(args.experiment_dir, scores, best, args.rule, tests)
+    lines = report_lines(args.experiment_dir, scores, best, args.rule, tests, verdicts)
     doc = {
         "rule": args.rule,
         "preferred": None if best is None else best.name,
         "horizon": "simulation",
         "noise_model": scores[0].noise_model,
-        "candidates": [candidate_record(s) for s in scores],
+        "candidates": [candidate_record(s, v) for s, v in zip(scores, verdicts)],
         "likelihood_ratio_tests": [
             {
                 "larger": t.big,
@@ -354,4 +391,9 @@ def run(args) -> int:
         (tmp / "compare.json").write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
     print("\n".join(lines[:4]))
     print(f"wrote {out}/ (compare.md, compare.json) in {say.elapsed:.1f} s")
-    return 0 if best is not None else 1
+    if best is None:
+        return 1
+    from greybox._verdict import VALID
+
+    head = {v.name: v.headline for v in verdicts}[best.name]
+    return 1 if args.strict and head.verdict != VALID else 0

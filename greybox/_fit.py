@@ -56,6 +56,7 @@ from greybox._simulate import (
     require_x64,
     schedule_for,
 )
+from greybox._verdict import interval_verdict
 
 LOSSES = ("l2", "huber", "student_t")
 FAILED_SOLVE_RESIDUAL = 1e3  # per residual, in units of sigma: far worse than any real misfit
@@ -90,8 +91,9 @@ def _robust(r, loss: str, c: float, nu: float):
 class ParameterEstimate:
     """One fitted value in SI with its standard error and 95 % interval.
 
-    `verdict` is "identifiable", "prior-dominated", "not identifiable" or "at bound"; for the
-    last two, `se` and the interval are NaN rather than a confident-looking number, and
+    `verdict` is "identifiable", "weakly identified" (its 95 % interval spans more than a
+    factor `greybox._verdict.WEAK_FACTOR`), "prior-dominated", "not identifiable" or
+    "at bound"; for the last two, `se` and the interval are NaN rather than a confident-looking number, and
     `bound` says which bound ("lower" / "upper") the value sits on.
 
     `se` and `ci95` are the headline (`se_method`: "gauss-newton", or "hac" when the fit's
@@ -1160,6 +1162,7 @@ def parameter_estimates(
             se = deriv * sd_head[k]
             lo, hi = (float(p.to_value(raw[k] + s * Z95 * sd_head[k])) for s in (-1, 1))
             ci = (min(lo, hi), max(lo, hi))
+            verdict = interval_verdict(verdict, ci)  # > WEAK_FACTOR wide: weakly identified
         prior = (p.prior_median, p.prior_log_sd) if p.has_prior else None
         label = labels[k] if labels is not None else p.path
         owner = owners[k] if owners is not None else None

@@ -22,6 +22,8 @@ _DISPLAY = {"m": (1e6, "um"), "s": (1e3, "ms"), "m/s": (1e6, "um/s"), "W": (1e3,
 
 VERDICT_MEANING = {
     "identifiable": "the data alone pin it down (its 95 % interval comes from the data)",
+    "weakly identified": "the data determine it only roughly: its 95 % interval spans more "
+    "than a factor 10 (upper / lower), so read the value as an order of magnitude",
     "prior-dominated": "its value and interval mostly restate the prior you gave; the data "
     "did not shrink the prior's spread by 2x",
     "not identifiable": "the data do not determine it (only a combination with other "
@@ -292,7 +294,9 @@ def identifiability_lines(result, parameter_notes: dict | None = None) -> list[s
     shared = [p for p in result.parameters if p.experiment is None]
     lines = []
     pinned = [p for p in result.parameters if p.verdict == "at bound"]
-    bad = [p.name for p in result.parameters if p.verdict not in ("identifiable", "at bound")]
+    determined = ("identifiable", "weakly identified", "at bound")
+    bad = [p.name for p in result.parameters if p.verdict not in determined]
+    weak = [p.name for p in result.parameters if p.verdict == "weakly identified"]
     if pinned:
         lines.append(
             f"**{len(pinned)} fitted value(s) ended on a bound:** "
@@ -301,7 +305,7 @@ def identifiability_lines(result, parameter_notes: dict | None = None) -> list[s
             "the question for these, the model or its bounds are."
         )
         lines.append("")
-    if not bad and not pinned:
+    if not bad and not pinned and not weak:
         lines.append(
             "**Verdict: every fitted parameter is identifiable** from these data "
             "(no parameter combination is left undetermined)."
@@ -313,6 +317,12 @@ def identifiability_lines(result, parameter_notes: dict | None = None) -> list[s
             f"**Verdict: {len(bad)} of {len(result.parameters)} fitted values are not "
             f"determined by the data alone:** "
             + ", ".join(f"`{n}` ({verdicts[n]})" for n in bad)
+            + "."
+        )
+    if weak:  # determined by the data, but only to within a factor > 10
+        lines.append(
+            "Weakly identified (the 95 % interval spans more than a factor 10): "
+            + ", ".join(f"`{n}`" for n in weak)
             + "."
         )
     if ident.weak_directions:

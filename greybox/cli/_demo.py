@@ -68,7 +68,7 @@ def truth_rows(outcome, truth: dict) -> tuple[list[str], bool]:
         f, _ = display_unit(p.unit, p.value)
         value, ci, unit = estimate_texts(p)
         inside = bool(p.ci95[0] <= t["value"] <= p.ci95[1])
-        if p.verdict == "identifiable":
+        if p.verdict in ("identifiable", "weakly identified"):  # both carry an interval
             ok &= inside
         label = f"{path} [{unit}]" if unit != "1" else path
         lines.append(

@@ -21,7 +21,7 @@ previous version, is read as well: it is /3 without ``noise_model``):
   initial state, fixed values, priors), ``values`` ({noise path: SI value}, fixed ones
   included), ``k_step``); ``horizons``: the prediction horizons the result reports.
 - ``parameters``: one entry per fitted value: name, path, unit, value, se, ci95 [lo, hi],
-  verdict ("identifiable" | "prior-dominated" | "not identifiable" | "at bound" | "not
+  verdict ("identifiable" | "weakly identified" | "prior-dominated" | "not identifiable" | "at bound" | "not
   needed"), experiment (the run that owns a per-run value, else null), prior.
 - ``free``: the free-parameter specs (path, unit, bounds, per_experiment, prior, initial,
   scale) in the order of ``raw``; ``raw`` and ``covariance_raw``: the optimiser's
@@ -131,6 +131,8 @@ def _common_document(fitset, result) -> dict:
             "method": result.method,
         },
         "parameters": [parameter_record(p) for p in result.parameters],
+        # the headline verdict and every fitted value outside its physical range
+        "headline": fit_headline(result, getattr(fitset, "physical_ranges", {})).as_json(),
         "free": [{k: getattr(p, k) for k in _FREE_FIELDS} for p in result.free],
         "raw": _nums(result.raw),
         "covariance_raw": _nums(result.covariance_raw),
@@ -326,8 +328,6 @@ def params_document(fitset, result, validation=None) -> dict:
         "residuals_validation": residual_tests(validation),
         "runs": runs,
         "n_data": int(result.n_data),
-        # the headline verdict and every fitted value outside its physical range
-        "headline": fit_headline(result, getattr(fitset, "physical_ranges", {})).as_json(),
         "convergence": {
             "status": result.status,
             "valid": bool(result.valid),

@@ -303,3 +303,26 @@ def test_a_params_2_file_of_the_previous_version_still_loads(result, tmp_path):
     old.write_text(json.dumps(doc))
     with pytest.raises(greybox.InputError, match="reads greybox.params/2 and greybox.params/3"):
         load_params(old)
+
+
+def test_figure_format_svg_writes_vector_figures(tmp_path):
+    """`--figure-format svg`: every figure is an SVG document (no PNG), and report.md links
+    the .svg files. Two runs of the embedded set (one estimation, one validation) keep the
+    fit small."""
+    folder = tmp_path / "two runs"
+    shutil.copytree(EMBEDDED, folder, ignore=shutil.ignore_patterns("*.py"))
+    head, *runs = (folder / "experiment.toml").read_text().split("\n[[runs]]\n")
+    keep = [r for r in runs if "e4_15mW" in r or "v1_8mW" in r]
+    (folder / "experiment.toml").write_text("\n[[runs]]\n".join([head, *keep]))
+    out = tmp_path / "out"
+    assert main(["fit", str(folder), "--out", str(out), "--quiet", "--figure-format", "svg"]) == 0
+    names = sorted(p.name for p in (out / "figures").iterdir())
+    assert names == sorted(
+        ["fit_e4_15mW_400ms.svg", "fit_v1_8mW_250ms.svg", "residuals.svg", "residual_tests.svg",
+         "correlation.svg"]
+    )  # fmt: skip
+    for name in names:
+        data = (out / "figures" / name).read_text()
+        assert data.lstrip().startswith("<?xml") and "<svg" in data, name
+    text = (out / "report.md").read_text()
+    assert all(f"figures/{n}" in text for n in names)

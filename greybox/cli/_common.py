@@ -85,10 +85,17 @@ def default_out(experiment_dir) -> Path:
 
 
 def fit_experiment_dir(
-    experiment_dir, out, say, *, force: bool = False, candidate: str | None = None
+    experiment_dir,
+    out,
+    say,
+    *,
+    force: bool = False,
+    candidate: str | None = None,
+    figure_format: str = "png",
 ) -> FitOutcome:
     """Load, fit, validate and write the result folder atomically (the work of `greybox fit`,
-    for every noise model). `candidate`: the name of a ``[[candidates]]`` entry to fit.
+    for every noise model). `candidate`: the name of a ``[[candidates]]`` entry to fit;
+    `figure_format`: png, svg or pdf.
 
     `out` is checked first (absent, empty or an earlier result, writable; `force` replaces
     any other folder), then the problem size, before anything is compiled."""
@@ -114,7 +121,7 @@ def fit_experiment_dir(
     say("fitting (the first solve includes compiling the model, a few seconds)")
     result, validation = fit_loaded(fs, say)
     say(f"writing {out}")
-    written = write_fit_result(out, fs, result, validation, force=force)
+    written = write_fit_result(out, fs, result, validation, force=force, fmt=figure_format)
     return FitOutcome(fs, result, validation, Path(out), written.document, written.metrics)
 
 

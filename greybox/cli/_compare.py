@@ -352,17 +352,18 @@ def run(args) -> int:
 
     jax.config.update("jax_enable_x64", True)
     from greybox.cli._common import Progress, print_input_errors
+    from greybox.cli._ticker import Ticker
     from greybox.io._atomic import atomic_output_dir, check_output_dir
     from greybox.io._experiment_set import InputErrors
     from greybox.io._results import usual_permissions
 
-    say = Progress(args.quiet)
     out = Path(args.out or Path("results") / f"{Path(args.experiment_dir).resolve().name}-compare")
     out = check_output_dir(out, force=args.force, inputs=[args.experiment_dir])
     try:
-        scores, best, tests, verdicts = compare_experiment_dir(
-            args.experiment_dir, say, rule=args.rule
-        )
+        with Ticker(Progress(args.quiet)) as say:  # a line at least every 5 s, in every phase
+            scores, best, tests, verdicts = compare_experiment_dir(
+                args.experiment_dir, say, rule=args.rule
+            )
     except InputErrors as err:  # every candidate's problems, one per line; nothing fitted
         print_input_errors("compare", args.experiment_dir, err)
         return 2

@@ -13,14 +13,15 @@ from greybox.cli._common import (  # re-exported: the API of `greybox fit` used 
     FitOutcome as FitOutcome,
 )
 from greybox.cli._common import Progress, default_out, fit_lines, parameter_lines
+from greybox.cli._figures import add_figure_format
 from greybox.cli._common import fit_experiment_dir as fit_experiment_dir
 
 HELP = """\
 Fit the physical parameters of a device model to an experiment folder and write the
 result: params.json (every fitted value in SI with its unit, standard error, 95 %
 interval and identifiability verdict), report.md (tables, simulation fit % per run for the
-estimation and validation runs, the identifiability verdict), figures/*.png (measured vs
-model per run with the laser waveform beneath, residuals, parameter correlation),
+estimation and validation runs, the identifiability verdict), figures/*.png (or .svg/.pdf
+with --figure-format; measured vs model per run with the laser waveform beneath, residuals, parameter correlation),
 predictions/<run>.csv (per run: time, then per output measured, simulated, 95 % band and
 residual, in the unit of the run's file), metrics.csv (per run and output: simulation fit %,
 RMSE, MAE, SAE in the file's unit) and validation_runs.json (per validation run: its
@@ -88,6 +89,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="exit 1 also when the residual test rejects the structure or a fitted value is "
         "physically implausible (the result is written either way)",
     )
+    add_figure_format(p)
     p.set_defaults(func=run)
     return p
 
@@ -97,14 +99,20 @@ def run(args) -> int:
 
     jax.config.update("jax_enable_x64", True)
     from greybox.cli._common import print_input_errors
+    from greybox.cli._ticker import Ticker
     from greybox.io._experiment_set import InputErrors
 
-    say = Progress(args.quiet)
     out = Path(args.out) if args.out else default_out(args.experiment_dir)
     try:
-        outcome = fit_experiment_dir(
-            args.experiment_dir, out, say, force=args.force, candidate=args.candidate
-        )
+        with Ticker(Progress(args.quiet)) as say:  # a line at least every 5 s, in every phase
+            outcome = fit_experiment_dir(
+                args.experiment_dir,
+                out,
+                say,
+                force=args.force,
+                candidate=args.candidate,
+                figure_format=args.figure_format,
+            )
     except InputErrors as err:  # every loader problem, one per line
         print_input_errors("fit", args.experiment_dir, err)
         return 2

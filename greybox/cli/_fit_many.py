@@ -85,6 +85,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="skip the validation runs (each re-fits per-run offsets per device)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    from greybox.cli._figures import add_figure_format
+
+    add_figure_format(p)
     p.set_defaults(func=run)
     return p
 
@@ -245,11 +248,11 @@ def _fit_group(members, args, say) -> dict:
     return dict(out.results)
 
 
-def write_device(folder: Path, fs, result, validation, figures: bool) -> None:
+def write_device(folder: Path, fs, result, validation, figures: bool, fmt: str = "png") -> None:
     from greybox.io._results import write_fit_files
 
     folder.mkdir(parents=True)
-    write_fit_files(folder, fs, result, validation, figures=figures, tables=False)
+    write_fit_files(folder, fs, result, validation, figures=figures, tables=False, fmt=fmt)
 
 
 def batch_csv(rows) -> str:
@@ -332,8 +335,9 @@ def population_markdown(pop) -> str:
     return "\n".join(lines)
 
 
-def write_figures(folder: Path, results) -> list[str]:
-    """Histograms of each shared parameter across devices and their pairwise scatter."""
+def write_figures(folder: Path, results, fmt: str = "png") -> list[str]:
+    """Histograms of each shared parameter across devices and their pairwise scatter
+    (figures/histograms.<fmt>, figures/scatter.<fmt>)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -352,9 +356,9 @@ def write_figures(folder: Path, results) -> list[str]:
         ax.set_xlabel(k)
         ax.set_ylabel("devices")
     fig.tight_layout()
-    fig.savefig(folder / "figures/histograms.png", dpi=110)
+    fig.savefig(folder / f"figures/histograms.{fmt}", dpi=110)
     plt.close(fig)
-    names.append("figures/histograms.png")
+    names.append(f"figures/histograms.{fmt}")
     if len(shared) > 1:
         n = len(shared)
         fig, axes = plt.subplots(
@@ -371,9 +375,9 @@ def write_figures(folder: Path, results) -> list[str]:
                 ax.set_xlabel(a)
                 ax.set_ylabel(b)
         fig.tight_layout()
-        fig.savefig(folder / "figures/scatter.png", dpi=110)
+        fig.savefig(folder / f"figures/scatter.{fmt}", dpi=110)
         plt.close(fig)
-        names.append("figures/scatter.png")
+        names.append(f"figures/scatter.{fmt}")
     return names
 
 
@@ -381,12 +385,18 @@ def run(args) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from greybox._errors import InputError
     from greybox.cli._common import Progress
-    from greybox.io._results import usual_permissions
-    from greybox.io._atomic import atomic_output_dir, check_output_dir
+    from greybox.cli._ticker import Ticker
 
-    say = Progress(args.quiet)
+    with Ticker(Progress(args.quiet)) as say:  # a line at least every 5 s, in every phase
+        return _run(args, say)
+
+
+def _run(args, say) -> int:
+    from greybox._errors import InputError
+    from greybox.io._atomic import atomic_output_dir, check_output_dir
+    from greybox.io._results import usual_permissions
+
     check_settings(args)
     out = check_output_dir(args.out, force=args.force, inputs=list(args.folders))
     loaded, failed = load_devices(args.folders, say)
@@ -424,21 +434,23 @@ def run(args) -> int:
                 from greybox._fit import validate
 
                 validation = validate(r, fs.validation)
-            write_device(tmp / "devices" / name, fs, r, validation, not args.no_device_figures)
+            write_device(
+                tmp / "devices" / name,
+                fs,
+                r,
+                validation,
+                not args.no_device_figures,
+                args.figure_format,
+            )
         rows = batch_table(results) + [
             {"device": k, "status": "failed", "valid": False, "error": v} for k, v in failed.items()
         ]
         (tmp / "batch.csv").write_text(batch_csv(rows))
-        write_figures(tmp, results)
+        figures = write_figures(tmp, results, args.figure_format)
         (tmp / "batch.md").write_text(
             batch_markdown(results, population)
             + failures_markdown(failed)
-            + "\n![histograms](figures/histograms.png)\n"
-            + (
-                "\n![scatter](figures/scatter.png)\n"
-                if (tmp / "figures/scatter.png").exists()
-                else ""
-            )
+            + "".join(f"\n![{Path(f).stem}]({f})\n" for f in figures)
         )
         if population is not None:
             (tmp / "population.md").write_text(population_markdown(population) + "\n")

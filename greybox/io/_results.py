@@ -252,8 +252,10 @@ def write_validation_runs(path: Path, fs, runs, per_run_paths) -> None:
     path.write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
 
 
-def write_figures(folder: Path, fs, runs, sigma, fit_percent, *, result=None) -> list[str]:
-    """figures/fit_<run>.png (measured vs simulation, inputs beneath), one residuals figure
+def write_figures(
+    folder: Path, fs, runs, sigma, fit_percent, *, result=None, fmt: str = "png"
+) -> list[str]:
+    """figures/fit_<run>.<fmt> (`fmt`: png, svg or pdf; measured vs simulation, inputs beneath), one residuals figure
     per output (simulation residuals against the simulation's noise scale `sigma`), for a
     process-noise fit one innovations figure per output (against the innovation sd), and,
     with `result` (a least-squares fit), the residual tests and parameter correlation.
@@ -266,7 +268,7 @@ def write_figures(folder: Path, fs, runs, sigma, fit_percent, *, result=None) ->
     names = []
     for run in runs:
         e = run.experiment
-        name = f"figures/fit_{e.name}.png"
+        name = f"figures/fit_{e.name}.{fmt}"
         plots.run_figure(
             folder / name,
             name=e.name,
@@ -283,7 +285,7 @@ def write_figures(folder: Path, fs, runs, sigma, fit_percent, *, result=None) ->
         names.append(name)
     one = len(outputs) == 1
     for j, (ch, out) in enumerate(zip(fs.spec.outputs, outputs)):
-        name = "figures/residuals.png" if one else f"figures/residuals_{ch.name}.png"
+        name = f"figures/residuals.{fmt}" if one else f"figures/residuals_{ch.name}.{fmt}"
         plots.residuals_figure(
             folder / name,
             [(r.name, r.role, r.experiment.t_s, r.experiment.y[:, j], r.simulation[:, j]) for r in runs],
@@ -292,7 +294,7 @@ def write_figures(folder: Path, fs, runs, sigma, fit_percent, *, result=None) ->
         )
         names.append(name)
         if runs and ONE_STEP in runs[0].horizons:
-            name = f"figures/innovations_{ch.name}.png"
+            name = f"figures/innovations_{ch.name}.{fmt}"
             scale = [np.asarray(r.sd.get(ONE_STEP))[:, j] for r in runs if ONE_STEP in r.sd]
             scale = float(np.nanmedian(np.concatenate(scale))) if scale else float(sigma[j])
             plots.residuals_figure(
@@ -307,17 +309,17 @@ def write_figures(folder: Path, fs, runs, sigma, fit_percent, *, result=None) ->
             names.append(name)
     if result is not None:
         plots.residual_correlation_figure(
-            folder / "figures/residual_tests.png",
+            folder / f"figures/residual_tests.{fmt}",
             result.residuals,
             outputs=tuple(c.name for c in fs.spec.outputs),
             input_labels=tuple(c.name for c in fs.spec.inputs),
         )
         plots.correlation_figure(
-            folder / "figures/correlation.png",
+            folder / f"figures/correlation.{fmt}",
             [p.name for p in result.parameters],
             result.correlation,
         )
-        names += ["figures/residual_tests.png", "figures/correlation.png"]
+        names += [f"figures/residual_tests.{fmt}", f"figures/correlation.{fmt}"]
     return names
 
 
@@ -495,10 +497,17 @@ def _simulation_scale(runs, n_y) -> np.ndarray:
 
 
 def write_fit_files(
-    folder: Path, fs, result, validation, *, figures: bool = True, tables: bool = True
+    folder: Path,
+    fs,
+    result,
+    validation,
+    *,
+    figures: bool = True,
+    tables: bool = True,
+    fmt: str = "png",
 ) -> WrittenFit:
     """Write a fit's files into the existing `folder`: params.json and report.md, with
-    `figures` figures/, with `tables` predictions/, metrics.csv and validation_runs.json."""
+    `figures` figures/ (in `fmt`: png, svg or pdf), with `tables` predictions/, metrics.csv and validation_runs.json."""
     from greybox.io._params_file import params_document, write_params
 
     folder = Path(folder)
@@ -522,7 +531,7 @@ def write_fit_files(
     names = []
     if figures:
         names = write_figures(
-            folder, fs, runs, sigma, fit_percent, result=None if process else result
+            folder, fs, runs, sigma, fit_percent, result=None if process else result, fmt=fmt
         )
     write_params(folder / "params.json", document)
     (folder / "report.md").write_text(report_text(fs, result, validation, names, metrics))
@@ -560,15 +569,18 @@ def report_text(fs, result, validation, figures=(), metrics=None) -> str:
     )
 
 
-def write_fit_result(out, fs, result, validation, *, force: bool = False) -> WrittenFit:
+def write_fit_result(
+    out, fs, result, validation, *, force: bool = False, fmt: str = "png"
+) -> WrittenFit:
     """The result folder of a fit, written atomically (it appears complete or not at all):
-    params.json, report.md, predictions/, metrics.csv, validation_runs.json, figures/."""
+    params.json, report.md, predictions/, metrics.csv, validation_runs.json, figures/ (in
+    `fmt`)."""
     from greybox.io._atomic import atomic_output_dir
 
     check_finite_result(fs, result)  # before the folder is touched
     with atomic_output_dir(out, kind="fit", force=force) as tmp:
         usual_permissions(tmp)
-        written = write_fit_files(tmp, fs, result, validation)
+        written = write_fit_files(tmp, fs, result, validation, fmt=fmt)
     return dataclasses.replace(written, out=Path(out))
 
 

@@ -424,6 +424,7 @@ def fit_report(
             metrics=metrics,
             noise_table=noise_table,
             figures=figures,
+            physical_ranges=physical_ranges,
         )
     shared = [p for p in result.parameters if p.experiment is None]
     per_run = [p for p in result.parameters if p.experiment is not None]
@@ -569,10 +570,15 @@ def process_report(
     metrics=(),
     noise_table=None,
     figures=(),
+    physical_ranges: dict | None = None,
 ) -> str:
-    """Markdown report of a process-noise (maximum-likelihood, Kalman filter) fit: status,
-    likelihood and criteria, parameters with intervals and verdicts, fit % per run, output
-    and horizon (simulation, one-step, k-step prediction), the innovations' whiteness."""
+    """Markdown report of a process-noise (maximum-likelihood, Kalman filter) fit: the
+    headline verdict (`greybox._verdict`, its residual test on the one-step innovations),
+    status, likelihood and criteria, parameters with intervals and verdicts, fit % per run,
+    output and horizon (simulation, one-step, k-step prediction), the innovations'
+    whiteness."""
+    from greybox._verdict import fit_headline
+
     k = result.k_step
     names = _output_names(len(outputs or ()) or 1, outputs)
     structure = result.noise.structure
@@ -584,6 +590,8 @@ def process_report(
     white = all(all(w.p_value > 0.01 for w in r.whiteness) for r in result.runs)
     lines = [
         f"# greybox fit: {title} (stochastic grey-box fit)",
+        "",
+        *fit_headline(result, physical_ranges or {}).lines,
         "",
         head + ("." if status == "converged" else f": {result.message}."),
         f"**Innovations (estimation runs): {'white' if white else 'NOT white'}** "

@@ -93,6 +93,10 @@ def test_process_noise_result_folder(fitted):
     )
     report = (out / "report.md").read_text()
     assert "prediction-error form" in report and "one-step prediction" in report
+    # the headline verdict (residual test on the innovations) opens report.md, as params.json
+    head = doc["headline"]
+    assert head["verdict"] == "valid", head  # the true structure, white innovations
+    assert report.splitlines()[2] == f"**{head['text']}**"
     assert doc["runs"]["rc3"]["whiteness"]["Ti"]["test"] == "Ljung-Box"
     assert (out / "figures" / "innovations_Ti.png").is_file()
     # the validation run: filtered at the estimate, scored at every horizon

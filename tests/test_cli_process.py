@@ -254,6 +254,8 @@ def _folder_with(tmp_path, data, extra="", noise=None, fit_extra=""):
         ("", "initial_state = { sd = [0.1, 0.2] }\n", "noise.initial_state.sd: give one sd"),
         ("", 'initial_state = "estimated"\n', "noise.initial_state: 'estimated'"),
         ("", 'fixed = { "measurement.T9" = 0.1 }\n', "noise.fixed.measurement.T9: not a noise"),
+        ("", "k_step = 20000\n", "noise.k_step: 20000 is above the largest allowed, 10000"),
+        ("", "k_step = 5000\n", "noise.k_step: 5000 frames is not shorter than the longest run"),
     ],
 )
 def test_noise_and_fit_settings_are_checked_by_name(

@@ -1507,6 +1507,7 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
         _known_noise(doc, spec, camera, fit_options, experiments)
     else:
         _check_instantaneous(doc, model, noise_where)
+        _check_k_step(doc, noise, experiments, noise_where)
         if camera.get("noise_m") is not None:
             errors.append(
                 doc.error(
@@ -1538,6 +1539,19 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
         noise=noise,
         candidate=None if chosen is None else chosen["name"],
     )
+
+
+def _check_k_step(doc: TomlDocument, noise, experiments, where) -> None:
+    """The k-step prediction needs k frames of history: a horizon as long as the longest
+    run predicts nothing."""
+    longest = max(e.n_frames for e in experiments)
+    if noise.k_step >= longest:
+        raise doc.error(
+            f"{noise.k_step} frames is not shorter than the longest run ({longest} frames); "
+            f"give a horizon below {longest} (the default is 10)",
+            *where,
+            "k_step",
+        )
 
 
 def _check_instantaneous(doc: TomlDocument, model, where) -> None:

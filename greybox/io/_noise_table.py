@@ -45,6 +45,7 @@ NOISE_KEYS = {
     "priors",
 }
 DEFAULT_K_STEP = 10
+MAX_K_STEP = 10_000  # frames; longer horizons only cost memory (each run is also checked)
 MAX_SUBSTEPS = 64
 # how the filter starts: the initial state's spread (its mean is the device's initial state
 # with the run's settings; free a per-run initial-state path to estimate it)
@@ -164,7 +165,9 @@ def parse_noise(doc, table, model, spec, *where) -> NoiseTable:
         if substeps > MAX_SUBSTEPS:
             raise doc.error(f"{substeps} is more than {MAX_SUBSTEPS}; 1-8 is usual", *where, "substeps")
     state_unit = doc.string(table, "state_unit", *where, default=None)
-    k_step = doc.integer(table, "k_step", *where, default=DEFAULT_K_STEP, minimum=1)
+    k_step = doc.integer(
+        table, "k_step", *where, default=DEFAULT_K_STEP, minimum=1, maximum=MAX_K_STEP
+    )
     initial_state = _initial_state(doc, table, int(model.n_states), where)
     fixed = _positive_values(doc, table, "fixed", where)
     initial = _positive_values(doc, table, "initial", where)

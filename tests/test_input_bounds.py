@@ -300,6 +300,7 @@ def _params(tmp_path, **changes) -> Path:
         "covariance_raw": [[0.01, 0.0], [0.0, 0.02]],
         "null_directions_raw": [],
         "sigma": {"value": [1e-7], "estimated": True},
+        "noise_model": {"kind": "output error", "loss": "l2", "horizons": ["simulation"]},
     }
     for key, value in changes.items():
         obj = doc

@@ -21,8 +21,8 @@ previous version, is read as well: it is /3 without ``noise_model``):
   initial state, fixed values, priors), ``values`` ({noise path: SI value}, fixed ones
   included), ``k_step``); ``horizons``: the prediction horizons the result reports.
 - ``parameters``: one entry per fitted value: name, path, unit, value, se, ci95 [lo, hi],
-  verdict ("identifiable" | "weakly identified" | "prior-dominated" | "not identifiable" | "at bound" | "not
-  needed"), experiment (the run that owns a per-run value, else null), prior.
+  verdict ("identifiable" | "weakly identified" | "prior-dominated" | "not identifiable" |
+  "at bound" | "not needed"), experiment (the run that owns a per-run value, else null), prior.
 - ``free``: the free-parameter specs (path, unit, bounds, per_experiment, prior, initial,
   scale) in the order of ``raw``; ``raw`` and ``covariance_raw``: the optimiser's
   transformed coordinates and their posterior covariance (shared parameters first, then one

@@ -196,6 +196,9 @@ def test_compare_prefers_three_states_and_lr_tests_match_chi_square(compared):
         assert all(len(e["ci95"]) == 2 and e["verdict"] for e in c["estimates"])
     md = (out / "compare.md").read_text()
     assert "Likelihood-ratio tests" in md and "### three states" in md
+    # each candidate's headline verdict; the preferred one is valid and plausible
+    assert cands["three states"]["headline"]["verdict"] == "valid"
+    assert all(c["headline"]["text"] in md for c in cands.values())
 
 
 @pytest.mark.slow

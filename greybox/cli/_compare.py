@@ -63,8 +63,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--strict",
         action="store_true",
-        help="exit 1 also when the preferred candidate's structure is rejected by the residual "
-        "test (every candidate's is, or none is preferred)",
+        help="exit 1 also when the residual test rejects the preferred candidate's structure "
+        "(the result is written either way)",
     )
     p.set_defaults(func=run)
     return p

@@ -66,7 +66,7 @@ def _pct(values) -> str:
 def load_candidates(experiment_dir) -> list:
     """Every candidate of the folder loaded and checked (`ExperimentSet`s, in file order),
     before anything is fitted: the problems of all candidates are raised together."""
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox.io._experiment_set import (
         InputErrors,
         candidate_nests,
@@ -112,7 +112,7 @@ def load_candidates(experiment_dir) -> list:
 def compare_experiment_dir(experiment_dir, say, *, rule: str = "aic"):
     """(scores, preferred, likelihood-ratio tests) for every candidate of the folder (see
     the module help). Every candidate is checked before the first fit."""
-    from greybox._compare import likelihood_ratios, nested_pairs, preferred, score
+    from greybox._estimate.compare import likelihood_ratios, nested_pairs, preferred, score
     from greybox.cli._common import fit_loaded
     from greybox.io._experiment_set import candidate_nests
 

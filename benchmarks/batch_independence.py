@@ -36,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import gpu_many_devices as gpu  # noqa: E402
 import many_devices as md  # noqa: E402
 
-from greybox import _batch  # noqa: E402
+from greybox._estimate import batch as _batch  # noqa: E402
 
 SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
 

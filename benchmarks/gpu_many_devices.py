@@ -51,7 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import many_devices as md  # noqa: E402
 
 import greybox  # noqa: E402
-from greybox import _batch  # noqa: E402
+from greybox._estimate import batch as _batch  # noqa: E402
 
 SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
 NOISE_M = 0.05e-6

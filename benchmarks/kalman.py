@@ -43,8 +43,8 @@ import numpy as np  # noqa: E402
 import scipy.linalg as sla  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from greybox import FilterGrid, LinearGaussianSDE, log_likelihood  # noqa: E402
-from greybox._stochastic import fit_stochastic  # noqa: E402  (the LinearGaussianSDE estimator)
+from greybox.stochastic import FilterGrid, LinearGaussianSDE, log_likelihood  # noqa: E402
+from greybox._estimate.stochastic_fit import fit_stochastic  # noqa: E402  (the LinearGaussianSDE estimator)
 
 # ------------------------------------------------------------------------------------------
 # speed: 3 states, 2 outputs, 2,000 frames
@@ -278,7 +278,7 @@ def coverage_device(n_reps, n_frames: int = 600):
         with threadpool_limits(1):
             data = T.simulate_truth(seed=2000 + rep, n=n_frames)
         sd = T.cli_model()
-        free = T.physical_free() + greybox.noise_parameters(sd, T.UNITS)
+        free = T.physical_free() + greybox.stochastic.noise_parameters(sd, T.UNITS)
         t0 = time.perf_counter()
         res = greybox.fit(sd, [data], free, noise=greybox.ProcessNoise(sd.structure), n_starts=1)
         times.append(time.perf_counter() - t0)

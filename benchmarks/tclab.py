@@ -33,7 +33,7 @@ import study  # noqa: E402
 from tclab_data import load_folder, uniform  # noqa: E402
 
 from greybox import blackbox as bb  # noqa: E402
-from greybox._compare import preferred, score  # noqa: E402
+from greybox._estimate.compare import preferred, score  # noqa: E402
 
 SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
 

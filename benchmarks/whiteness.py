@@ -25,7 +25,7 @@ Run: .venv/bin/python benchmarks/whiteness.py [--replicates 200] [--smoke]
      so Gauss-Newton covers about 0.95 by coincidence, not by design;
    - "ar1_structure_right": the one-node model on its own data with the same AR(1) noise
      (only the noise model is wrong; theta* is the truth): Gauss-Newton is far too narrow.
-   What the HAC meat does (`greybox._residuals`): an FIR model-error model on the inputs
+   What the HAC meat does (`greybox._estimate.residuals`): an FIR model-error model on the inputs
    (Ljung & Guo 1997) takes the deterministic misfit out of the residuals before the meat,
    Andrews-Monahan (1992) VAR(1) prewhitening with recolouring, Newey-West Bartlett kernel
    with Andrews' AR(1) plug-in bandwidth, and an n / (n - k) degrees-of-freedom factor.

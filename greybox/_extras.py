@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import importlib
 
-from greybox._errors import InputError
+from greybox._model.errors import InputError
 
 EXTRAS = {
     "video": ("imageio", "imageio_ffmpeg", "skimage"),

@@ -28,7 +28,7 @@ import types
 from pathlib import Path
 
 from greybox import _usercode
-from greybox._spec import DeviceSpec, DeviceSpecError
+from greybox._model.spec import DeviceSpec, DeviceSpecError
 
 ENTRY_POINT_GROUP = "greybox.devices"
 _BUILTIN_PACKAGE = "greybox_builtin_devices"

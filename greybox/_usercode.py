@@ -27,7 +27,7 @@ import threading
 import traceback
 from pathlib import Path
 
-from greybox._errors import InputError
+from greybox._model.errors import InputError
 
 #: seconds a device may take to import, check and build (GREYBOX_DEVICE_TIMEOUT_S overrides)
 DEVICE_TIMEOUT_S = 120.0

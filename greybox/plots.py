@@ -45,8 +45,8 @@ def _axes(axes, n: int, height_ratios=None):
 
 def _label(item, j: int, file_units=None, kind: str = "output"):
     """(label, SI -> shown values, unit) of a `Channel` or a (label, SI unit) pair."""
-    from greybox._plots import axis_unit
-    from greybox._report import display_unit
+    from greybox.report._plots import axis_unit
+    from greybox.report._markdown import display_unit
 
     if item is None:
         return f"{kind} {j + 1}", (lambda v: np.asarray(v)), "SI"
@@ -71,7 +71,7 @@ def _ylabel(ax, label: str, unit: str) -> None:
 
 
 def _draw_inputs(axes, inputs, t0: float, t1: float, channels) -> None:
-    from greybox._plots import _steps
+    from greybox.report._plots import _steps
 
     tt, vv = _steps(inputs, t0, t1)
     for k, ax in enumerate(axes):
@@ -267,7 +267,7 @@ def plot_compare(scores: Sequence, *, ax=None, criterion: str = "aic"):
 def plot_population(results, parameter: str, *, ax=None):
     """The estimates of one shared parameter across devices ({device: FitResult}) with their
     95 % intervals, in the parameter's unit."""
-    from greybox._report import display_unit
+    from greybox.report._markdown import display_unit
 
     if ax is None:
         from matplotlib.figure import Figure

@@ -20,16 +20,16 @@
 # 1. Fit the embedded laser-chevron data (`greybox.io.load_experiment_set`, `greybox.fit`).
 # 2. **Design** the next runs for the parameters of interest, the absorptance and the
 #    thermal time constant `thermal.tau_s`, at the fitted posterior and on top of the data
-#    already taken (`greybox.design_problem`, `greybox.LabConstraints`,
-#    `greybox.design_experiment`), and compare with the habitual experiment of the same
-#    length and power budget (`greybox.habitual_baseline`, `greybox.evaluate_design`,
-#    `greybox.comparison_table`).
+#    already taken (`greybox.design.design_problem`, `greybox.design.LabConstraints`,
+#    `greybox.design.design_experiment`), and compare with the habitual experiment of the same
+#    length and power budget (`greybox.design.habitual_baseline`, `greybox.design.evaluate_design`,
+#    `greybox.design.comparison_table`).
 # 3. **"Run"** the designed experiment on synthetic data at the known truth
 #    (`greybox.record` with `greybox.CameraDefects`, as `experiments/chevron_laser/generate.py`
 #    made the embedded set), refit on old + new runs, and compare the **achieved** standard
 #    errors with the **predicted** ones.
 # 4. **Inverse design:** a laser waveform that steps the shuttle to a target stroke within a
-#    settling time (`greybox.track_target`), with the predicted response's 95 % band.
+#    settling time (`greybox.design.track_target`), with the predicted response's 95 % band.
 
 # %%
 import json
@@ -108,7 +108,7 @@ n_shared = len(shared)
 # runs (50 % duty, 400 ms period, the highest power the cap allows).
 
 # %%
-constraints = greybox.LabConstraints(
+constraints = greybox.design.LabConstraints(
     power_max_W=0.030,
     run_duration_s=RUN_S,
     n_runs=N_NEW,
@@ -118,16 +118,16 @@ constraints = greybox.LabConstraints(
     exposure_s=fitset.camera["exposure_s"],
 )
 posterior = dict(raw=result.raw, covariance_raw=result.covariance_raw)
-problem = greybox.design_problem(
+problem = greybox.design.design_problem(
     fitset.model, fitset.free, INTEREST, sigma, include_existing=True, **posterior
 )
 t0 = time.perf_counter()
-design = greybox.design_experiment(
+design = greybox.design.design_experiment(
     problem, constraints, criterion="D", n_periods=N_PERIODS, duties=DUTIES
 )
 t_design = time.perf_counter() - t0
-habitual = greybox.evaluate_design(problem, greybox.habitual_baseline(constraints), constraints)
-rows = greybox.comparison_table(problem, design, habitual)
+habitual = greybox.design.evaluate_design(problem, greybox.design.habitual_baseline(constraints), constraints)
+rows = greybox.design.comparison_table(problem, design, habitual)
 print(f"designed in {t_design:.1f} s; {design.verdict}")
 for r in design.runs:
     d = r.description
@@ -141,17 +141,17 @@ print(
     f"{h['n_pulses']} pulses (x {N_NEW})"
 )
 print("\npredicted SE after a refit on the six old runs + the new ones:")
-print(greybox.format_design_table(rows, design_label="designed", baseline_label="habitual"))
+print(greybox.design.format_design_table(rows, design_label="designed", baseline_label="habitual"))
 
 # the same new runs on their own (no existing data): how much each run is worth
-alone = greybox.design_problem(fitset.model, fitset.free, INTEREST, sigma, **posterior)
-rows_alone = greybox.comparison_table(
+alone = greybox.design.design_problem(fitset.model, fitset.free, INTEREST, sigma, **posterior)
+rows_alone = greybox.design.comparison_table(
     alone,
-    greybox.evaluate_design(alone, design.runs, constraints),
-    greybox.evaluate_design(alone, habitual.runs, constraints),
+    greybox.design.evaluate_design(alone, design.runs, constraints),
+    greybox.design.evaluate_design(alone, habitual.runs, constraints),
 )
 print("\npredicted SE from the new runs alone:")
-print(greybox.format_design_table(rows_alone, design_label="designed", baseline_label="habitual"))
+print(greybox.design.format_design_table(rows_alone, design_label="designed", baseline_label="habitual"))
 
 # %% [markdown]
 # **What the design chose and why.** The absorptance (the static gain) is learned from the
@@ -295,7 +295,7 @@ plt.show()
 #
 # A step of the shuttle from rest to 1.0 um at t = 0.1 s, settled within 60 ms (about 1.3
 # tau: a plain step of the hold power would take about 4 tau to get within 2 %) and held to
-# 2 % until 0.6 s, with at most 30 mW and levels on a 5 ms grid. `greybox.track_target`
+# 2 % until 0.6 s, with at most 30 mW and levels on a 5 ms grid. `greybox.design.track_target`
 # optimises the levels by projected gradient descent through the exact simulator, at the
 # refitted values, and returns the predicted response with its 95 % confidence band
 # (parameter uncertainty of the refit, delta method). The same waveform is then simulated
@@ -307,7 +307,7 @@ fitted_model = greybox.set_values(
     fitset.model, [p.path for p in shared], [p.to_value(r) for p, r in zip(shared, refit.raw)]
 )
 t0 = time.perf_counter()
-track = greybox.track_target(
+track = greybox.design.track_target(
     fitted_model,
     stroke_m=STROKE_M,
     step_time_s=STEP_S,

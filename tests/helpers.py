@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from greybox._synthetic import CameraDefects, record
-from greybox._waveforms import PulseTrain
+from greybox._simulate.synthetic import CameraDefects, record
+from greybox._model.waveforms import PulseTrain
 
 # (power mW, period s) of the thesis's six stitched estimation runs
 THESIS_RUNS = ((5, 0.2), (10, 0.4), (10, 0.6), (15, 0.8), (20, 1.0), (30, 0.5))

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import greybox
-from greybox._batch import bytes_per_item, chunk_size_for, device_from_spec, fit_batch
-from greybox._population import population_fit, population_from_batch
+from greybox._estimate.batch import bytes_per_item, chunk_size_for, device_from_spec, fit_batch
+from greybox._estimate.population import population_fit, population_from_batch
 
 SPEC = greybox.get_device("chevron_laser")
 M_PER_PX = 0.645e-6
@@ -84,7 +84,7 @@ def test_batch_equals_single_fit(batch):
 
 def test_chunk_size_respects_memory_budget(batch):
     devices, _, _, _ = batch
-    from greybox._batch import _prepare
+    from greybox._estimate.batch import _prepare
 
     prepared, _ = _prepare(
         devices[:1],
@@ -142,7 +142,7 @@ def test_population_fit_is_calibrated_on_known_estimates():
 
 def test_dask_worker_killed_mid_batch_loses_and_duplicates_nothing(tmp_path):
     pytest.importorskip("distributed")
-    from greybox._distributed import run_tasks, start_client
+    from greybox._estimate.distributed import run_tasks, start_client
 
     marker = tmp_path / "killed"
 

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import greybox
-from greybox._batch import _prepare, _run_items
-from greybox._freeparams import FreeParameter
+from greybox._estimate.batch import _prepare, _run_items
+from greybox._model.freeparams import FreeParameter
 
 SPEC = greybox.get_device("chevron_laser")
 M_PER_PX = 0.645e-6

@@ -306,7 +306,7 @@ def test_residual_test_flags_the_wrong_structure_and_compare_prefers_the_right_o
 def test_a_structure_that_fits_worse_than_one_nested_in_it_is_flagged():
     # the larger structure contains the nested one, so its maximum likelihood is at least as
     # high: a lower value is a local optimum; different options are never nested
-    from greybox._compare import CandidateScore, nested_pairs
+    from greybox._estimate.compare import CandidateScore, nested_pairs
 
     def cand(name, free, loglik, options=None):
         return CandidateScore(

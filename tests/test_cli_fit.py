@@ -189,7 +189,7 @@ def test_figures_are_png(result):
 
 def test_interrupted_fit_leaves_the_previous_result(result, tmp_path, monkeypatch, capsys):
     """Ctrl-C while the figures are written: exit 130, the earlier result stays whole."""
-    import greybox._plots
+    import greybox.report._plots
 
     out = tmp_path / "result"
     shutil.copytree(result, out)
@@ -198,7 +198,7 @@ def test_interrupted_fit_leaves_the_previous_result(result, tmp_path, monkeypatc
     def interrupt(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(greybox._plots, "correlation_figure", interrupt)
+    monkeypatch.setattr(greybox.report._plots, "correlation_figure", interrupt)
     assert main(["fit", str(EMBEDDED), "--out", str(out)]) == 130
     err = capsys.readouterr().err
     assert "[" in err and "fitting" in err  # progress lines were shown
@@ -214,7 +214,7 @@ def test_failed_fit_leaves_no_result(tmp_path, monkeypatch, capsys):
         raise RuntimeError("solver exploded")
 
     # the module, not the function that greybox/__init__ re-exports under the same name
-    monkeypatch.setattr(importlib.import_module("greybox._fit"), "fit", broken)
+    monkeypatch.setattr(importlib.import_module("greybox._estimate.fit"), "fit", broken)
     out = tmp_path / "result"
     assert main(["fit", str(EMBEDDED), "--out", str(out), "--quiet"]) == 3  # a bug, not input
     assert "solver exploded" in capsys.readouterr().err
@@ -227,7 +227,7 @@ def test_prior_dominated_parameter_is_reported(tmp_path):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from greybox._fit import fit
+    from greybox._estimate.fit import fit
     from greybox.io._results import report_text
     from greybox.io import load_experiment_set
 
@@ -277,7 +277,7 @@ def test_posterior_from_the_fit_equals_the_one_loaded_from_params_json(result, t
 def test_report_units_prefix_only_plain_leading_factors():
     # 2.4e-7 J/K reads 240 nJ/K; a prefix on a squared unit would square too (1e-9 m^2/s is
     # not 1 nm^2/s, which is 1e-18 m^2/s), so such units keep their SI form
-    from greybox._report import display_unit
+    from greybox.report._markdown import display_unit
 
     f, unit = display_unit("J/K", 2.4e-7)
     assert unit == "nJ/K" and f * 2.4e-7 == pytest.approx(240.0)

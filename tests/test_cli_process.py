@@ -131,7 +131,7 @@ def test_process_params_load_and_drive_simulate(fitted, data, tmp_path):
     _, _, out, doc = fitted
     loaded = load_params(out / "params.json")
     assert loaded.noise_model == "process noise"
-    from greybox._parameters import get_value
+    from greybox._model.parameters import get_value
 
     for path, value in doc["noise_model"]["values"].items():
         assert float(get_value(loaded.model, path)) == pytest.approx(value, rel=1e-12)
@@ -292,7 +292,7 @@ def test_noise_table_maps_once_to_the_engine_objects(tmp_path, data):
         "process.heater",
         "measurement.Ti",
     ]
-    from greybox._parameters import get_value
+    from greybox._model.parameters import get_value
 
     assert float(get_value(model, "measurement.Te")) == 0.08
 

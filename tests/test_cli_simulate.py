@@ -10,10 +10,10 @@ import pytest
 from test_cli_fit import EMBEDDED, fitted_dir
 
 import greybox
-from greybox._parameters import get_value, set_values
-from greybox._prediction import prediction_band
-from greybox._simulate import simulate
-from greybox._waveforms import PulseTrain
+from greybox._model.parameters import get_value, set_values
+from greybox._estimate.prediction import prediction_band
+from greybox._simulate.simulate import simulate
+from greybox._model.waveforms import PulseTrain
 from greybox.cli import main
 from greybox.io._params_file import load_params
 
@@ -159,7 +159,7 @@ def test_band_ignores_only_combinations_the_output_does_not_depend_on():
     """Absorptance and thermal resistance enter only as a product: a covariance that leaves
     their ratio undetermined gives a finite band; leaving one of them alone undetermined
     gives an infinite one (never a falsely narrow band)."""
-    from greybox._freeparams import FreeParameter
+    from greybox._model.freeparams import FreeParameter
 
     jax.config.update("jax_enable_x64", True)
     model = chevron_laser.SPEC.model(kinematics="linear")  # linear kinematics: y exactly ~ A R

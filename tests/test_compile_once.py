@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import greybox
-from greybox._freeparams import FreeParameter
+from greybox._model.freeparams import FreeParameter
 
 SPEC = greybox.get_device("chevron_laser")
 

@@ -10,7 +10,7 @@ import io
 import numpy as np
 import pytest
 
-from greybox._errors import InputError
+from greybox._model.errors import InputError
 from greybox.io import load_experiment_set
 from greybox.io._csv import read_csv
 

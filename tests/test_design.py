@@ -1,4 +1,4 @@
-"""Experiment design (greybox._design): the information it optimises is the fit's, the
+"""Experiment design (greybox.design._design): the information it optimises is the fit's, the
 tracking waveform meets its target within its constraints, and impossible requests raise."""
 
 import tomllib
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import greybox
-from greybox import _design as D
+from greybox.design import _design as D
 from greybox.io import experiment_toml, waveform_from_description
 
 INTEREST = ("absorptance", "thermal.tau_s")

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from greybox._errors import InputError
+from greybox._model.errors import InputError
 from greybox.cli import main
 from greybox.io import load_experiment_set
 from greybox.io._toml import TomlLines

@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 import greybox
-from greybox._data import Experiment
-from greybox._fit import fit, validate
-from greybox._freeparams import FreeParameter
-from greybox._parameters import set_values
-from greybox._waveforms import PiecewiseConstant, PulseTrain
+from greybox._model.data import Experiment
+from greybox._estimate.fit import fit, validate
+from greybox._model.freeparams import FreeParameter
+from greybox._model.parameters import set_values
+from greybox._model.waveforms import PiecewiseConstant, PulseTrain
 from tests.helpers import chevron_runs
 
 CHEVRON = greybox.get_device("chevron_laser")
@@ -203,7 +203,7 @@ def test_scaled_factorisation_is_exactly_invariant():
     """Rescaling a raw coordinate (a linear parameter's `scale`) rescales its Jacobian column;
     the SI standard errors and the rank decision must not move, also next to an exactly
     degenerate pair."""
-    from greybox._identifiability import analyse
+    from greybox._estimate.identifiability import analyse
 
     rng = np.random.default_rng(0)
     j = rng.normal(size=(200, 4))
@@ -226,7 +226,7 @@ def test_scaled_factorisation_is_exactly_invariant():
 
 
 def test_status_says_what_happened():
-    from greybox._fit import fit_status
+    from greybox._estimate.fit import fit_status
 
     ok = dict(finite=True, solved=True, optimiser_ok=True, pinned=[])
     # the given start (0) stopped above the best: a local optimum, the best is reported
@@ -289,7 +289,7 @@ def test_bad_inputs_raise_clear_errors(truth):
 
 
 def test_parameter_draws_reproduce_the_reported_uncertainty(thesis_fit):
-    from greybox._prediction import propagate
+    from greybox._estimate.prediction import propagate
 
     _, result = thesis_fit
     taus = propagate(
@@ -330,7 +330,7 @@ def test_rest_level_and_uniform_grid_for_blackbox_models():
 
 
 def test_delta_method_matches_reported_standard_error(thesis_fit):
-    from greybox._prediction import delta_method
+    from greybox._estimate.prediction import delta_method
 
     _, result = thesis_fit
     est = result.estimate("thermal.tau_s")

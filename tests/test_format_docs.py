@@ -1,5 +1,5 @@
 """experiments/README.md documents every table and key the loader accepts, and README.md's
-exit-status table is the code's (`greybox._verdict.EXIT_STATUS`)."""
+exit-status table is the code's (`greybox._estimate.verdict.EXIT_STATUS`)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from greybox._verdict import EXIT_STATUS
+from greybox._estimate.verdict import EXIT_STATUS
 from greybox.io._experiment_set import accepted_keys
 
 ROOT = Path(__file__).resolve().parents[1]

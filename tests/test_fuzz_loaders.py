@@ -15,7 +15,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from greybox._errors import InputError
+from greybox._model.errors import InputError
 from greybox._registry import resolve
 from greybox.io._csv import read_csv
 from greybox.io._experiment_set import candidate_names, load_experiment_set
@@ -411,7 +411,7 @@ def test_noise_tables_parse_or_raise_input_error(tmp_path_factory, noise):
     )
 )  # fmt: skip
 def test_design_constraints_check_or_raise_a_named_value_error(c):
-    from greybox._design import MAX_DESIGN_FRAMES, LabConstraints
+    from greybox.design._design import MAX_DESIGN_FRAMES, LabConstraints
 
     try:
         LabConstraints(**c).check()

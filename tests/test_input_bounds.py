@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from greybox._errors import InputError
+from greybox._model.errors import InputError
 from greybox._registry import resolve
 from greybox.io._csv import read_csv
 from greybox.io._experiment_set import check_problem_size, load_experiment_set
@@ -426,7 +426,7 @@ def test_non_finite_numbers_are_named_as_what_they_are(folder, value, said):
 
 
 def test_a_nan_option_fails_its_check():
-    from greybox._spec import Option
+    from greybox._model.spec import Option
 
     opt = Option("mass_kg", 1.0, "moving mass", minimum=0.0, maximum=10.0)
     for bad, said in ((float("nan"), "nan is not finite"), (float("inf"), "inf is not finite")):

@@ -20,7 +20,7 @@ import scipy.stats
 from scipy.integrate import quad_vec
 from threadpoolctl import threadpool_limits
 
-from greybox._kalman import (
+from greybox.stochastic._kalman import (
     FilterGrid,
     LinearGaussianSDE,
     discretise,
@@ -30,7 +30,7 @@ from greybox._kalman import (
     rts_smoother,
     with_output_random_walks,
 )
-from greybox._stochastic import fit_stochastic, ljung_box
+from greybox._estimate.stochastic_fit import fit_stochastic, ljung_box
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -1,6 +1,11 @@
-"""The layering, read from the imports: the core never reaches the edges, io never names a
-device, and notebooks, experiments and models use the public API only (benchmarks may time
-private parts)."""
+"""The layering, read from the imports, as package rules.
+
+greybox is built in rings: `_model` (devices, specs, parameters, data, waveforms; with `blocks`)
+<- `_simulate` <- `stochastic` (filters) <- `_estimate` (problem, back ends, results, verdicts)
+<- `design` <- the edges (`io`, `report`, `video`, `_registry`) <- `cli`. A module may import its
+own ring and the rings inside it, never one outside. `blackbox` stands alone. The core never
+imports a device; io never names one; cli commands do not import each other; notebooks,
+experiments and models use the public API only (benchmarks may time private parts)."""
 
 import ast
 from pathlib import Path
@@ -8,9 +13,31 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-EDGE = {"greybox.io", "greybox.cli", "greybox._plots", "greybox._report", "greybox._registry",
-        "greybox._usercode", "greybox.video"}  # fmt: skip
-EDGE_MODULES = {"_plots.py", "_report.py", "_registry.py", "_usercode.py", "video.py", "__init__.py", "__main__.py"}
+LIB = ROOT / "greybox"
+RING = {
+    "greybox._model": 0,
+    "greybox._log": 0,  # the library's logger
+    "greybox._lazy": 0,  # names imported on first use
+    "greybox._extras": 0,  # the message naming a missing optional extra
+    "greybox.blocks": 0,
+    "greybox.blackbox": 0,
+    "greybox._simulate": 1,
+    "greybox.stochastic": 2,
+    "greybox._estimate": 3,
+    "greybox.design": 4,
+    "greybox.io": 5,
+    "greybox.report": 5,
+    "greybox.video": 5,
+    "greybox._registry": 5,
+    "greybox._usercode": 5,  # imports a user's device code, with consent
+    "greybox.plots": 5,
+    "greybox.cli": 6,
+    "greybox.__main__": 6,
+}
+# what every command may import: the package and its helpers (no command)
+CLI_SHARED = {"greybox.cli"} | {
+    f"greybox.cli.{m}" for m in ("_common", "_ticker", "_trust", "_figures")
+}
 
 
 def _imports(path: Path) -> set[str]:
@@ -31,35 +58,64 @@ def _imports(path: Path) -> set[str]:
     return out
 
 
-def _core_files():
-    lib = ROOT / "greybox"
-    files = [p for p in lib.glob("_*.py") if p.name not in EDGE_MODULES]
-    files += list((lib / "blocks").glob("*.py")) + list((lib / "blackbox").glob("*.py"))
-    return files
+def _module(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def test_there_is_a_core_to_check():
-    names = {p.name for p in _core_files()}
-    assert {"_fit.py", "_simulate.py", "_spec.py", "_device.py", "_thermal.py"} <= names
+def _ring(module: str) -> int | None:
+    for name, ring in sorted(RING.items(), key=lambda kv: -len(kv[0])):
+        if module == name or module.startswith(name + "."):
+            return ring
+    return None
 
 
-@pytest.mark.parametrize("path", _core_files(), ids=lambda p: str(p.relative_to(ROOT)))
-def test_core_never_imports_edges_or_devices(path):
-    bad = {
+LIB_FILES = sorted(p for p in LIB.rglob("*.py") if p != LIB / "__init__.py")
+
+
+def test_every_library_module_has_a_ring():
+    assert [str(p.relative_to(ROOT)) for p in LIB_FILES if _ring(_module(p)) is None] == []
+
+
+def test_the_rings_are_populated():
+    modules = {_module(p) for p in LIB_FILES}
+    for package in ("greybox._model", "greybox._simulate", "greybox._estimate", "greybox.stochastic"):
+        assert any(m.startswith(package + ".") for m in modules), package
+
+
+@pytest.mark.parametrize("path", LIB_FILES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_no_import_reaches_outward(path):
+    own = _ring(_module(path))
+    bad = sorted(
         m
         for m in _imports(path)
-        if any(m == e or m.startswith(e + ".") for e in EDGE) or m.split(".")[0] == "models"
-    }
-    assert not bad, f"{path.name} imports {sorted(bad)}"
+        if m.startswith("greybox.") and (_ring(m) or 0) > own
+    )
+    devices = sorted(m for m in _imports(path) if m.split(".")[0] in ("models", "greybox_builtin_devices"))
+    if own < RING["greybox.io"]:
+        bad += devices
+    assert not bad, f"{path.relative_to(ROOT)} (ring {own}) imports {bad}"
 
 
-@pytest.mark.parametrize(
-    "path", sorted((ROOT / "greybox" / "io").glob("*.py")), ids=lambda p: p.name
-)
-def test_io_never_imports_a_specific_device(path):
+@pytest.mark.parametrize("path", sorted((LIB / "io").glob("*.py")), ids=lambda p: p.name)
+def test_io_never_names_a_specific_device(path):
     text = path.read_text()
     bad = {m for m in _imports(path) if m.split(".")[0] in ("models", "greybox_builtin_devices")}
     assert not bad and "chevron_laser" not in text and "tclab" not in text, path.name
+
+
+@pytest.mark.parametrize("path", sorted((LIB / "cli").glob("_*.py")), ids=lambda p: p.name)
+def test_cli_commands_do_not_import_each_other(path):
+    me = _module(path)
+    others = sorted(
+        m
+        for m in _imports(path)
+        if m.startswith("greybox.cli.")
+        and m not in CLI_SHARED
+        and not any(m.startswith(s + ".") for s in CLI_SHARED - {"greybox.cli"})
+        and not m.startswith(me)
+    )
+    assert not others, f"{path.name} imports {others}"
 
 
 def _outer_files():

@@ -15,10 +15,10 @@ import pytest
 import scipy.linalg
 
 import greybox
-from greybox._fit import fit
-from greybox._parameters import set_values
-from greybox._synthetic import CameraDefects, record
-from greybox._waveforms import PulseTrain
+from greybox._estimate.fit import fit
+from greybox._model.parameters import set_values
+from greybox._simulate.synthetic import CameraDefects, record
+from greybox._model.waveforms import PulseTrain
 from greybox.blocks._robot import TwoSidedThermal
 
 mr = greybox.device_module("microrobot")

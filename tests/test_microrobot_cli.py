@@ -45,7 +45,7 @@ def test_fit_started_above_the_walk_lands_in_the_dead_zone_and_says_so():
     # dead zone (S_pp < W, every motion gradient zero). That must not read as a success.
     import dataclasses
 
-    from greybox._fit import fit
+    from greybox._estimate.fit import fit
     from greybox.io import load_experiment_set
 
     fs = load_experiment_set(FOLDER)

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 import greybox.io._atomic as atomic
-from greybox._errors import InputError
+from greybox._model.errors import InputError
 from greybox.cli import main
 from greybox.io._atomic import MARKER, atomic_output_dir, check_output_dir, recover
 

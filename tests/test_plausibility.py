@@ -29,10 +29,10 @@ from scipy.integrate import solve_ivp
 from scipy.special import erf
 
 import greybox
-from greybox._compare import preferred, score
-from greybox._errors import InputError
-from greybox._plausibility import implausible_values
-from greybox._verdict import (
+from greybox._estimate.compare import preferred, score
+from greybox._model.errors import InputError
+from greybox._model.plausibility import implausible_values
+from greybox._estimate.verdict import (
     IMPLAUSIBLE,
     REJECTED,
     candidate_verdict,

@@ -89,7 +89,7 @@ def test_initial_state_is_refused_for_a_device_without_one(lab, tmp_path, capsys
 
 
 def test_band_figure_reads_back_in_mm(lab, tmp_path):
-    from greybox import _plots
+    from greybox.report import _plots
     from greybox.io._params_file import load_params
 
     _, _, out, _ = lab
@@ -131,7 +131,7 @@ def test_fit_figure_through_the_api(lab):
     titles = [ax.get_title() for ax in rfig.axes]
     assert all("\n" in t for t in titles) and not any("laser" in t for t in titles)
     # the CLI's fit figure with the channels: mm, not um
-    from greybox import _plots
+    from greybox.report import _plots
 
     e = fs.estimation[0]
     _plots.run_figure(

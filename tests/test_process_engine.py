@@ -119,7 +119,7 @@ def _start_model(data, x0):
         Th0=float(x0[2]),
     )
     values = {v: t[k] * FACTORS[k] for k, v in {**NOISE, **MEAS}.items()}
-    return greybox.stochastic_device(dev, STRUCTURE, outputs=("Ti", "Te"), values=values)
+    return greybox.stochastic.stochastic_device(dev, STRUCTURE, outputs=("Ti", "Te"), values=values)
 
 
 def _estimate(result) -> dict:
@@ -220,7 +220,7 @@ def test_process_noise_not_needed_leaves_fit_valid(data):
     dev = RC3(**{k: t[k] for k in PHYS}, Ti0=ref.X0[0], Te0=ref.X0[1], Th0=ref.X0[2])
     values = {"process.air": t["q_i"], "process.envelope": 1e-7, "process.heater": t["q_h"]}
     values |= {v: t[k] for k, v in MEAS.items()}
-    model = greybox.stochastic_device(dev, STRUCTURE, outputs=("Ti", "Te"), values=values)
+    model = greybox.stochastic.stochastic_device(dev, STRUCTURE, outputs=("Ti", "Te"), values=values)
     free = [greybox.FreeParameter(v, "K^2/s", lower=0.0) for v in NOISE.values()]
     free += [greybox.FreeParameter(v, "K", lower=0.0) for v in MEAS.values()]
     free += [greybox.FreeParameter("Rea", "K/W", lower=0.0)]

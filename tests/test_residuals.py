@@ -17,11 +17,11 @@ import pytest
 from scipy.special import erf
 
 import greybox
-from greybox._data import Experiment
-from greybox._fit import fit
-from greybox._parameters import set_values
-from greybox._report import fit_report
-from greybox._residuals import (
+from greybox._model.data import Experiment
+from greybox._estimate.fit import fit
+from greybox._model.parameters import set_values
+from greybox.report._markdown import fit_report
+from greybox._estimate.residuals import (
     LjungBox,
     analyse,
     analyse_run,
@@ -30,7 +30,7 @@ from greybox._residuals import (
     model_error_residuals,
     portmanteau,
 )
-from greybox._waveforms import PiecewiseConstant
+from greybox._model.waveforms import PiecewiseConstant
 from tests.helpers import chevron_runs
 
 CHEVRON = greybox.get_device("chevron_laser")
@@ -193,9 +193,9 @@ def test_model_error_residuals_remove_what_the_input_explains():
 
 
 def test_one_portmanteau_core():
-    """`greybox._stochastic.ljung_box` is the core's; the core's textbook Ljung-Box equals
+    """`greybox._estimate.stochastic_fit.ljung_box` is the core's; the core's textbook Ljung-Box equals
     `analyse_run`'s statistic on a gap-free series without the mean-removal correction."""
-    import greybox._stochastic as stochastic
+    import greybox._estimate.stochastic_fit as stochastic
 
     assert stochastic.ljung_box is ljung_box and stochastic.LjungBox is LjungBox
     rng = np.random.default_rng(5)
@@ -334,7 +334,7 @@ def test_one_node_fit_of_two_node_data_is_not_white(misspecified, tmp_path):
     text = fit_report(r, title="two-node data", device_name="chevron_laser")
     head = text.split("## ")[0]
     assert "residuals not white" in head and "Fit status: converged" in head
-    from greybox._plots import residual_correlation_figure
+    from greybox.report._plots import residual_correlation_figure
 
     residual_correlation_figure(tmp_path / "resid.png", a)
     assert (tmp_path / "resid.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")

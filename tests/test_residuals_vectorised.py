@@ -9,8 +9,8 @@ output `j` of `analyse(..., seed=s)`, `np.random.default_rng([s, i, j])`, one
 import numpy as np
 import pytest
 
-from greybox import _residuals
-from greybox._residuals import analyse, analyse_run, lag_products, lagged_sums
+from greybox._estimate import residuals as _residuals
+from greybox._estimate.residuals import analyse, analyse_run, lag_products, lagged_sums
 
 
 def naive_lagged_sums(a, oa, b, ob, lags):

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import greybox
-from greybox._parameters import set_values
-from greybox._simulate import as_arrays, observe_schedule, pad_schedules, schedule_for, simulate
-from greybox._waveforms import PiecewiseConstant, PulseTrain
+from greybox._model.parameters import set_values
+from greybox._simulate.simulate import as_arrays, observe_schedule, pad_schedules, schedule_for, simulate
+from greybox._model.waveforms import PiecewiseConstant, PulseTrain
 from greybox.blocks._mechanics import ChevronLinear
 
 default_model = greybox.get_device("chevron_laser").model

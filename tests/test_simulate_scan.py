@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 import greybox
-from greybox._device import AbstractLinearDevice
-from greybox._simulate import (
+from greybox._model.device import AbstractLinearDevice
+from greybox._simulate.simulate import (
     ASSOCIATIVE_MIN_INTERVALS,
     schedule_for,
     simulate,
     zoh_scan_kind,
 )
-from greybox._waveforms import PiecewiseConstant
+from greybox._model.waveforms import PiecewiseConstant
 
 # options tried per device (every combination); only the linear builds are kept
 OPTION_GRID = {
@@ -82,7 +82,7 @@ def test_associative_scan_equals_sequential(model):
 def test_auto_scan_choice():
     assert zoh_scan_kind(10, "sequential") == "sequential"
     assert zoh_scan_kind(10, "associative") == "associative"
-    on_cpu = greybox._simulate.jax.default_backend() == "cpu"
+    on_cpu = greybox._simulate.simulate.jax.default_backend() == "cpu"
     assert zoh_scan_kind(10) == ("sequential" if on_cpu else "associative")
     assert zoh_scan_kind(ASSOCIATIVE_MIN_INTERVALS) == "associative"
     with pytest.raises(ValueError, match="zoh_scan"):

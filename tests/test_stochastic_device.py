@@ -147,7 +147,7 @@ def physical_free():
 def cli_model(disturbances=STRUCTURE.disturbances, values=None, **structure):
     """The stochastic device `greybox fit` builds from the folder below (device defaults)."""
     st = greybox.NoiseStructure(STRUCTURE.process_groups, disturbances, **structure)
-    return greybox.stochastic_device(
+    return greybox.stochastic.stochastic_device(
         SPEC.model(OPTIONS), st, outputs=SPEC.outputs, inputs=SPEC.inputs, values=values
     )
 
@@ -163,7 +163,7 @@ def data():
 @pytest.fixture(scope="module")
 def stochastic_fit(data):
     sd = cli_model()
-    free = physical_free() + greybox.noise_parameters(sd, UNITS)
+    free = physical_free() + greybox.stochastic.noise_parameters(sd, UNITS)
     return greybox.fit(sd, [data], free, noise=greybox.ProcessNoise(sd.structure), n_starts=1)
 
 
@@ -240,8 +240,8 @@ def test_deterministic_fit_is_not_white(data):
 def test_ekf_equals_kalman_on_linear_device(data, stochastic_fit):
     vals = NOISE | {"process.heaters": 3e-3}
     # the exact filter through the fit's compiled diagnostics (same structure and record)
-    kalman = greybox.device_filter(cli_model(values=vals), data).log_likelihood
-    ekf = greybox.device_log_likelihood(cli_model(values=vals, filter="ekf"), data)
+    kalman = greybox.stochastic.device_filter(cli_model(values=vals), data).log_likelihood
+    ekf = greybox.stochastic.device_log_likelihood(cli_model(values=vals, filter="ekf"), data)
     assert abs(ekf - kalman) <= 1e-8 * abs(kalman)
 
 
@@ -276,14 +276,14 @@ def test_ekf_zero_noise_equals_deterministic_likelihood():
         - np.sum(np.log(np.broadcast_to(sd, r.shape)[ok]))
         - 0.5 * ok.sum() * np.log(2 * np.pi)
     )
-    m = greybox.stochastic_device(
+    m = greybox.stochastic.stochastic_device(
         dev,
         greybox.NoiseStructure(),
         outputs=SPEC.outputs,
         values={"measurement.T1": 0.1, "measurement.T2": 0.2},
     )
     assert m.ekf_substeps == 4  # the default for a nonlinear device
-    ll = greybox.device_log_likelihood(m, e)
+    ll = greybox.stochastic.device_log_likelihood(m, e)
     print("EKF", ll, "reference", ref, "relative", (ll - ref) / abs(ref))
     assert abs(ll - ref) <= 1e-7 * abs(ref)
 
@@ -321,9 +321,9 @@ def test_kalman_equals_dynamax_on_a_regular_grid():
     for k in range(n_frames):
         x = ad @ x + bd @ levels[k] + rng.multivariate_normal(np.zeros(4), qd)
         y[k] = c @ x + rng.normal(size=2) * np.sqrt(np.diag(r))
-    sde = greybox.LinearGaussianSDE(a, b, qc, c, r, x0, p0)
-    grid = greybox.FilterGrid(t, t - h, levels, t0_s=0.0)
-    ours = float(greybox.log_likelihood(sde, grid, jnp.asarray(y)))
+    sde = greybox.stochastic.LinearGaussianSDE(a, b, qc, c, r, x0, p0)
+    grid = greybox.stochastic.FilterGrid(t, t - h, levels, t0_s=0.0)
+    ours = float(greybox.stochastic.log_likelihood(sde, grid, jnp.asarray(y)))
     # dynamax: p(z_1) is the state at the first frame (one step from t0); entry t of the
     # dynamics' time-varying input weights is used from frame t-1 to t
     params = dynamax.ParamsLGSSM(
@@ -473,7 +473,7 @@ def test_covariance_hessian_equals_exact_second_derivatives(stochastic_fit, data
     import jax
     import jax.numpy as jnp
 
-    from greybox import _likelihood
+    from greybox._estimate import likelihood as _likelihood
 
     res = stochastic_fit
     problem = _likelihood._build(res.model, [data], res.free)

@@ -69,7 +69,7 @@ def test_paper_structure_fit_recovers_published_parameters(fits):
 
 
 def test_aic_selects_per_sensor_lag_and_it_beats_the_paper_on_validation(runs, fits):
-    from greybox._compare import preferred, score
+    from greybox._estimate.compare import preferred, score
 
     est, val = runs["estimation"], runs["validation"]
     # selection uses the estimation run only (AIC from simulation residuals), by the rule

@@ -2,7 +2,7 @@
 `greybox fit` -> the identifiable parameters come back within 3 standard errors.
 
 The video is rendered from the model itself: the shuttle displacement is simulated at
-sub-exposure instants (`greybox._render.exposure_times`, frame stamped at the END of its
+sub-exposure instants (`greybox.video._render.exposure_times`, frame stamped at the END of its
 exposure, as `greybox.blocks._camera.Camera` averages over [t - T_e, t]) with an
 instantaneous camera, converted to px and drawn by `render_shuttle` (exact sub-pixel
 translation, motion blur, shot/read noise, lamp drift, one glare frame). Everything after
@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 import greybox
-from greybox._render import exposure_times, render_shuttle
-from greybox._simulate import simulate
-from greybox._waveforms import PulseTrain
+from greybox.video._render import exposure_times, render_shuttle
+from greybox._simulate.simulate import simulate
+from greybox._model.waveforms import PulseTrain
 from greybox.cli import main
 from greybox.io._video import write_video
 

@@ -1,10 +1,10 @@
-"""Sub-pixel tracking against rendered sequences with known motion (greybox._tracking/render)."""
+"""Sub-pixel tracking against rendered sequences with known motion (greybox.video._tracking/render)."""
 
 import numpy as np
 import pytest
 
-from greybox._render import exposure_times, render_markers, render_shuttle
-from greybox._tracking import Measurements, Roi, assess, track_pose, track_shuttle
+from greybox.video._render import exposure_times, render_markers, render_shuttle
+from greybox.video._tracking import Measurements, Roi, assess, track_pose, track_shuttle
 
 ROI = Roi(32, 16, 64, 64)  # centred in a 96x128 frame, inside the textured shuttle band
 REST = 8  # frames at rest before the motion, averaged as the reference
@@ -144,7 +144,7 @@ def test_two_features_pose():
 def test_cropped_frames_give_the_same_track():
     """A tracker on frames cropped to `search_crop` (what the decoder hands over) reports
     the same displacements as on whole frames, also where the window is clipped."""
-    from greybox._tracking import FeatureTracker, reference_frame, search_crop
+    from greybox.video._tracking import FeatureTracker, reference_frame, search_crop
 
     traj = _phase_trajectory(0.25, n=24, seed=4)
     seq = render_shuttle(traj, seed=19)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from greybox._render import render_markers, render_shuttle
+from greybox.video._render import render_markers, render_shuttle
 from greybox.cli import main
 from greybox.io._video import probe, read_frames, write_image_stack, write_video
 
@@ -196,7 +196,7 @@ def test_decoder_crop_is_exact_for_every_codec(tmp_path):
 def test_prefetch_keeps_order_reraises_and_stops_early():
     import threading
 
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox.io._video import prefetch
 
     assert list(prefetch(iter(range(50)), depth=3)) == list(range(50))

@@ -352,8 +352,8 @@ def test_state_space_export_matches_the_fitted_model(fitted):
 
 def test_simulate_figure_has_a_panel_per_output_and_input(tmp_path):
     """`greybox simulate`'s figure: one panel per output (line + band) and per input (step)."""
-    from greybox import _plots as plots
-    from greybox._prediction import Band
+    from greybox.report import _plots as plots
+    from greybox._estimate.prediction import Band
 
     t = np.linspace(0.0, 10.0, 11)
     y = np.column_stack([t, 2 * t, 3 * t])
@@ -387,7 +387,7 @@ def test_simulate_figure_has_a_panel_per_output_and_input(tmp_path):
 
 
 def test_robust_sigma_keeps_an_output_without_readings():
-    from greybox._fit import _robust_sigma
+    from greybox._estimate.fit import _robust_sigma
 
     r = np.array([[1.0, np.nan], [-2.0, np.nan], [3.0, np.nan]])  # residuals / sigma
     w = np.array([[1.0, 0.0], [1.0, 0.0], [1.0, 0.0]])  # output 2: no valid reading

@@ -102,7 +102,7 @@ def test_describe_shows_a_file_device_and_its_physical_ranges(lab, capsys):
 
 
 def test_option_error_hint_names_a_describe_command_that_works(lab, tmp_path, capsys):
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox.cli import main
 
     root, _, _ = lab

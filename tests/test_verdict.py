@@ -10,8 +10,8 @@ import types
 import numpy as np
 import pytest
 
-from greybox._plausibility import PhysicalRange, implausible_values, parse_physical_ranges
-from greybox._verdict import (
+from greybox._model.plausibility import PhysicalRange, implausible_values, parse_physical_ranges
+from greybox._estimate.verdict import (
     IMPLAUSIBLE,
     NOT_VALID,
     REJECTED,
@@ -98,7 +98,7 @@ def test_every_implausible_value_is_reported_together():
                               upper=None)
         for p, r in (("a", (0.3, 1.0)), ("b", (1.0, 2.0)), ("c", (None, 0.0)))
     ]  # fmt: skip
-    from greybox._plausibility import physical_ranges
+    from greybox._model.plausibility import physical_ranges
 
     ranges = physical_ranges(table, {"b": (0.0, 10.0)})
     est = [estimate("a", 0.1, (0, 1)), estimate("b", 5.0, (4, 6)), estimate("c", 3.0, (2, 4))]

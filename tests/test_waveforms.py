@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from greybox._waveforms import (
+from greybox._model.waveforms import (
     PiecewiseConstant,
     PulseTrain,
     concatenate,

@@ -78,10 +78,10 @@ def analyse(folder: str, say=print) -> dict:
     out = {"folder": folder, "outputs": outputs, "options": options, "free": fs.free}
 
     t0 = time.perf_counter()
-    sdev = greybox.stochastic_device(model, STRUCTURE, outputs=spec.outputs, inputs=spec.inputs)
+    sdev = greybox.stochastic.stochastic_device(model, STRUCTURE, outputs=spec.outputs, inputs=spec.inputs)
     free = list(fs.free) + [
         dataclasses.replace(p, **NOISE_PRIORS.get(p.path, {}))
-        for p in greybox.noise_parameters(sdev, UNITS)
+        for p in greybox.stochastic.noise_parameters(sdev, UNITS)
     ]
     res = greybox.fit(
         sdev,
@@ -100,12 +100,12 @@ def analyse(folder: str, say=print) -> dict:
     # the folder's own (nonlinear, radiating) board: extended Kalman filter, and its
     # deterministic fit with the folder's [fit] settings, as `greybox fit` makes it
     t0 = time.perf_counter()
-    sdev_nl = greybox.stochastic_device(
+    sdev_nl = greybox.stochastic.stochastic_device(
         fs.model, STRUCTURE, outputs=spec.outputs, inputs=spec.inputs
     )
     free_nl = list(fs.free) + [
         dataclasses.replace(p, **NOISE_PRIORS.get(p.path, {}))
-        for p in greybox.noise_parameters(sdev_nl, UNITS)
+        for p in greybox.stochastic.noise_parameters(sdev_nl, UNITS)
     ]
     res_nl = greybox.fit(
         sdev_nl,

@@ -136,7 +136,7 @@ def uniform_from_experiment(
     the grid (no interpolation of the input).
 
     **Arguments:**
-    - `exp`: a `greybox._data.Experiment` (SI units).
+    - `exp`: a `greybox._model.data.Experiment` (SI units).
     - `dt`: grid interval [s]; `method`: "pchip" (shape-preserving cubic) or "linear".
     - `remove_rest`: subtract the rest level; needs >= 3 valid frames before the input onset.
     - `input_scale`, `output_scale`: factors applied to the SI values (e.g. 1e3 for mW and

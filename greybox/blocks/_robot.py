@@ -54,7 +54,7 @@ class TwoSidedThermal(eqx.Module):
         the closed-form eigenbasis of the symmetric M^-1/2 K M^-1/2 (its off-diagonal
         -G_fb/sqrt(C_f C_b) is never zero, so the eigenvalues are distinct and differentiable):
         a few exponentials per step instead of a matrix-exponential series; equal to
-        `greybox._simulate.zoh_matrices` of `network()` to rounding."""
+        `greybox._simulate.simulate.zoh_matrices` of `network()` to rounding."""
         cf, cb = self.frame_capacitance_J_per_K, self.beam_capacitance_J_per_K
         gfb = self.frame_beam_W_per_K
         h = jnp.asarray(h_s)[:, None]

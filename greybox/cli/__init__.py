@@ -2,7 +2,7 @@
 
 Each subcommand lives in its own module `greybox.cli._<name>` exposing
 ``add_parser(subparsers)`` (which sets ``func`` on its parser). Bad input raises
-`greybox._errors.InputError`; `main` turns it into one line on stderr and exit status 2.
+`greybox._model.errors.InputError`; `main` turns it into one line on stderr and exit status 2.
 An exception (or ``sys.exit``) raised by a user's own device code is the user's error: one
 line naming their file and line, exit 2. Any other exception is a bug in greybox: `main`
 prints its traceback, asks for a report and returns 3. SIGINT and SIGTERM are handled the
@@ -91,7 +91,7 @@ def _exit_now(code: int) -> None:
 
 
 def _run(args, *, program: bool = False) -> int:
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox._usercode import blame_user
 
     with signal_handlers():

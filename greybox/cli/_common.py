@@ -43,7 +43,7 @@ def fit_loaded(fs, say, *, start=None, validate_runs: bool = True):
     """(FitResult, ValidationResult or None) of a loaded folder (`ExperimentSet`), whatever
     its noise model: one call of `greybox.fit`, then (`validate_runs`) the validation runs.
     `start`: a function free -> free (a warm start)."""
-    from greybox._fit import fit, validate
+    from greybox._estimate.fit import fit, validate
 
     free = list(fs.free)
     options = dict(fs.fit_options)
@@ -127,7 +127,7 @@ def fit_experiment_dir(
 
 def candidate_index(experiment_dir, name: str) -> int:
     """The index of the ``[[candidates]]`` entry called `name` (a located error if none)."""
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox.io._experiment_set import candidate_names
 
     names = candidate_names(experiment_dir)
@@ -143,7 +143,7 @@ def candidate_index(experiment_dir, name: str) -> int:
 
 def parameter_lines(result) -> list[str]:
     """Terminal table of the shared parameters: value, 95 % interval, verdict."""
-    from greybox._report import estimate_texts
+    from greybox.report._markdown import estimate_texts
 
     lines = ["parameter                  value        95 % interval               verdict"]
     for p in result.parameters:
@@ -158,7 +158,7 @@ def parameter_lines(result) -> list[str]:
 
 def fit_lines(outcome: FitOutcome) -> list[str]:
     """Terminal lines: fit % per run (and horizon), noise, outliers, convergence."""
-    from greybox._report import display_unit, fmt
+    from greybox.report._markdown import display_unit, fmt
 
     r, v = outcome.result, outcome.validation
     if outcome.fitset.noise is not None:

@@ -77,7 +77,7 @@ def _pct(values) -> str:
 def load_candidates(experiment_dir) -> list:
     """Every candidate of the folder loaded and checked (`ExperimentSet`s, in file order),
     before anything is fitted: the problems of all candidates are raised together."""
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox.io._experiment_set import (
         InputErrors,
         candidate_nests,
@@ -124,8 +124,8 @@ def compare_experiment_dir(experiment_dir, say, *, rule: str = "aic"):
     """(scores, preferred, likelihood-ratio tests, verdicts) for every candidate of the
     folder (see the module help). Every candidate is checked before the first fit; the
     preferred one is never an invalid or physically implausible fit (`preferred_plausible`)."""
-    from greybox._compare import likelihood_ratios, nested_pairs, score
-    from greybox._verdict import candidate_verdict, preferred_plausible
+    from greybox._estimate.compare import likelihood_ratios, nested_pairs, score
+    from greybox._estimate.verdict import candidate_verdict, preferred_plausible
     from greybox.cli._common import fit_loaded
     from greybox.io._experiment_set import candidate_nests
 
@@ -200,7 +200,7 @@ def _warm_started(free, result):
 
 
 def report_lines(experiment_dir, scores, best, rule: str, tests=(), verdicts=()) -> list[str]:
-    from greybox._verdict import all_rejected_lines, no_valid_candidate_lines
+    from greybox._estimate.verdict import all_rejected_lines, no_valid_candidate_lines
 
     lines = [f"# Structure comparison: {Path(experiment_dir).resolve().name}", ""]
     warning = no_valid_candidate_lines(verdicts) or all_rejected_lines(verdicts, rule)
@@ -323,7 +323,7 @@ def _mean_fit(per_run: dict):
 
 def candidate_record(s, verdict=None) -> dict:
     """One candidate's row of compare.json (what `greybox fit --candidate` reproduces), with
-    its headline verdict (`greybox._verdict.candidate_verdict`)."""
+    its headline verdict (`greybox._estimate.verdict.candidate_verdict`)."""
     return {
         "name": s.name,
         "options": s.options,
@@ -394,7 +394,7 @@ def run(args) -> int:
     print(f"wrote {out}/ (compare.md, compare.json) in {say.elapsed:.1f} s")
     if best is None:
         return 1
-    from greybox._verdict import VALID
+    from greybox._estimate.verdict import VALID
 
     head = {v.name: v.headline for v in verdicts}[best.name]
     return 1 if args.strict and head.verdict != VALID else 0

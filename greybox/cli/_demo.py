@@ -52,7 +52,7 @@ def embedded_dir() -> Path:
 def truth_rows(outcome, truth: dict) -> tuple[list[str], bool]:
     """Recovered-vs-true lines, and whether every identifiable physical parameter's true
     value lies inside its reported 95 % interval."""
-    from greybox._report import display_unit, estimate_texts, fmt
+    from greybox.report._markdown import display_unit, estimate_texts, fmt
 
     lines = [
         f"{'parameter':<20} {'true':>9} {'recovered':>10}  {'95 % interval':<20} "
@@ -94,8 +94,7 @@ def truth_rows(outcome, truth: dict) -> tuple[list[str], bool]:
 def run(args) -> int:
     import jax
 
-    from greybox._errors import InputError
-    from greybox.cli._common import Progress, fit_experiment_dir, fit_lines
+    from greybox.cli._common import Progress
     from greybox.cli._ticker import Ticker
 
     jax.config.update("jax_enable_x64", True)
@@ -104,8 +103,8 @@ def run(args) -> int:
 
 
 def _run(args, say) -> int:
-    from greybox._errors import InputError
-    from greybox.cli._fit import fit_experiment_dir, fit_lines
+    from greybox._model.errors import InputError
+    from greybox.cli._common import fit_experiment_dir, fit_lines
 
     data = embedded_dir()
     if not (data / "experiment.toml").is_file():

@@ -71,7 +71,7 @@ def parse_options(items) -> dict:
 
 def describe_lines(spec, options: dict | None = None) -> list[str]:
     """The text `greybox describe` prints for `spec` (with `options`, defaults otherwise)."""
-    from greybox._device import simulation_methods
+    from greybox._model.device import simulation_methods
 
     model = spec.model(options)
     lines = [f"device {spec.name}: {type(model).__name__}"]
@@ -116,9 +116,9 @@ def run(args) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox._registry import DeviceNotFound, available, resolve
-    from greybox._spec import DeviceSpecError
+    from greybox._model.spec import DeviceSpecError
 
     if args.device is None:
         for name in available():

@@ -100,7 +100,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def _input_error(err: ValueError):
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
 
     text = str(err)
     field, _, rest = text.partition(": ")
@@ -123,9 +123,9 @@ def _run(args) -> int:
     jax.config.update("jax_enable_x64", True)
     import numpy as np
 
-    from greybox import _design as D
-    from greybox._errors import InputError
-    from greybox._freeparams import FreeParameter
+    from greybox.design import _design as D
+    from greybox._model.errors import InputError
+    from greybox._model.freeparams import FreeParameter
     from greybox._registry import get_device
     from greybox.io._atomic import atomic_output_dir
     from greybox.io._design_file import experiment_toml
@@ -290,10 +290,10 @@ def _run(args) -> int:
 
 
 def _check_design_memory(args, spec, model, free, constraints) -> None:
-    """The memory model of every fitting command (`greybox._memory`): the sensitivities of
+    """The memory model of every fitting command (`greybox._estimate.memory`): the sensitivities of
     all runs at once, once per posterior draw, against the same limit as `greybox fit`."""
-    from greybox import _memory
-    from greybox._errors import InputError
+    from greybox._estimate import memory as _memory
+    from greybox._model.errors import InputError
     from greybox.io._experiment_set import max_problem_bytes
 
     constraints.check()
@@ -315,7 +315,7 @@ def _check_design_memory(args, spec, model, free, constraints) -> None:
 
 
 def info_value(model, path):
-    from greybox._parameters import get_value
+    from greybox._model.parameters import get_value
 
     return get_value(model, path)
 
@@ -324,7 +324,7 @@ def _baseline(args, D, spec, constraints, problem):
     """(Design, label): the --baseline file's estimation runs, or 50 % duty pulse trains."""
     import tomllib
 
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox.io import waveform_from_description
 
     if args.baseline:

@@ -7,7 +7,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-from greybox._verdict import exit_status_help
+from greybox._estimate.verdict import exit_status_help
 
 from greybox.cli._common import (  # re-exported: the API of `greybox fit` used by tests
     FitOutcome as FitOutcome,
@@ -121,7 +121,7 @@ def run(args) -> int:
         f"wrote {out}/ (params.json, report.md, figures/, predictions/, metrics.csv, "
         f"validation_runs.json) in {say.elapsed:.1f} s"
     )
-    from greybox._verdict import fit_headline  # one verdict: status, bounds, physics, residuals
+    from greybox._estimate.verdict import fit_headline  # one verdict: status, bounds, physics, residuals
 
     head = fit_headline(outcome.result, outcome.fitset.physical_ranges, strict=args.strict)
     print("\n".join([head.text, *[f"  {d}" for d in head.details], head.intervals]))

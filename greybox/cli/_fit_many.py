@@ -13,7 +13,7 @@ from pathlib import Path
 
 HELP = """\
 Fit every device (one experiment folder each, the format of `greybox fit`) with one
-compiled, vmapped solver (`greybox._batch.fit_batch`): each device is fitted exactly as
+compiled, vmapped solver (`greybox._estimate.batch.fit_batch`): each device is fitted exactly as
 `greybox fit` would fit it (same loss, noise estimate, starts and verdicts), but the
 solver is compiled once for all devices of the same structure instead of once per device.
 
@@ -104,7 +104,7 @@ def _device_name(folder, seen) -> str:
 def load_devices(folders, say):
     """([(name, ExperimentSet)] of the folders that load, {name: why} of those that do not).
     One bad folder does not lose the batch: it gets a failure line."""
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox.io._experiment_set import check_problem_size, load_experiment_set
 
     out, failed, seen = [], {}, set()
@@ -132,7 +132,7 @@ def _structure(fs) -> tuple:
 def check_same_structure(loaded) -> None:
     """Refuse, by device name and before any fit, a batch whose devices differ in device,
     options or free list (fit each structure in its own `greybox fit-many`)."""
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
 
     groups: dict = {}
     for name, fs in loaded:
@@ -168,7 +168,7 @@ def fit_devices(loaded, args, say):
     """({name: FitResult}, {name: why}) for every device, batched per distinct fit options.
     A batch that raises is fitted again device by device, so one device whose code fails
     (e.g. its `linear_dynamics` raises for its values) loses only itself."""
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
 
     by_options: dict = {}
     results, failed = {}, {}
@@ -223,7 +223,7 @@ def _finite_result(r) -> bool:
 
 
 def _fit_group(members, args, say) -> dict:
-    from greybox._batch import Device, fit_batch
+    from greybox._estimate.batch import Device, fit_batch
 
     budget = None if args.memory_budget_mb is None else args.memory_budget_mb * 1e6
     opts = dict(members[0][1].fit_options)
@@ -231,7 +231,7 @@ def _fit_group(members, args, say) -> dict:
     devices = [Device(n, fs.model, fs.estimation, free=fs.free) for n, fs in members]
     free = members[0][1].free
     if args.scheduler:
-        from greybox._distributed import fit_distributed
+        from greybox._estimate.distributed import fit_distributed
 
         out = fit_distributed(
             devices,
@@ -393,7 +393,7 @@ def run(args) -> int:
 
 
 def _run(args, say) -> int:
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox.io._atomic import atomic_output_dir, check_output_dir
     from greybox.io._results import usual_permissions
 
@@ -418,10 +418,10 @@ def _run(args, say) -> int:
         )
     population = None
     if kinds and len(results) >= 2:
-        from greybox._population import population_from_batch
+        from greybox._estimate.population import population_from_batch
 
         population = population_from_batch(results, kinds)
-    from greybox._batch import batch_table
+    from greybox._estimate.batch import batch_table
 
     sets = dict(loaded)
     say(f"writing {out}")
@@ -431,7 +431,7 @@ def _run(args, say) -> int:
             fs = sets[name]
             validation = None
             if fs.validation and not args.no_validate:
-                from greybox._fit import validate
+                from greybox._estimate.fit import validate
 
                 validation = validate(r, fs.validation)
             write_device(
@@ -481,7 +481,7 @@ MAX_WORKERS = 256  # a local cluster of more processes than this only thrashes
 def check_settings(args) -> None:
     """Dask and memory settings, checked before any work: workers, budget, the scheduler
     (installed, and reachable when an address) -- each a located exit 2."""
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox.io._toml import non_finite
 
     if args.memory_budget_mb is not None:
@@ -494,7 +494,7 @@ def check_settings(args) -> None:
         raise InputError(f"{args.workers} workers; give 1 to {MAX_WORKERS}", field="--workers")
     if args.scheduler is None:
         return
-    from greybox._distributed import check_scheduler
+    from greybox._estimate.distributed import check_scheduler
 
     check_scheduler(args.scheduler)
 

@@ -146,7 +146,7 @@ def _column_unit(unit: str) -> str:
 
 def read_waveform(specs, inputs):
     """(waveform, description, specs) from --waveform: channel specs or one CSV."""
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox.io._waveform_spec import parse_channel_specs, waveform_from_csv
 
     specs = list(specs)
@@ -171,7 +171,7 @@ def sample_times(
     """Output times [s] from 0 to the waveform's end (or `duration_s`): every `dt_ms`, by
     default 1 ms or the length / `n_default` when longer; more than `n_max` samples is
     refused."""
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
 
     end = float(wave.end_s) if duration_s is None else float(duration_s)
     dt = dt_ms * 1e-3 if dt_ms is not None else max(1e-3, end / n_default)
@@ -185,7 +185,7 @@ def simulation_columns(outputs, inputs, file_units, t, arrays, wave):
     """(header, columns, descriptions, peaks) of simulation.csv: time, then per output the
     response and its band (`arrays` = (y, lo, hi), SI) in the fit's file unit, then each
     input in its display unit."""
-    from greybox._report import channel_unit
+    from greybox.report._markdown import channel_unit
 
     y, lo, hi = arrays
     header, cols, described = ["t_s"], [t], {"t_s": "time [s]"}
@@ -218,7 +218,7 @@ def write_simulation(
     out, force, header, cols, meta, band, wave, device, text, outputs, inputs, fmt="png"
 ):
     """simulation.csv, simulation.json and simulation.<fmt>, written atomically to `out`."""
-    from greybox import _plots as plots
+    from greybox.report import _plots as plots
     from greybox.io._results import usual_permissions
     from greybox.io._atomic import atomic_output_dir
 
@@ -254,7 +254,7 @@ def _run(args, tick) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox.io._atomic import check_output_dir
     from greybox.io._params_file import load_params
 
@@ -356,7 +356,7 @@ def _run(args, tick) -> int:
 
 def _initial_values(specs) -> list:
     """[(path, SI value)] from --initial-state PATH=VALUE."""
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
 
     out = []
     for spec in specs:
@@ -379,8 +379,8 @@ def with_initial_state(fitted, specs):
     """`fitted` with its model's initial-state parameters set from --initial-state."""
     import dataclasses
 
-    from greybox._errors import InputError
-    from greybox._parameters import set_values
+    from greybox._model.errors import InputError
+    from greybox._model.parameters import set_values
 
     values = _initial_values(specs)
     if not values:
@@ -412,8 +412,8 @@ def process_band(fitted, wave, t, measurement_noise: bool):
     """The 95 % pointwise band of `N_PATHS` sample paths of a process-noise fit: process noise
     by exact discretisation of the SDE, parameters drawn from the fit's covariance (at the
     estimate when it is not finite), measurement noise if asked."""
-    from greybox._sde_device import draw_paths
-    from greybox._simulate import simulate
+    from greybox.stochastic._sde_device import draw_paths
+    from greybox._simulate.simulate import simulate
 
     sd = fitted.model
     shared = [p for p in fitted.free if not p.per_experiment]
@@ -439,10 +439,10 @@ def process_band(fitted, wave, t, measurement_noise: bool):
 
 
 @functools.lru_cache(maxsize=1)
-def _sampled_band_class():  # defined on first use: greybox._prediction imports JAX
+def _sampled_band_class():  # defined on first use: greybox._estimate.prediction imports JAX
     import dataclasses
 
-    from greybox._prediction import Band
+    from greybox._estimate.prediction import Band
 
     @dataclasses.dataclass(frozen=True)
     class SampledBand(Band):

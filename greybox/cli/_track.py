@@ -102,8 +102,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def _parse_roi(text: str, field: str):
-    from greybox._errors import InputError
-    from greybox._tracking import Roi
+    from greybox._model.errors import InputError
+    from greybox.video._tracking import Roi
 
     try:
         x, y, w, h = (int(v) for v in text.split(","))
@@ -117,14 +117,14 @@ def _parse_roi(text: str, field: str):
 
 
 def _positive(value, field: str):
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
 
     if value is not None and not (math.isfinite(value) and value > 0):
         raise InputError(f"must be a positive number, got {value}", field=field)
 
 
 def _times(info, n: int, fps: float | None, video: str) -> np.ndarray:
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
 
     if fps is not None:
         return np.arange(n) / fps
@@ -149,11 +149,11 @@ def is_track_csv(first_line: str) -> bool:
 
 
 def run(args) -> int:
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
     from greybox._extras import require_extra
 
     require_extra("video", what="greybox track")
-    from greybox._tracking import (
+    from greybox.video._tracking import (
         FeatureTracker,
         measure_sequence,
         pose_track,

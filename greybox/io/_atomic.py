@@ -39,7 +39,7 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-from greybox._errors import InputError
+from greybox._model.errors import InputError
 
 MARKER = ".greybox-result"
 _RENAME_EXCHANGE = 2

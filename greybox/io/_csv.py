@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from greybox._channels import Channel
-from greybox._errors import InputError
+from greybox._model.channels import Channel
+from greybox._model.errors import InputError
 
 MAX_CSV_BYTES = 256 * 2**20  # a run CSV larger than this is refused before it is read
 MAX_LINE_CHARS = 10_000  # per line: a frame row is a few numbers

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from greybox._errors import InputError
+from greybox._model.errors import InputError
 
 WHERE = "<DataFrame>"
 
@@ -91,8 +91,8 @@ def experiment_from_dataframe(
 
     (A function of `greybox.io`, not a method of `Experiment`: the core never reads files
     or tables; this is the same reader as a run CSV's.)"""
-    from greybox._data import Experiment
-    from greybox._waveforms import from_samples, stack_channels
+    from greybox._model.data import Experiment
+    from greybox._model.waveforms import from_samples, stack_channels
     from greybox.io._csv import channel_numbers, check_increasing, find_column, time_column
 
     spec = _spec(device)
@@ -142,7 +142,7 @@ def experiment_to_dataframe(experiment, device=None):
     with `device`, else in SI (``y1_SI``, ``u1_SI``); the inputs as held at each frame."""
     import pandas as pd
 
-    from greybox._report import channel_unit
+    from greybox.report._markdown import channel_unit
 
     e = experiment
     t = np.asarray(e.t_s, dtype=float)

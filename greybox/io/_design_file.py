@@ -1,12 +1,12 @@
 """Writing a designed experiment as an experiment.toml ready to record into (the inverse of
-the loader for a `greybox.Design`)."""
+the loader for a `greybox.design.Design`)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
-from greybox._design import Design, DesignedRun
-from greybox._freeparams import FreeParameter
+from greybox.design._design import Design, DesignedRun
+from greybox._model.freeparams import FreeParameter
 from greybox.io._experiment_writer import inline_table, run_table
 
 

@@ -17,15 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
-from greybox._data import Experiment
-from greybox._device import check_method, with_camera
-from greybox._errors import InputError
-from greybox._freeparams import FreeParameter
-from greybox._parameters import check_scalar_path
-from greybox._plausibility import out_of_range_settings, parse_physical_ranges, physical_ranges
+from greybox._model.data import Experiment
+from greybox._model.device import check_method, with_camera
+from greybox._model.errors import InputError
+from greybox._model.freeparams import FreeParameter
+from greybox._model.parameters import check_scalar_path
+from greybox._model.plausibility import out_of_range_settings, parse_physical_ranges, physical_ranges
 from greybox._registry import DeviceNotFound, ResolvedDevice, resolve
-from greybox._spec import DeviceSpecError
-from greybox._waveforms import from_samples, stack_channels
+from greybox._model.spec import DeviceSpecError
+from greybox._model.waveforms import from_samples, stack_channels
 from greybox.io._csv import (
     CsvTable,
     channel_numbers,
@@ -161,7 +161,7 @@ class ExperimentSet:
     - `camera`: the [camera] values given, in SI ({"fps", "exposure_s", "m_per_px"}, each
       optional); `fixed`: {path: SI value} applied to every run.
     - `estimation`, `validation`: `Experiment`s by role; `runs`: `RunInfo` per run.
-    - `free`: `FreeParameter`s to fit; `fit_options`: keyword arguments for `greybox._fit`
+    - `free`: `FreeParameter`s to fit; `fit_options`: keyword arguments for `greybox._estimate.fit`
       (for a process-noise fit only those that apply to it: n_starts, seed, max_steps).
     - `noise`: the checked `[noise]` table (`NoiseTable`) of a process-noise fit, else None;
       `candidate`: the name of the ``[[candidates]]`` entry loaded, else None.
@@ -223,7 +223,7 @@ def configure_model(spec, options: dict, camera: dict, fixed: dict):
 
     `camera` may hold "m_per_px" and "exposure_s" (SI); absent ones keep the device default.
     """
-    from greybox._parameters import set_values
+    from greybox._model.parameters import set_values
 
     model = with_camera(
         build_device(spec, options),
@@ -777,9 +777,9 @@ def _physical_ranges(doc: TomlDocument, data: dict, spec, options: dict) -> dict
 
 
 def fit_memory_estimate(fs) -> float:
-    """Estimated peak resident bytes of fitting `fs` (`greybox._memory`: base + one solve of
+    """Estimated peak resident bytes of fitting `fs` (`greybox._estimate.memory`: base + one solve of
     the runs padded to the longest; every start and the noise re-fit reuse it)."""
-    from greybox import _memory
+    from greybox._estimate import memory as _memory
 
     runs = list(fs.estimation) + list(fs.validation)
     try:
@@ -811,7 +811,7 @@ def max_problem_bytes() -> float:
 
 def check_problem_size(fs, max_bytes: float | None = None) -> None:
     """Estimate a fit's peak memory before anything is compiled (`fit_memory_estimate`, the
-    model `greybox._memory` shares with compare, fit-many and design); refuse one too large."""
+    model `greybox._estimate.memory` shares with compare, fit-many and design); refuse one too large."""
     if max_bytes is None:
         max_bytes = max_problem_bytes()
     need = fit_memory_estimate(fs)
@@ -1261,7 +1261,7 @@ _FIT_DEFAULTS = {"loss": "huber", "n_starts": None, "seed": 0, "max_steps": 200}
 def _fit_table(doc: TomlDocument, fitopt: dict, model, *where) -> dict:
     """The settings a [fit] table (or a candidate's `fit`, at `where`) gives, checked; only
     those given (the defaults are filled in after a candidate's are merged over [fit])."""
-    from greybox._fit import LOSSES
+    from greybox._estimate.fit import LOSSES
 
     doc.check_keys(fitopt, _FIT_KEYS - ({"free"} if where != ("fit",) else set()), *where)
     out = {}

@@ -76,7 +76,7 @@ def to_state_space(
     import jax
     import jax.numpy as jnp
 
-    from greybox._device import AbstractLinearDevice, AbstractODEDevice
+    from greybox._model.device import AbstractLinearDevice, AbstractODEDevice
 
     try:
         import control

@@ -134,7 +134,7 @@ def parse_noise(doc, table, model, spec, *where) -> NoiseTable:
     """`table` (the [noise] table, or a candidate's `noise`, at TOML path `where`) checked
     against `model` (the configured device): a `NoiseTable`, or the first problem as a
     located `InputError`."""
-    from greybox._device import AbstractLinearDevice, AbstractODEDevice
+    from greybox._model.device import AbstractLinearDevice, AbstractODEDevice
 
     where = where or ("noise",)
     if table is None:
@@ -245,7 +245,7 @@ def _initial_state(doc, table, n: int, where):
 
 
 def _filters():
-    from greybox._sde_device import FILTERS
+    from greybox.stochastic._sde_device import FILTERS
 
     return FILTERS
 
@@ -286,7 +286,7 @@ def _process_groups(doc, table, n: int, device: str, where) -> list:
 
 
 def _disturbances(doc, table, where) -> list:
-    from greybox._sde_device import DISTURBANCES
+    from greybox.stochastic._sde_device import DISTURBANCES
 
     dist = table.get("disturbances", [])
     if not isinstance(dist, list) or not all(isinstance(d, str) for d in dist):
@@ -336,7 +336,7 @@ def _priors(doc, table, where) -> dict:
 
 def structure(noise: NoiseTable):
     """The engine's noise structure (raises ValueError "field: problem")."""
-    from greybox._sde_device import NoiseStructure
+    from greybox.stochastic._sde_device import NoiseStructure
 
     return NoiseStructure(
         process_groups=noise.process_groups,
@@ -371,21 +371,21 @@ def noise_units(spec, noise: NoiseTable) -> dict:
 
 
 def _stochastic(noise: NoiseTable, model, spec):
-    from greybox._sde_device import stochastic_device
+    from greybox.stochastic._sde_device import stochastic_device
 
     return stochastic_device(model, structure(noise), outputs=spec.outputs, inputs=spec.inputs)
 
 
 def noise_paths(noise: NoiseTable, model, spec) -> list[str]:
     """Every noise parameter path of this structure on `model` (fixed or fitted)."""
-    from greybox._sde_device import noise_parameters
+    from greybox.stochastic._sde_device import noise_parameters
 
     return [p.path for p in noise_parameters(_stochastic(noise, model, spec))]
 
 
 def initial_state(noise: NoiseTable):
     """The engine's `InitialState` of `noise.initial_state`."""
-    from greybox._noise_models import InitialState
+    from greybox._estimate.noise_models import InitialState
 
     if noise.initial_state == "known":
         return InitialState()
@@ -398,9 +398,9 @@ def noise_model(noise: NoiseTable, model, spec):
     """(stochastic model with the fixed noise values set, `ProcessNoise`, the fitted noise
     `FreeParameter`s with their starting values and priors): what the likelihood fit takes
     beside the device's own free parameters."""
-    from greybox._noise_models import ProcessNoise
-    from greybox._parameters import set_values
-    from greybox._sde_device import noise_parameters
+    from greybox._estimate.noise_models import ProcessNoise
+    from greybox._model.parameters import set_values
+    from greybox.stochastic._sde_device import noise_parameters
 
     sd = _stochastic(noise, model, spec)
     free = noise_parameters(sd, noise_units(spec, noise))
@@ -413,7 +413,7 @@ def noise_model(noise: NoiseTable, model, spec):
         if p.path in noise.priors:
             kw["prior_median"], kw["prior_log_sd"] = noise.priors[p.path]
         out.append(dataclasses.replace(p, **kw))
-    from greybox._noise_models import ExtendedKalmanFilter, KalmanFilter
+    from greybox._estimate.noise_models import ExtendedKalmanFilter, KalmanFilter
 
     filt = {"auto": None, "kalman": KalmanFilter(), "ekf": ExtendedKalmanFilter(noise.substeps)}
     config = ProcessNoise(

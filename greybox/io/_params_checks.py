@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from greybox._errors import InputError
+from greybox._model.errors import InputError
 
 MAX_EXPOSURE_S = 60.0  # no camera frame integrates light for longer than a minute
 AGREE_RTOL = 1e-4  # raw and model.fitted spell one number (float32 transforms round)

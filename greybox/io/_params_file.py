@@ -26,7 +26,7 @@ previous version, is read as well: it is /3 without ``noise_model``):
 - ``free``: the free-parameter specs (path, unit, bounds, per_experiment, prior, initial,
   scale) in the order of ``raw``; ``raw`` and ``covariance_raw``: the optimiser's
   transformed coordinates and their posterior covariance (shared parameters first, then one
-  block per estimation run), from which `greybox._prediction` rebuilds a band;
+  block per estimation run), from which `greybox._estimate.prediction` rebuilds a band;
   ``null_directions_raw``: directions of ``raw`` that nothing determined (usually none).
 - ``convergence``: status, valid, converged, message, steps, multi-start costs;
   ``identifiability``: singular values, condition number, weak directions, summary lines.
@@ -48,8 +48,8 @@ from pathlib import Path
 
 import numpy as np
 
-from greybox._errors import InputError
-from greybox._freeparams import FreeParameter
+from greybox._model.errors import InputError
+from greybox._model.freeparams import FreeParameter
 from greybox.io._noise_table import NoiseTable
 
 SCHEMA = "greybox.params/3"
@@ -101,7 +101,7 @@ def _common_document(fitset, result) -> dict:
     """What every params.json holds, whatever the noise model: the device and how to rebuild
     it, every fitted value with its uncertainty, the raw estimate and its covariance."""
     import greybox
-    from greybox._verdict import fit_headline
+    from greybox._estimate.verdict import fit_headline
 
     shared = [p for p in result.free if not p.per_experiment]
     fitted = {p.path: _num(result.estimate(p.path).value) for p in shared}
@@ -142,7 +142,7 @@ def _common_document(fitset, result) -> dict:
 def _process_document(fitset, result, validation) -> dict:
     """params.json of a process-noise fit: the common part, the noise model (structure, every
     noise value, the likelihood and criteria) and per-run diagnostics."""
-    from greybox._parameters import get_value
+    from greybox._model.parameters import get_value
     from greybox.io._results import diagnostics_doc, horizon_labels
 
     outputs = [c.name for c in fitset.spec.outputs]
@@ -366,7 +366,7 @@ class FittedModel:
     - `model`: the device model with the fitted shared values, the fixed settings and the
       camera; per-run nuisance values (camera offset, drift) stay at the device default (0).
     - `free`: the free-parameter specs; `raw`, `covariance_raw`, `null_directions`: as
-      fitted (all parameters; see `greybox._prediction.prediction_band`).
+      fitted (all parameters; see `greybox._estimate.prediction.prediction_band`).
     - `sigma`: noise scale per output [SI]; `method`: simulation path used by the fit.
     """
 
@@ -394,7 +394,7 @@ class FittedModel:
     @property
     def posterior(self):
         """The fit's `greybox.Posterior`, rebuilt from the file."""
-        from greybox._posterior import Posterior
+        from greybox._estimate.posterior import Posterior
 
         return Posterior(
             self.model,
@@ -466,9 +466,9 @@ def load_params(path, trust_device=()) -> FittedModel:
     """Read `params.json` and rebuild the fitted model. Raises `InputError` naming the field.
     A device file it names is imported only from its own folder or from `trust_device`
     paths (files or folders; README, "A params.json is data")."""
-    from greybox._parameters import set_values
+    from greybox._model.parameters import set_values
     from greybox._registry import DeviceNotFound, resolve
-    from greybox._spec import DeviceSpecError
+    from greybox._model.spec import DeviceSpecError
     from greybox._usercode import params_trust
     from greybox.io._experiment_set import configure_model
     from greybox.io._params_checks import check_params_plausible
@@ -619,7 +619,7 @@ def load_params(path, trust_device=()) -> FittedModel:
         model = configure_model(device.spec, options, camera, fixed)
         if noise is not None:  # the stochastic model: device, noise structure and values
             from greybox.io._noise_table import structure
-            from greybox._sde_device import stochastic_device
+            from greybox.stochastic._sde_device import stochastic_device
 
             model = stochastic_device(
                 model, structure(noise), outputs=device.spec.outputs, inputs=device.spec.inputs
@@ -633,7 +633,7 @@ def load_params(path, trust_device=()) -> FittedModel:
                     )
             model = set_values(model, list(values), [float(v) for v in values.values()])
         model = set_values(model, list(fitted), [float(v) for v in fitted.values()])
-        from greybox._parameters import check_scalar_path
+        from greybox._model.parameters import check_scalar_path
 
         for fp in free:  # every free path must name a value of this device
             check_scalar_path(model, fp.path)

@@ -147,7 +147,7 @@ def error_metrics(measured, predicted, conv, m_per_px) -> dict:
     """{"n", "fit_percent", "rmse", "mae", "sae"} of one output's prediction errors over its
     valid readings, in the file's unit (`conv`); None where undefined (no reading; fit %
     also needs two readings that vary)."""
-    from greybox._metrics import fit_percent
+    from greybox._estimate.metrics import fit_percent
 
     r = in_unit(measured - predicted, conv, m_per_px, difference=True)
     ok = np.isfinite(r)
@@ -260,7 +260,7 @@ def write_figures(
     process-noise fit one innovations figure per output (against the innovation sd), and,
     with `result` (a least-squares fit), the residual tests and parameter correlation.
     `fit_percent`: {run: simulation fit % per output}. Returns the relative paths."""
-    from greybox import _plots as plots
+    from greybox.report import _plots as plots
 
     outputs = tuple((c.description or c.name, c.si_unit) for c in fs.spec.outputs)
     inputs = tuple((c.description or c.name, c.si_unit) for c in fs.spec.inputs)
@@ -341,7 +341,7 @@ def _band_halfwidths(model, result, e):
     """(lower, upper) distances (N, n_y) [SI] of the simulation's 95 % confidence band from
     the response, from the shared parameters' covariance (delta method); None when it cannot
     be had."""
-    from greybox._prediction import prediction_band
+    from greybox._estimate.prediction import prediction_band
 
     try:
         band = prediction_band(
@@ -452,7 +452,7 @@ def run_outputs(fs, result, validation) -> list:
 
 def check_finite_result(fs, result) -> None:
     """Refuse a fit whose values or model response are not finite (nothing is written)."""
-    from greybox._errors import InputError
+    from greybox._model.errors import InputError
 
     bad = [p.name for p in result.parameters if not np.isfinite(p.value)]
     if not bad:
@@ -546,7 +546,7 @@ def write_fit_files(
 def report_text(fs, result, validation, figures=(), metrics=None) -> str:
     """report.md of a fit of the folder `fs` (`metrics`: `metrics_table`, computed when
     None)."""
-    from greybox._report import fit_report
+    from greybox.report._markdown import fit_report
 
     if metrics is None:
         metrics = metrics_table(fs, run_outputs(fs, result, validation))

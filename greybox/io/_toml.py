@@ -11,7 +11,7 @@ import re
 import tomllib
 from pathlib import Path
 
-from greybox._errors import InputError
+from greybox._model.errors import InputError
 
 
 def excerpt(value, limit: int = 40) -> str:

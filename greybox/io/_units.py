@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import functools
 
-from greybox._channels import PIXELS, Channel
+from greybox._model.channels import PIXELS, Channel
 
 # Spellings pint would read differently (pct = picocarat) or not at all; checked first.
 ALIASES = {"pct": "percent", "%": "percent", "percent": "percent", "sec": "s", "secs": "s"}

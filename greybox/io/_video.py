@@ -19,7 +19,7 @@ What the writers produce (`write_video`): ``.avi``/``.mkv`` = FFV1, lossless, 8-
 compression (a default-quality MP4) destroys sub-pixel accuracy: never track those for
 accuracy claims. `write_image_stack` writes one PNG (or TIFF) per frame.
 
-Errors a user can cause raise `greybox._errors.InputError` naming the file.
+Errors a user can cause raise `greybox._model.errors.InputError` naming the file.
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ import imageio.v3 as iio
 import imageio_ffmpeg
 import numpy as np
 
-from greybox._errors import InputError
+from greybox._model.errors import InputError
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
 STACK_SUFFIXES = (".tif", ".tiff")  # a single file that can hold many pages

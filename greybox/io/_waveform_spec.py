@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from greybox._channels import Channel
-from greybox._errors import InputError
-from greybox._waveforms import PiecewiseConstant, PulseTrain, from_samples, stack_channels
+from greybox._model.channels import Channel
+from greybox._model.errors import InputError
+from greybox._model.waveforms import PiecewiseConstant, PulseTrain, from_samples, stack_channels
 from greybox.io._csv import (
     ColumnRef,
     CsvTable,

@@ -1,0 +1,469 @@
+"""Batched fits: many devices, one compiled solver (issue 19).
+
+`fit_batch(devices, free)` fits every device exactly as `greybox.fit` would fit it alone, but
+runs the Levenberg-Marquardt solves of all devices through ONE compiled function, vmapped over
+devices:
+
+- devices are grouped by their problem structure (the same free parameters and transforms,
+  the same number of runs, the same settings paths, method and loss); within a group every
+  run's schedule is padded jointly (`pad_schedules`: frames, ZOH intervals, breakpoints and
+  jump times rounded up to shared bucket sizes; padded frames carry zero weight, so they add
+  zero residuals and zero Jacobian rows). Devices with a different number of runs form a
+  different group (a padded run would add per-run parameters the data do not touch);
+- every solve (each start of each device, then the re-fit at the re-estimated noise scale) is
+  an item; items are cut into chunks of one fixed size (the last chunk is padded with copies
+  of its last item), so every chunk of a group reuses the same compiled function. The chunk
+  size is chosen from a memory budget (`bytes_per_item`), by default a share of the device's
+  own memory (`device_budget`: the accelerator's limit, or the CPU's physical memory);
+- the noise handling is `fit`'s, per device: a declared `sigma` (one for every device, or one
+  per device name), per-frame `Experiment.sigma`, or estimated: a first solve at the
+  frame-difference guess, the robust (MAD) scale of its residuals, then the re-fit from that
+  estimate at that scale. Multi-start points are `fit`'s (same seed, same perturbations);
+- each device's result is assembled by `fit`'s own `_assemble` (covariance, verdicts,
+  residual tests, fit % per run and output), so a `FitResult` per device is what `fit` would
+  return, to rounding (the padding changes only the number of zero rows).
+
+Pure: no printing, plotting or files; `progress` receives short text lines.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Callable, Mapping, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+
+from greybox._estimate import fit as _fit
+from greybox._model.data import Experiment
+from greybox._model.device import check_method
+from greybox._model.freeparams import FreeParameter
+from greybox._model.parameters import get_value
+from greybox._simulate.simulate import pad_schedules, require_x64, schedules_for, zoh_scan_kind
+
+MAX_CHUNK = 256  # solves per compiled call on a CPU: beyond this vmap gains little there
+MAX_CHUNK_ACCELERATOR = 65536  # on a GPU/TPU the memory budget is what limits a chunk
+ACCELERATOR_MEMORY_SHARE = 0.5  # of the accelerator memory not in use, for one chunk
+CPU_MEMORY_SHARE = 0.25  # of the physical memory, for one chunk
+
+
+def device_budget(device=None) -> tuple[float, int]:
+    """(bytes one chunk may allocate, most solves per compiled call) on `device` (default:
+    JAX's first device): from the accelerator's own memory limit (`memory_stats`) or, on a
+    CPU, from the physical memory, never a fixed constant."""
+    device = device or jax.devices()[0]
+    stats = device.memory_stats() if device.platform != "cpu" else None
+    if stats and stats.get("bytes_limit"):
+        free = stats["bytes_limit"] - stats.get("bytes_in_use", 0)
+        return ACCELERATOR_MEMORY_SHARE * free, MAX_CHUNK_ACCELERATOR
+    physical = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    return CPU_MEMORY_SHARE * physical, MAX_CHUNK
+
+
+@dataclasses.dataclass(frozen=True)
+class Device:
+    """One device to fit: `name`, its `model` at starting values, its estimation `experiments`
+    and, optionally, its own declared noise `sigma` [SI per output] (None: as the batch says)
+    and its own `free` list (None: the batch's; a device's list differs from another's only
+    by starting values, e.g. per-run offsets started at that device's rest reading, see
+    `device_from_spec`)."""
+
+    name: str
+    model: object
+    experiments: tuple
+    sigma: object = None
+    free: tuple | None = None
+
+    def __post_init__(self):
+        object.__setattr__(self, "experiments", tuple(self.experiments))
+        if not self.experiments:
+            raise ValueError(f"{self.name}: zero runs; give at least one Experiment")
+        for e in self.experiments:
+            if not isinstance(e, Experiment):
+                raise ValueError(f"{self.name}: experiments must be greybox.Experiment objects")
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchResult:
+    """Per-device `FitResult`s (`results`, in the order given) and how the batch ran.
+
+    - `groups`: number of compiled problem structures; `chunk_size`: items per compiled call;
+    - `n_calls`: compiled calls made; `bytes_per_item`: the memory estimate that chose it.
+    """
+
+    results: dict
+    groups: int
+    chunk_size: int
+    n_calls: int
+    bytes_per_item: int
+
+    @property
+    def names(self) -> list:
+        return list(self.results)
+
+    def __getitem__(self, name):
+        return self.results[name]
+
+    def table(self) -> list[dict]:
+        return batch_table(self.results)
+
+
+def batch_table(results: Mapping) -> list[dict]:
+    """One row per device: status, cost, noise sigma, each shared parameter's value, standard
+    error and verdict, per-run parameters by run, and the simulation fit % per output (mean
+    over the device's runs, and the worst run)."""
+    rows = []
+    for name, r in results.items():
+        row = {
+            "device": name,
+            "status": r.status,
+            "valid": bool(r.valid),
+            "cost": float(r.cost),
+            "n_steps": int(r.n_steps),
+        }
+        for j, s in enumerate(np.atleast_1d(r.sigma)):
+            row[f"sigma[{j}]"] = float(s)
+        for p in r.parameters:
+            row[f"{p.name}"] = p.value
+            row[f"{p.name}:se"] = p.se
+            row[f"{p.name}:verdict"] = p.verdict
+        fits = np.array([np.atleast_1d(v) for v in r.fit_percent.values()], dtype=float)
+        for j in range(fits.shape[1]):
+            row[f"fit%[{j}]:mean"] = float(np.nanmean(fits[:, j]))
+            row[f"fit%[{j}]:min"] = float(np.nanmin(fits[:, j]))
+        rows.append(row)
+    return rows
+
+
+def bytes_per_item(problem) -> int:
+    """Estimated peak working bytes of one solve (one device, one start) inside a vmapped
+    call: `greybox._estimate.memory.solve_bytes` (the model shared with `greybox fit`'s pre-check)."""
+    from greybox._estimate import memory as _memory
+
+    n_exp, n_frames, n_y = problem.y.shape
+    return int(
+        _memory.solve_bytes(
+            runs=n_exp,
+            frames=n_frames,
+            states=int(problem.model.n_states),
+            outputs=n_y,
+            inputs=problem.sched["u_grid"].shape[-1],
+            raw=problem.n_raw,
+            intervals=problem.sched["dt"].shape[1],
+            priors=len(problem.priors),
+            associative_scan=zoh_scan_kind(problem.sched["dt"].shape[1]) == "associative",
+        )
+    )
+
+
+def chunk_size_for(bytes_item: int, budget: float, n_items: int, max_chunk=MAX_CHUNK) -> int:
+    """Chunk size within `budget` bytes (at least 1, at most `max_chunk` and the work), evened
+    out over the chunks the work needs: the last chunk is padded to the same size (one
+    compiled function), so 32,768 solves in chunks of 29,000 would pad 25,232 copies; in two
+    chunks of 16,384 none."""
+    fit_in = max(1, int(budget // max(bytes_item, 1)))
+    largest = int(max(1, min(fit_in, max_chunk, n_items)))
+    n_chunks = math.ceil(max(int(n_items), 1) / largest)
+    return int(math.ceil(max(int(n_items), 1) / n_chunks))
+
+
+@eqx.filter_jit
+def _solve_many(dynamic, static, raw, sigma, rtol, atol, max_steps):
+    """`_fit._solve` vmapped over a stacked chunk of problems (one compiled function)."""
+
+    def one(dyn, r, s):
+        return _fit._solve(eqx.combine(dyn, static), r, s, rtol, atol, max_steps)
+
+    return jax.vmap(one)(dynamic, raw, sigma)
+
+
+@dataclasses.dataclass
+class _Group:
+    """Devices of one problem structure: their common static part and their array leaves
+    stacked once (numpy, leading axis = member), from which every chunk gathers its rows."""
+
+    members: list
+    static: object
+    stacked: object
+
+    def rows(self, positions) -> object:
+        """The stacked leaves of members at `positions`, on the device (one transfer)."""
+        idx = np.asarray(positions)
+        return jtu.tree_map(lambda x: jnp.asarray(np.take(x, idx, axis=0)), self.stacked)
+
+
+@dataclasses.dataclass
+class _Prepared:
+    device: Device
+    group: _Group
+    row: int  # position in the group's stack
+    free: tuple
+    source: str
+    raw0: np.ndarray
+    starts: list
+    sigma0: np.ndarray
+
+    @property
+    def problem(self):
+        """This device's `_fit._Problem` (padded to its group's shapes; numpy views)."""
+        return eqx.combine(
+            jtu.tree_map(lambda x: x[self.row], self.group.stacked), self.group.static
+        )
+
+
+def _check(device: Device, free, method):
+    """The device's simulation method; a clear error for a misspelt or repeated path."""
+    method = check_method(device.model, method)
+    paths = [p.path for p in free]
+    if len(set(paths)) != len(paths):
+        raise ValueError(f"{device.name}: free: a parameter is listed twice ({paths})")
+    for p in free:
+        get_value(device.model, p.path)
+    return method
+
+
+def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver):
+    """Per-device problems (padded per group), start points and first noise scales."""
+    if loss not in _fit.LOSSES:
+        raise ValueError(f"loss: {loss!r} is unknown; use one of {_fit.LOSSES}")
+    paths = [p.path for p in free]
+    if len(set(paths)) != len(paths):
+        raise ValueError(f"free: a parameter is listed twice ({paths})")
+    names = [d.name for d in devices]
+    if len(set(names)) != len(names):
+        raise ValueError("devices: two devices share a name; names must be unique")
+    built = []
+    for d in devices:
+        f = tuple(d.free) if d.free is not None else free
+        m = _check(d, f, method)
+        f = tuple(p.with_scale_from(v) for p, v in zip(f, _fit._start_values(f, d.model)))
+        sig_d = d.sigma if d.sigma is not None else _device_sigma(sigma, d.name)
+        source = _fit._noise_source(d.experiments, sig_d)
+        prob = _fit._Problem.build(d.model, d.experiments, f, m, loss, huber_c, student_nu, *solver)
+        if prob.n_data <= prob.n_raw:
+            raise ValueError(
+                f"{d.name}: {prob.n_data} valid frames cannot determine {prob.n_raw} parameters"
+            )
+        raw0 = _fit._initial_raw(prob, d.model)
+        # the starting values live in raw0; `FreeParameter.initial` takes no part in the static
+        # part's equality, so every device of the same structure shares one compiled solver
+        built.append((d, prob, f, source, sig_d, raw0))
+
+    # group by structure (static fields) and pad every run of a group jointly
+    groups: dict = {}
+    for i, (d, prob, *_rest) in enumerate(built):
+        _, static = eqx.partition(prob, eqx.is_array)
+        key = (jtu.tree_structure(static), jtu.tree_structure(eqx.filter(prob, eqx.is_array)))
+        groups.setdefault(key, []).append(i)
+    prepared: list = [None] * len(built)
+    out_groups = []
+    for members in groups.values():
+        # one joint padding of every run of the group, kept in numpy until a chunk needs it
+        scheds = [
+            s for i in members for s in schedules_for(built[i][0].model, built[i][0].experiments)
+        ]
+        joint = pad_schedules(scheds, on_device=False)
+        n_f = joint["t_s"].shape[1]
+        dyns, start = [], 0
+        for i in members:
+            prob = built[i][1]
+            n_e = prob.n_exp
+            widths = ((0, 0), (0, n_f - prob.y.shape[1]), (0, 0))
+            prob = dataclasses.replace(
+                prob,
+                sched={k: v[start : start + n_e] for k, v in joint.items()},
+                y=np.pad(np.asarray(prob.y), widths),
+                w=np.pad(np.asarray(prob.w), widths),
+                noise=np.pad(np.asarray(prob.noise), widths, constant_values=1.0),
+            )
+            start += n_e
+            dyns.append(eqx.filter(prob, eqx.is_array))
+        _, static = eqx.partition(built[members[0]][1], eqx.is_array)
+        stacked = jtu.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *dyns)
+        group = _Group(list(members), static, stacked)
+        out_groups.append(group)
+        for row, i in enumerate(members):
+            d, prob, f, source, sig_d, raw0 = built[i]
+            k = n_starts
+            if k is None:
+                k = _fit.AUTO_STARTS if len(prob.shared) > 2 else 1
+            if int(k) < 1:
+                raise ValueError(f"n_starts: {k} starts; give at least 1 (or None for auto)")
+            rng = np.random.default_rng(seed)
+            starts = [raw0] + [_fit._perturbed(prob, raw0, rng) for _ in range(int(k) - 1)]
+            n_y = prob.y.shape[-1]
+            if source == "estimated":
+                sig = np.full(n_y, _fit._initial_sigma_guess(d.experiments))
+            elif source == "declared":
+                sig = np.broadcast_to(np.asarray(sig_d, dtype=float), (n_y,)).copy()
+                if not np.all(sig > 0):
+                    raise ValueError(f"{d.name}: sigma must be > 0 (SI units of the output)")
+            else:
+                sig = np.ones(n_y)
+            prepared[i] = _Prepared(d, group, row, f, source, raw0, starts, sig)
+    return prepared, out_groups
+
+
+def device_from_spec(
+    spec, name: str, experiments, *, model=None, options=None, free=None, sigma=None
+) -> Device:
+    """A `Device` for `spec`: `model` (default `spec.model(options)`), `free` (default the
+    spec's standard free list) with the spec's `start_values` hook applied to these
+    experiments, as `greybox fit` does (e.g. per-run camera offsets started at the rest
+    reading)."""
+    model = spec.model(options) if model is None else model
+    free = tuple(spec.free_parameters(options) if free is None else free)
+    experiments = tuple(experiments)
+    if spec.start_values is not None:
+        free = tuple(spec.start_values(model, free, experiments))
+    return Device(name, model, experiments, sigma=sigma, free=free)
+
+
+def _device_sigma(sigma, name):
+    if isinstance(sigma, Mapping):
+        return sigma.get(name)
+    return sigma
+
+
+def _run_items(prepared, items, chunk, rtol, atol, max_steps, say, label, counter):
+    """Solve `items` ((device index, raw start, sigma), all of one group) in fixed-size chunks;
+    returns one host-side output dict per item."""
+    outputs = []
+    n_chunks = math.ceil(len(items) / chunk)
+    group = prepared[items[0][0]].group
+    for c in range(n_chunks):
+        part = items[c * chunk : (c + 1) * chunk]
+        padded = part + [part[-1]] * (chunk - len(part))
+        stacked = group.rows([prepared[i].row for i, _, _ in padded])
+        raw = jnp.asarray(np.stack([r for _, r, _ in padded]))
+        sig = jnp.asarray(np.stack([s for _, _, s in padded]))
+        out = jax.device_get(_solve_many(stacked, group.static, raw, sig, rtol, atol, max_steps))
+        counter[0] += 1
+        for j in range(len(part)):
+            outputs.append({k: v[j] for k, v in out.items()})
+        say(f"{label}: chunk {c + 1}/{n_chunks} done ({len(part)} solves)")
+    return outputs
+
+
+def fit_batch(
+    devices: Sequence[Device],
+    free: Sequence[FreeParameter],
+    *,
+    method: str | None = None,
+    loss: str = "huber",
+    huber_c: float = 1.5,
+    student_nu: float = 4.0,
+    sigma=None,
+    n_starts: int | None = None,
+    seed: int = 0,
+    max_steps: int = 200,
+    rtol: float = 1e-6,
+    atol: float = 1e-6,
+    solver_rtol: float = 1e-8,
+    solver_atol: float = 1e-10,
+    solver_max_steps: int = 16384,
+    chunk_size: int | None = None,
+    memory_budget_bytes: float | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> BatchResult:
+    """Fit every device of `devices` (each as `greybox.fit(device.model, device.experiments,
+    free, ...)` would) with one compiled, vmapped solver per problem structure.
+
+    **Main arguments:**
+    - `devices`: `Device`s (unique names).
+    - `free`: the `FreeParameter`s, the same for every device (shared across a device's runs
+      or per run, as in `fit`).
+
+    **Other arguments:** those of `greybox.fit` (`method`, `loss`, `huber_c`, `student_nu`,
+    `n_starts`, `seed`, `max_steps`, `rtol`, `atol`, `solver_*`), applied to every device;
+    `sigma` is one declared noise level for all devices, a {device name: sigma} mapping, or
+    None (estimated per device, as `fit` does; a device's own `Device.sigma` wins);
+    `chunk_size`: solves per compiled call (None: from `memory_budget_bytes` and
+    `bytes_per_item`); `memory_budget_bytes`: bytes one call may allocate (None: from the
+    device's memory, `device_budget`); `progress`: called with a text line after each chunk.
+
+    **Returns:** a `BatchResult` whose `results[name]` is that device's `FitResult`.
+    """
+    require_x64("fit_batch")
+    devices = list(devices)
+    free = tuple(free)
+    if not devices:
+        raise ValueError("devices: none given")
+    if not free:
+        raise ValueError("free: no free parameters; list at least one FreeParameter")
+    say = progress or (lambda _msg: None)
+    solver = (solver_rtol, solver_atol, solver_max_steps)
+    prepared, groups = _prepare(
+        devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver
+    )
+    opts = (float(rtol), float(atol), int(max_steps))
+    budget, max_chunk = device_budget()
+    if memory_budget_bytes is not None:
+        budget = float(memory_budget_bytes)
+    counter = [0]
+    results, item_bytes, chunk_used = {}, 0, 0
+    for g, group in enumerate(groups):
+        members = group.members
+        n_items = sum(len(prepared[i].starts) for i in members)
+        b = bytes_per_item(prepared[members[0]].problem)
+        chunk = (
+            int(chunk_size) if chunk_size else chunk_size_for(b, budget, n_items, max_chunk)
+        )
+        item_bytes, chunk_used = max(item_bytes, b), max(chunk_used, chunk)
+        label = f"group {g + 1}/{len(groups)}"
+        say(
+            f"{label}: {len(members)} devices, {n_items} solves, chunks of {chunk} "
+            f"(~{b * chunk / 1e6:.0f} MB each)"
+        )
+        items = [(i, s, prepared[i].sigma0) for i in members for s in prepared[i].starts]
+        outs = _run_items(prepared, items, chunk, *opts, say, f"{label} starts", counter)
+        runs_of, k = {}, 0
+        for i in members:
+            n = len(prepared[i].starts)
+            runs_of[i] = outs[k : k + n]
+            k += n
+        best_of, refit = {}, []
+        for i in members:
+            runs = runs_of[i]
+            finite = [
+                j
+                for j, r in enumerate(runs)
+                if np.isfinite(r["cost"]) and np.all(np.isfinite(r["raw"]))
+            ]
+            bi = min(finite, key=lambda j: float(runs[j]["cost"])) if finite else 0
+            best_of[i] = (bi, runs[bi], prepared[i].sigma0, int(runs[bi]["steps"]))
+            p = prepared[i]
+            if p.source == "estimated" and np.all(np.isfinite(runs[bi]["raw"])):
+                sig = _fit._robust_sigma(
+                    np.asarray(runs[bi]["data_residuals"]), np.asarray(p.problem.w), p.sigma0
+                )
+                refit.append((i, np.asarray(runs[bi]["raw"]), sig))
+        if refit:
+            outs = _run_items(prepared, refit, chunk, *opts, say, f"{label} refit", counter)
+            for (i, _, sig), out in zip(refit, outs):
+                bi, _, _, steps = best_of[i]
+                best_of[i] = (bi, out, sig, steps + int(out["steps"]))
+        for i in members:
+            p = prepared[i]
+            bi, best, sig, steps = best_of[i]
+            results[p.device.name] = _fit._assemble(
+                p.problem,
+                best,
+                sig,
+                steps,
+                runs_of[i],
+                bi,
+                p.raw0,
+                p.device.experiments,
+                p.free,
+                p.source,
+                lambda _msg: None,
+            )
+        say(f"{label}: {len(members)} devices assembled")
+    ordered = {d.name: results[d.name] for d in devices}
+    return BatchResult(ordered, len(groups), chunk_used, counter[0], item_bytes)

@@ -1,0 +1,284 @@
+"""Scale-out of batched fits on Dask distributed (an edge module: it starts processes).
+
+`fit_distributed(devices, free)` cuts the devices into tasks, each a `fit_batch` over a few
+vmapped chunks of one fixed size (so every worker compiles the solver once), submits them to
+a Dask cluster and gathers one `FitResult` per device:
+
+- `scheduler="local"` (default) starts a `LocalCluster` of `n_workers` single-threaded worker
+  processes (closed afterwards); an address ("tcp://host:8786") uses a running cluster;
+  `client=` an existing `distributed.Client`;
+- a task that raises is retried `retries` times; a task whose worker dies (killed, out of
+  memory) is re-run by the scheduler on another worker (up to Dask's
+  `distributed.scheduler.allowed-failures`). Results are keyed by task and device name, so a
+  re-run task can neither lose nor duplicate a device: the gather checks that every device
+  comes back exactly once;
+- memory: the chunk size (solves per compiled call) is chosen from `memory_budget_bytes`
+  per worker with `greybox._estimate.batch.bytes_per_item` (frames x runs x states x parameters x
+  Jacobian), unless `chunk_size` is given;
+- device files loaded by the registry (built-in `models/`, a user's device file) are
+  registered on the worker from the same folder before the devices are unpickled (a
+  cluster's workers must see that folder at the same path);
+- the same devices, options and seed give the same per-device results as the single-process
+  `fit_batch` (to rounding: a device's padding may differ when its chunk-mates differ).
+
+Needs the optional extra `distributed` (``pip install "dask[distributed]"``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import sys
+import types
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from greybox._estimate import batch as _batch
+
+DEFAULT_WORKER_BUDGET = 1 * 1024**3  # bytes one worker's compiled call may allocate
+
+
+def _require_distributed():
+    try:
+        import distributed
+    except ModuleNotFoundError as err:
+        raise ModuleNotFoundError(
+            'greybox: Dask is not installed; pip install "dask[distributed]" (the greybox '
+            "extra `distributed`) to fit on a cluster"
+        ) from err
+    return distributed
+
+
+def device_packages(devices) -> dict:
+    """{package: folder paths} of the device-file packages the devices' model classes live in.
+
+    Device files (built-in `models/`, a user's `my_devices/x.py`) are loaded by the registry
+    as namespace packages that exist only in the process that loaded them; a worker must
+    register the same packages before it can unpickle such a model."""
+    out = {}
+    for d in devices:
+        top = type(d.model).__module__.split(".")[0]
+        pkg = sys.modules.get(top)
+        path = getattr(pkg, "__path__", None)
+        if pkg is not None and getattr(pkg, "__file__", None) is None and path is not None:
+            out[top] = [str(p) for p in path]
+    return out
+
+
+def _register_packages(packages: dict) -> None:
+    for name, path in packages.items():
+        if name not in sys.modules:
+            pkg = types.ModuleType(name)
+            pkg.__path__ = list(path)
+            pkg.__package__ = name
+            sys.modules[name] = pkg
+
+
+def _fit_task(task_id: int, packages: dict, payload: bytes) -> tuple:
+    """Worker side: float64 on, the device packages registered, then the payload (devices,
+    free, options) unpickled and one `fit_batch`; returns (task_id, {name: FitResult})."""
+    import cloudpickle
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    _register_packages(packages)
+    devices, free, kwargs = cloudpickle.loads(payload)
+    out = _batch.fit_batch(devices, free, **kwargs)
+    return task_id, dict(out.results)
+
+
+def run_tasks(
+    fn: Callable,
+    payloads: Sequence[tuple],
+    *,
+    client,
+    retries: int = 2,
+    progress: Callable[[str], None] | None = None,
+    name: str = "greybox",
+) -> list:
+    """Run `fn(task_id, *payload)` for every payload on `client`, each with `retries`; return
+    the results in payload order. `fn` must return (task_id, result); a task's result is taken
+    once whatever its attempts, and a missing or repeated task id raises."""
+    distributed = _require_distributed()
+    say = progress or (lambda _msg: None)
+    import uuid
+
+    token = uuid.uuid4().hex[:8]
+    futures = [
+        client.submit(fn, i, *p, retries=retries, pure=False, key=f"{name}-{token}-{i}")
+        for i, p in enumerate(payloads)
+    ]
+    got: dict = {}
+    for k, fut in enumerate(distributed.as_completed(futures), start=1):
+        task_id, result = fut.result()
+        if task_id in got:
+            raise RuntimeError(f"task {task_id} returned twice; results would be duplicated")
+        got[task_id] = result
+        say(f"task {task_id + 1}/{len(payloads)} gathered ({k}/{len(payloads)} done)")
+    missing = sorted(set(range(len(payloads))) - set(got))
+    if missing:
+        raise RuntimeError(f"tasks {missing} returned no result")
+    return [got[i] for i in range(len(payloads))]
+
+
+def check_scheduler(scheduler: str, timeout_s: float = 5.0) -> None:
+    """Before any work: the `distributed` extra is installed, and a scheduler address is
+    well formed and accepts a connection within `timeout_s` (else an `InputError` naming
+    --scheduler, instead of a 30 s wait and a traceback)."""
+    import socket
+    from urllib.parse import urlsplit
+
+    from greybox._model.errors import InputError
+    from greybox._extras import require_extra
+
+    require_extra("distributed", field="--scheduler", what="--scheduler")
+    if scheduler == "local":
+        return
+    parts = urlsplit(scheduler if "://" in scheduler else f"tcp://{scheduler}")
+    try:
+        host, port = parts.hostname, parts.port
+    except ValueError:
+        host = port = None
+    if parts.scheme not in ("tcp", "tls") or not host or not port:
+        raise InputError(
+            f"{scheduler!r} is not a scheduler address; give local or tcp://HOST:PORT",
+            field="--scheduler",
+        )
+    try:
+        socket.create_connection((host, port), timeout=timeout_s).close()
+    except OSError as err:
+        raise InputError(
+            f"cannot reach the Dask scheduler at {host}:{port} ({err.strerror or err}); start "
+            "it (dask scheduler) or use --scheduler local",
+            field="--scheduler",
+        ) from None
+
+
+def start_client(scheduler: str | None = "local", n_workers: int = 2, memory_limit="auto"):
+    """(client, cluster or None): a `LocalCluster` of `n_workers` one-thread worker processes
+    for "local"/None, else a client of the scheduler at that address."""
+    from greybox._log import route_dask_logs
+
+    distributed = _require_distributed()
+    route_dask_logs()  # Dask's logs go to the `greybox.dask` logger, not the terminal
+    if scheduler in (None, "local"):
+        cluster = distributed.LocalCluster(
+            n_workers=int(n_workers),
+            threads_per_worker=1,
+            processes=True,
+            memory_limit=memory_limit,
+            dashboard_address=None,
+            silence_logs=logging.ERROR,
+        )
+        return distributed.Client(cluster), cluster
+    return distributed.Client(scheduler, timeout="10s"), None
+
+
+def plan(devices, free, *, n_workers: int, chunk_size=None, memory_budget_bytes=None, **kw):
+    """(chunk size, devices per task, estimated bytes per solve) for a distributed batch.
+
+    Each task holds whole chunks; there are at least two tasks per worker when the devices
+    allow, so a dead worker costs little and the load balances."""
+    budget = DEFAULT_WORKER_BUDGET if memory_budget_bytes is None else memory_budget_bytes
+    prepared, groups = _batch._prepare(
+        devices[:1],
+        tuple(devices[0].free or free),
+        kw.get("method"),
+        kw.get("loss", "huber"),
+        kw.get("huber_c", 1.5),
+        kw.get("student_nu", 4.0),
+        kw.get("sigma"),
+        kw.get("n_starts"),
+        kw.get("seed", 0),
+        (
+            kw.get("solver_rtol", 1e-8),
+            kw.get("solver_atol", 1e-10),
+            kw.get("solver_max_steps", 16384),
+        ),
+    )
+    b = _batch.bytes_per_item(prepared[0].problem)
+    starts = len(prepared[0].starts)
+    per_worker = math.ceil(len(devices) / max(int(n_workers), 1))
+    if chunk_size is None:
+        chunk_size = _batch.chunk_size_for(b, budget, max(per_worker // 2, 1) * starts)
+    chunk_devices = max(1, int(chunk_size) // starts)
+    n_tasks = max(1, math.ceil(len(devices) / chunk_devices))
+    n_tasks = max(n_tasks, min(len(devices), 2 * int(n_workers)))
+    per_task = math.ceil(len(devices) / n_tasks)
+    per_task = math.ceil(per_task / chunk_devices) * chunk_devices
+    return int(chunk_size), int(per_task), int(b)
+
+
+def fit_distributed(
+    devices: Sequence,
+    free,
+    *,
+    scheduler: str | None = "local",
+    n_workers: int = 2,
+    client=None,
+    chunk_size: int | None = None,
+    memory_budget_bytes: float | None = None,
+    retries: int = 2,
+    progress: Callable[[str], None] | None = None,
+    **fit_kwargs,
+) -> _batch.BatchResult:
+    """`greybox._estimate.batch.fit_batch` on a Dask cluster: the same arguments and result.
+
+    **Other arguments:** `scheduler` ("local" or an address), `n_workers` (local cluster),
+    `client` (an existing Client; then `scheduler` is ignored), `chunk_size` /
+    `memory_budget_bytes` (per worker, default 1 GiB), `retries` per task, `progress`.
+    """
+    devices = list(devices)
+    free = tuple(free)
+    say = progress or (lambda _msg: None)
+    names = [d.name for d in devices]
+    if len(set(names)) != len(names):
+        raise ValueError("devices: two devices share a name; names must be unique")
+    chunk, per_task, b = plan(
+        devices,
+        free,
+        n_workers=n_workers,
+        chunk_size=chunk_size,
+        memory_budget_bytes=memory_budget_bytes,
+        **fit_kwargs,
+    )
+    tasks = [devices[i : i + per_task] for i in range(0, len(devices), per_task)]
+    say(
+        f"{len(devices)} devices in {len(tasks)} tasks of up to {per_task}, chunks of "
+        f"{chunk} solves (~{chunk * b / 1e6:.0f} MB per worker)"
+    )
+    own = client is None
+    cluster = None
+    if own:
+        client, cluster = start_client(scheduler, n_workers)
+    try:
+        import cloudpickle
+
+        kwargs = dict(fit_kwargs, chunk_size=chunk)
+        packages = device_packages(devices)
+        parts = run_tasks(
+            _fit_task,
+            [(packages, cloudpickle.dumps((t, free, kwargs))) for t in tasks],
+            client=client,
+            retries=retries,
+            progress=say,
+            name="greybox-fit",
+        )
+    finally:
+        if own:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    results: dict = {}
+    for part in parts:
+        for name, r in part.items():
+            if name in results:
+                raise RuntimeError(f"{name}: fitted twice; results would be duplicated")
+            results[name] = r
+    missing = [n for n in names if n not in results]
+    if missing:
+        raise RuntimeError(f"devices {missing} came back without a result")
+    ordered = {n: results[n] for n in names}
+    n_calls = int(np.sum([math.ceil(len(t) / max(chunk, 1)) for t in tasks]))
+    return _batch.BatchResult(ordered, 1, chunk, n_calls, b)

@@ -1,0 +1,1310 @@
+"""Multi-experiment least-squares fitting with honest uncertainty.
+
+`fit(model, experiments, free)` minimises the simulation error (free-run, never one-step
+prediction) of every experiment at once with optimistix Levenberg-Marquardt over transformed
+parameters (see `greybox._model.freeparams`), with:
+
+- shared and per-experiment parameters, NaN frames masked out;
+- a robust loss (Huber or Student-t) so corrupted frames do not drag the fit;
+- optional log-normal priors, appended as extra residuals (a MAP estimate);
+- noise scale sigma re-estimated robustly from the residuals (MAD), then the fit is repeated
+  at that sigma so that loss thresholds and priors are weighted correctly; or a known noise
+  level (`Experiment.sigma` per frame, or `sigma=`), which weights the readings, is never
+  re-estimated, and is tested against the residuals (chi-square goodness of fit);
+- multi-start from perturbed initial values (on by default when more than two shared
+  parameters are free), keeping the best and saying when the starting values led elsewhere;
+- an inner solve that never aborts: a failed ODE solve yields a large penalty residual, so the
+  trust region rejects that step instead of crashing the program.
+
+The result carries a `status` ("converged", "local optimum", "at bound", "not converged",
+"diverged") and `valid` (the estimate is an interior optimum the optimiser reached); the
+Gauss-Newton covariance and, beside it, the Newey-West (HAC) sandwich covariance, which is
+the headline when the residuals are not white (`se_method`); 95 % intervals, correlations,
+the identifiability analysis (`greybox._estimate.identifiability`); per run and per output the
+simulation fit %, its noise ceiling and the residual analysis (`greybox._estimate.residuals`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from greybox._estimate import problem as _problem
+from greybox._model.data import Experiment
+from greybox._model.device import check_method
+from greybox._model.freeparams import FreeParameter, apply_raw, levenberg_marquardt
+from greybox._estimate.identifiability import IdentifiabilityReport, analyse
+from greybox._estimate.metrics import fit_percent_per_output, noise_ceiling
+from greybox._estimate.posterior import Posterior
+from greybox._estimate.residuals import (
+    GoodnessOfFit,
+    ResidualAnalysis,
+    goodness_of_fit,
+    hac_meat,
+    model_error_residuals,
+)
+from greybox._estimate.residuals import analyse as analyse_residuals
+from greybox._simulate.simulate import (
+    as_arrays,
+    observe_schedule,
+    pad_schedules,
+    require_x64,
+    schedule_for,
+)
+from greybox._estimate.verdict import interval_verdict
+
+LOSSES = ("l2", "huber", "student_t")
+FAILED_SOLVE_RESIDUAL = 1e3  # per residual, in units of sigma: far worse than any real misfit
+OUTLIER_SIGMAS = 5.0  # frames further than this from the fit are reported as outliers
+AUTO_STARTS = _problem.AUTO_STARTS  # starts when n_starts=None and > 2 shared parameters
+SAME_COST = 1e-5  # relative cost difference within which two starts reached the same optimum
+STATUSES = (
+    "converged",
+    "local optimum",
+    "at bound",
+    "ran out of steps",
+    "not converged",
+    "diverged",
+)
+VALID_STATUSES = ("converged", "local optimum")
+
+
+def _robust(r, loss: str, c: float, nu: float):
+    """Residual transform whose sum of squares is 2 rho(r) for the chosen loss."""
+    if loss == "l2":
+        return r
+    r2 = r**2
+    safe = jnp.where(r2 > 0, r2, 1.0)
+    if loss == "huber":
+        rho2 = jnp.where(jnp.abs(r) <= c, r2, 2 * c * jnp.abs(r) - c**2)
+        return r * jnp.where(r2 > 0, jnp.sqrt(rho2 / safe), 1.0)
+    rho2 = (nu + 1.0) * jnp.log1p(r2 / nu)  # Student-t negative log-likelihood (x2)
+    return r * jnp.where(r2 > 0, jnp.sqrt(rho2 / safe), jnp.sqrt((nu + 1.0) / nu))
+
+
+@dataclasses.dataclass(frozen=True)
+class ParameterEstimate:
+    """One fitted value in SI with its standard error and 95 % interval.
+
+    `verdict` is "identifiable", "weakly identified" (its 95 % interval spans more than a
+    factor `greybox._estimate.verdict.WEAK_FACTOR`), "prior-dominated", "not identifiable" or
+    "at bound"; for the last two, `se` and the interval are NaN rather than a confident-looking number, and
+    `bound` says which bound ("lower" / "upper") the value sits on.
+
+    `se` and `ci95` are the headline (`se_method`: "gauss-newton", or "hac" when the fit's
+    residuals are not white); `se_gauss_newton` and `se_hac` (Newey-West sandwich) are both
+    kept.
+    """
+
+    name: str
+    path: str
+    unit: str
+    value: float
+    se: float
+    ci95: tuple[float, float]
+    verdict: str
+    experiment: str | None = None
+    prior: tuple[float, float] | None = None
+    se_gauss_newton: float = float("nan")
+    se_hac: float = float("nan")
+    se_method: str = "gauss-newton"
+    bound: str | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """Everything a fit established. All fit % are free-run simulation (`horizon`).
+
+    - `status`: "converged" (an interior optimum, every start that reached the lowest cost
+      agrees), "local optimum" (the starting values stopped at a higher cost than another
+      start; the best start's estimate is reported), "at bound" (a parameter ended on one of
+      its bounds: the estimate is the boundary, not an optimum of the data, and its intervals
+      mean nothing), "not converged" (step budget or stall, or a simulation failed), or
+      "diverged". `valid` is True for the first two. `converged` is the optimiser's own
+      answer (tolerances met, every simulation succeeded), whatever the bounds say.
+    - `free`: the free-parameter specs as fitted (a `scale` left at None is filled in).
+    - `covariance_raw`: the headline covariance of the raw coordinates (`se_method`:
+      "gauss-newton", or "hac" when the residuals are not white);
+      `covariance_gauss_newton_raw`, `covariance_hac_raw`: both, determined subspace only;
+      `hac_bandwidth`: Newey-West bandwidth in frames.
+    - `sigma` (n_y,): noise sd per output [SI]; `sigma_source`: "estimated" (robust scale of
+      the residuals), "declared" (`fit(sigma=...)`) or "per-frame" (`Experiment.sigma`; `sigma`
+      is then its RMS); `goodness_of_fit`: the test against known noise (None if estimated).
+    - per run name: `fit_percent`, `fit_percent_robust`, `noise_ceiling` ((n_y,) arrays, one
+      figure per output channel), `n_outliers` (readings flagged).
+    - `residuals`: the residual analysis (whiteness, correlations with the inputs).
+    - `multistart_costs`: ((cost, converged) per start, at the first noise scale);
+      `best_start`: the start whose estimate is reported; `n_starts_at_best`: how many
+      starts reached its cost.
+    - `noise`: the noise-model object of the fit (`OutputError` or `ProcessNoise`);
+      `process_noise`: True for the likelihood back end.
+    - `predictions`: {run: {horizon: (N, n_y) SI}}: "simulation" always, "one-step" and
+      "k-step" (`noise.k_step` frames ahead) with process noise; `prediction_sd` their sds
+      (process noise only).
+    - process noise only (NaN / empty for least squares): `log_likelihood` (data term; the
+      first frame conditioned on when the initial state is known), `aic`, `bic`,
+      `whiteness` ({run: Ljung-Box per output of the standardised innovations}), `runs`
+      (`RunDiagnostics` per run). `n_observations`: readings scored (least squares: n_data).
+      For process noise `covariance_raw` is the inverse Hessian of -log L + priors,
+      `residuals` the analysis of the one-step innovations, `sigma` the fitted measurement sd
+      and `fit_percent` the simulation fit %.
+
+    The status vocabulary is `STATUSES`, derived in one place (`fit_status`) for both back
+    ends; besides the above, "ran out of steps" (the optimiser spent `max_steps`). A
+    parameter's verdict "not needed" (a process-noise intensity that went to zero) leaves the
+    fit valid.
+    """
+
+    model: object
+    experiment_models: tuple
+    experiments: tuple
+    free: tuple
+    parameters: tuple
+    raw: np.ndarray
+    covariance_raw: np.ndarray  # raw coordinates, determined subspace (see identifiability)
+    correlation: np.ndarray  # NaN rows/columns for undetermined parameters
+    sigma: np.ndarray
+    cost: float
+    n_data: int
+    converged: bool
+    message: str
+    n_steps: int
+    fit_percent: dict  # run -> (n_y,) simulation fit % on every valid frame
+    fit_percent_robust: dict  # the same without the frames flagged as outliers
+    n_outliers: dict
+    identifiability: IdentifiabilityReport
+    loss: str
+    method: str
+    multistart_costs: tuple
+    status: str
+    valid: bool
+    noise_ceiling: dict  # run -> (n_y,) fit % of the true model given the noise
+    residuals: ResidualAnalysis
+    covariance_gauss_newton_raw: np.ndarray
+    covariance_hac_raw: np.ndarray
+    se_method: str
+    hac_bandwidth: int
+    sigma_source: str
+    goodness_of_fit: GoodnessOfFit | None
+    best_start: int
+    n_starts_at_best: int
+    horizon: str = "simulation"
+    noise: object = None  # the noise-model object (OutputError / ProcessNoise)
+    log_likelihood: float = float("nan")  # process noise: log L of the data (priors apart)
+    aic: float = float("nan")
+    bic: float = float("nan")
+    n_observations: int = 0  # readings scored (least squares: n_data)
+    predictions: dict = dataclasses.field(default_factory=dict)  # run -> {horizon: (N, q)}
+    prediction_sd: dict = dataclasses.field(default_factory=dict)  # run -> {horizon: (N, q)}
+    whiteness: dict = dataclasses.field(default_factory=dict)  # run -> (LjungBox per output)
+    runs: tuple = ()  # process noise: `RunDiagnostics` per estimation run
+
+    @property
+    def process_noise(self) -> bool:
+        """True for a process-noise (likelihood) fit."""
+        return getattr(self.noise, "name", "") == "process noise"
+
+    @property
+    def neg_log_likelihood(self) -> float:
+        return -float(self.log_likelihood)
+
+    @property
+    def likelihood(self) -> str:
+        """How the likelihood was computed (process noise), else ""."""
+        from greybox.stochastic._sde_device import LIKELIHOOD
+
+        return LIKELIHOOD if self.process_noise else ""
+
+    @property
+    def filter_name(self) -> str:
+        if not self.process_noise:
+            return ""
+        return "extended Kalman filter" if self.model.use_ekf else "Kalman filter (exact)"
+
+    @property
+    def k_step(self) -> int:
+        return int(self.noise.k_step) if self.process_noise else 0
+
+    @property
+    def posterior(self) -> Posterior:
+        """What the fit established, as the object predictions and designs take."""
+        return Posterior(
+            self.model,
+            self.free,
+            self.raw,
+            self.covariance_raw,
+            self.identifiability.null_directions,
+            self.sigma,
+            self.method,
+            self.noise,
+        )
+
+    @property
+    def n_params(self) -> int:
+        return self.raw.size
+
+    @property
+    def n_outputs(self) -> int:
+        return int(np.size(self.sigma))
+
+    @property
+    def noise_known(self) -> bool:
+        return self.sigma_source != "estimated"
+
+    def estimate(self, name: str) -> ParameterEstimate:
+        for p in self.parameters:
+            if p.name == name:
+                return p
+        raise KeyError(f"{name}: not a fitted parameter; have {[p.name for p in self.parameters]}")
+
+    def z_scores(self, truth: dict) -> dict:
+        """(estimate - truth) / sd in raw coordinates, per shared parameter path in `truth`."""
+        out = {}
+        sd = np.sqrt(np.clip(np.diag(self.covariance_raw), 0, None))
+        shared = [p for p in self.free if not p.per_experiment]  # raw order: shared first
+        for k, p in enumerate(shared):
+            if p.path in truth:
+                out[p.path] = float((self.raw[k] - float(p.to_raw(truth[p.path]))) / sd[k])
+        return out
+
+    def predict(self, experiment_index: int, method: str | None = None) -> np.ndarray:
+        """Free-run simulation of experiment `experiment_index` with its fitted parameters (SI)."""
+        from greybox._simulate.simulate import simulate
+
+        exp = self.experiments[experiment_index]
+        z = simulate(
+            self.experiment_models[experiment_index],
+            exp.inputs,
+            exp.t_s,
+            method=method or self.method,
+            t_start_s=exp.t_start_s,
+        )
+        return np.asarray(z).reshape(exp.n_frames, -1)
+
+
+class _Problem(eqx.Module):
+    """Residual function over the raw parameter vector (shared first, then per experiment).
+
+    A PyTree: data arrays and the model are leaves, the parameter specs and settings are
+    static, so one compiled solver serves every data set of the same shapes.
+    """
+
+    model: object
+    sched: dict
+    y: jnp.ndarray
+    w: jnp.ndarray
+    noise: jnp.ndarray  # (E, N, n_y) known per-frame noise sd (ones when not known)
+    settings: jnp.ndarray  # (E, K) known per-run values for `setting_paths`
+    setting_paths: tuple = eqx.field(static=True)
+    shared: tuple = eqx.field(static=True)
+    per_exp: tuple = eqx.field(static=True)
+    n_exp: int = eqx.field(static=True)
+    method: str = eqx.field(static=True)
+    loss: str = eqx.field(static=True)
+    huber_c: float = eqx.field(static=True)
+    student_nu: float = eqx.field(static=True)
+    solver_opts: tuple = eqx.field(static=True)
+
+    @staticmethod
+    def build(model, experiments, free, method, loss, huber_c, student_nu, rtol, atol, max_steps):
+        schedules = [
+            schedule_for(model, e.inputs, e.t_s, t_start_s=e.t_start_s) for e in experiments
+        ]
+        sched = pad_schedules(schedules)
+        n_exp = len(experiments)
+        n_frames = sched["t_s"].shape[1]
+        n_y = experiments[0].y.shape[1]
+        y = np.zeros((n_exp, n_frames, n_y))
+        w = np.zeros_like(y)
+        noise = np.ones_like(y)
+        for i, e in enumerate(experiments):
+            if e.y.shape[1] != n_y:
+                raise ValueError(f"{e.name}: has {e.y.shape[1]} output columns, others {n_y}")
+            y[i, : e.n_frames] = np.nan_to_num(e.y)
+            w[i, : e.n_frames] = e.mask
+            if e.sigma is not None:
+                noise[i, : e.n_frames] = np.where(e.mask, e.sigma, 1.0)
+        setting_paths, settings = _problem.settings_matrix(model, experiments, free)
+        return _Problem(
+            model=as_arrays(model),
+            sched=sched,
+            y=jnp.asarray(y),
+            w=jnp.asarray(w),
+            noise=jnp.asarray(noise),
+            settings=jnp.asarray(settings),
+            setting_paths=setting_paths,
+            shared=_problem.split(free)[0],
+            per_exp=_problem.split(free)[1],
+            n_exp=n_exp,
+            method=method,
+            loss=loss,
+            huber_c=float(huber_c),
+            student_nu=float(student_nu),
+            solver_opts=(
+                ("rtol", float(rtol)),
+                ("atol", float(atol)),
+                ("max_steps", int(max_steps)),
+            ),
+        )
+
+    @property
+    def n_data(self) -> int:
+        return int(np.asarray(self.w).sum())
+
+    @property
+    def priors(self) -> list:
+        out = [(k, p) for k, p in enumerate(self.shared) if p.has_prior]
+        out += [
+            (len(self.shared) + i * len(self.per_exp) + j, p)
+            for i in range(self.n_exp)
+            for j, p in enumerate(self.per_exp)
+            if p.has_prior
+        ]
+        return out
+
+    @property
+    def n_raw(self) -> int:
+        return len(self.shared) + self.n_exp * len(self.per_exp)
+
+    @property
+    def flat_free(self) -> list:
+        """The FreeParameter behind each raw coordinate (shared, then per experiment)."""
+        return _problem.flat_free(self.shared, self.per_exp, self.n_exp)
+
+    def models(self, raw):
+        """(shared model, per-experiment raw block (E, P))."""
+        ns = len(self.shared)
+        base = apply_raw(self.model, self.shared, raw)
+        return base, raw[ns:].reshape(self.n_exp, len(self.per_exp))
+
+    def experiment_model(self, base, per_raw_row, settings_row):
+        return _problem.run_model(base, self.setting_paths, settings_row, self.per_exp, per_raw_row)
+
+    def predictions(self, raw):
+        """Camera readings (E, N, n_y) and per-experiment success flags."""
+        base, per = self.models(raw)
+        opts = dict(self.solver_opts)
+
+        def one(per_row, settings_row, sched):
+            return observe_schedule(
+                self.experiment_model(base, per_row, settings_row),
+                sched,
+                method=self.method,
+                **opts,
+            )
+
+        return jax.vmap(one)(per, self.settings, self.sched)
+
+    def data_residuals(self, raw, sigma):
+        z, ok = self.predictions(raw)
+        r = (z - self.y) / (sigma * self.noise) * self.w
+        return jnp.where(ok[:, None, None], r, FAILED_SOLVE_RESIDUAL * self.w)
+
+    def residuals(self, raw, sigma):
+        r = _robust(self.data_residuals(raw, sigma), self.loss, self.huber_c, self.student_nu)
+        parts = [r.reshape(-1)]
+        if self.priors:
+            parts.append(jnp.stack([p.prior_residual(p.to_value(raw[k])) for k, p in self.priors]))
+        return jnp.concatenate(parts)
+
+
+@eqx.filter_jit
+def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_steps: int):
+    """One Levenberg-Marquardt run plus everything the result needs at its end point.
+
+    A single compiled function (the solve, the residuals, the Jacobian and the predictions)
+    keeps compile time to one trace of the model. Never throws: the result code says how the
+    solve ended.
+    """
+    raw, ok, steps = levenberg_marquardt(
+        problem.residuals, raw_start, sigma, rtol=rtol, atol=atol, max_steps=max_steps
+    )
+    z, solved = problem.predictions(raw)
+    return dict(
+        raw=raw,
+        ok=ok,
+        steps=steps,
+        cost=0.5 * jnp.sum(problem.residuals(raw, sigma) ** 2),
+        residuals=problem.residuals(raw, sigma),
+        data_residuals=problem.data_residuals(raw, sigma),
+        jacobian=jax.jacfwd(lambda r: problem.residuals(r, sigma))(raw),
+        predictions=z,
+        solved=solved,
+    )
+
+
+_start_values = _problem.start_values  # (kept for greybox._estimate.batch)
+
+
+def _initial_raw(problem: _Problem, model) -> np.ndarray:
+    """Raw start vector of `problem` (`_problem.initial_raw`)."""
+    return _problem.initial_raw(problem.flat_free, model)
+
+
+def _perturbed(problem: _Problem, raw0: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A multi-start point (`_problem.perturbed`)."""
+    return _problem.perturbed(problem.shared, raw0, rng)
+
+
+def _robust_sigma(r_scaled: np.ndarray, w: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Per-output noise scale from the median absolute residual (robust to outliers).
+
+    `r_scaled`: residuals divided by `sigma`; `w`: their weights (0 = no valid reading). An
+    output with no valid reading in any run (a single-sensor log of a two-sensor device)
+    carries no weight in the fit and has nothing to estimate its noise from: it keeps its
+    scale `sigma[j]` (the declared noise, or the fit's starting guess), never NaN."""
+    out = np.asarray(sigma, dtype=float).copy()
+    for j in range(r_scaled.shape[-1]):
+        vals = np.abs(r_scaled[..., j][w[..., j] > 0])
+        if vals.size:
+            out[j] = 1.4826 * np.median(vals) * sigma[j]
+    return np.maximum(out, 1e-300)
+
+
+def _outputs_without_data(w: np.ndarray) -> list[int]:
+    """Indices of the outputs with no valid reading in any run (weight 0 everywhere)."""
+    w = np.asarray(w)
+    return [j for j in range(w.shape[-1]) if not np.any(w[..., j] > 0)]
+
+
+def _noise_source(experiments, sigma) -> str:
+    """ "per-frame" (every run carries `Experiment.sigma`), "declared" (`sigma=` given) or
+    "estimated"; mixing is an error (which noise would be meant is ambiguous)."""
+    carry = [e.sigma is not None for e in experiments]
+    if any(carry) and not all(carry):
+        have = [e.name for e, c in zip(experiments, carry) if c]
+        lack = [e.name for e, c in zip(experiments, carry) if not c]
+        raise ValueError(
+            f"sigma: runs {have} carry a per-frame noise level and {lack} do not; give "
+            "Experiment.sigma for every run or for none"
+        )
+    if all(carry):
+        if sigma is not None:
+            raise ValueError(
+                "sigma: the runs carry per-frame noise (Experiment.sigma); do not pass "
+                "sigma= as well"
+            )
+        return "per-frame"
+    return "declared" if sigma is not None else "estimated"
+
+
+_OLD_NOISE_KEYWORDS = ("loss", "huber_c", "student_nu", "sigma")
+_OLD_SIMULATION_KEYWORDS = ("method", "solver_rtol", "solver_atol", "solver_max_steps")
+
+
+def fit(
+    model,
+    experiments: Sequence[Experiment],
+    free: Sequence[FreeParameter],
+    *,
+    noise=None,
+    simulation=None,
+    n_starts: int | None = None,
+    seed: int = 0,
+    max_steps: int | None = None,
+    rtol: float = 1e-6,
+    atol: float = 1e-6,
+    start_values=None,
+    progress: Callable[[str], None] | None = None,
+    method: str | None = None,
+    loss: str | None = None,
+    huber_c: float | None = None,
+    student_nu: float | None = None,
+    sigma: float | Sequence[float] | None = None,
+    solver_rtol: float | None = None,
+    solver_atol: float | None = None,
+    solver_max_steps: int | None = None,
+) -> FitResult:
+    """Fit `free` parameters of `model` to the estimation `experiments`: the one fit.
+
+    **Main arguments:**
+    - `model`: device at its starting values; fields not in `free` stay fixed. With process
+      noise: a `StochasticDevice` (`stochastic_device(...)`) or a plain device (wrapped with
+      the structure of `noise`).
+    - `experiments`: runs to fit (their `role` is not consulted; pass estimation runs). Runs
+      that carry `Experiment.sigma` (known noise per frame) are weighted by it.
+    - `free`: `FreeParameter`s (shared or per-experiment, bounds, priors); with process noise
+      also noise paths (`noise_parameters`).
+    - `noise`: the noise model. `OutputError(loss, sigma)` (default: `OutputError()`, Huber
+      1.5, sigma estimated): least squares on the simulation (free-run) error.
+      `ProcessNoise(structure, filter, initial_state, ...)`: maximum likelihood through the
+      (extended) Kalman filter.
+    - `simulation`: `ZOH()` or `Adaptive(rtol, atol, max_steps)`; None: the device's default.
+
+    **Other arguments:**
+    - `n_starts`, `seed`: multi-start count and its seed; None starts `AUTO_STARTS` times when
+      more than two shared parameters are free, else once. Every start reuses one compiled
+      solver; `multistart_costs` reports them.
+    - `max_steps`: optimiser budget (None: 200 Levenberg-Marquardt steps for least squares,
+      `_likelihood.MAX_STEPS` damped-Newton steps for the likelihood); `rtol`, `atol`: least
+      squares tolerances (raw space).
+    - `start_values`: a hook ``(model, free, experiments) -> free`` setting data-based
+      starting values (e.g. camera offsets from rest readings), or a `DeviceSpec` whose
+      `start_values` hook is used; the command line applies the spec's hook the same way.
+    - `progress`: called with a short text line at each stage (the CLI prints it).
+    - Old string keywords (still accepted, mapped once to the objects): `method`, `loss`,
+      `huber_c`, `student_nu`, `sigma`, `solver_rtol`, `solver_atol`, `solver_max_steps`.
+
+    **Returns:** a `FitResult`. Its `status` and `valid` say whether the estimate is usable:
+    a fit that does not converge, ends on a bound or diverges says so; it never presents NaN
+    parameters as a success.
+    """
+    from greybox._estimate import noise_models as nm
+
+    old = dict(
+        method=method,
+        loss=loss,
+        huber_c=huber_c,
+        student_nu=student_nu,
+        sigma=sigma,
+        solver_rtol=solver_rtol,
+        solver_atol=solver_atol,
+        solver_max_steps=solver_max_steps,
+    )
+    given = [k for k, v in old.items() if v is not None]
+    if noise is None:
+        noise = nm.OutputError(
+            nm.loss_from_string(
+                loss or "huber", 1.5 if huber_c is None else huber_c, student_nu or 4.0
+            ),
+            sigma,
+        )
+    elif not isinstance(noise, nm.ProcessNoise):
+        clash = [k for k in given if k in _OLD_NOISE_KEYWORDS]
+        if clash:
+            raise ValueError(
+                f"{clash[0]}: give it inside the noise object (OutputError(loss=..., "
+                "sigma=...)), not beside noise="
+            )
+    if isinstance(noise, nm.ProcessNoise):
+        if given or simulation is not None:
+            what = given[0] if given else "simulation"
+            raise ValueError(
+                f"{what}: applies to OutputError (least squares) only; a ProcessNoise fit "
+                "takes its filter, initial state and horizons from the ProcessNoise object"
+            )
+        from greybox._estimate.likelihood import fit_likelihood
+
+        return fit_likelihood(
+            model,
+            experiments,
+            free,
+            noise,
+            n_starts=n_starts,
+            seed=seed,
+            max_steps=max_steps,
+            start_values=start_values,
+            progress=progress,
+        )
+    if not isinstance(noise, nm.OutputError):
+        raise ValueError(
+            f"noise: {noise!r} is not a noise model; use greybox.OutputError(...) or "
+            "greybox.ProcessNoise(...)"
+        )
+    if simulation is not None:
+        clash = [k for k in given if k in _OLD_SIMULATION_KEYWORDS]
+        if clash:
+            raise ValueError(
+                f"{clash[0]}: give it inside the simulation object (ZOH() / Adaptive(...)), "
+                "not beside simulation="
+            )
+        if not isinstance(simulation, (nm.ZOH, nm.Adaptive)):
+            raise ValueError(
+                f"simulation: {simulation!r}: use greybox.ZOH() or greybox.Adaptive(...)"
+            )
+    else:
+        simulation = nm.simulation_from_string(
+            method,
+            1e-8 if solver_rtol is None else solver_rtol,
+            1e-10 if solver_atol is None else solver_atol,
+            16384 if solver_max_steps is None else solver_max_steps,
+        )
+    solver = (
+        dict(
+            solver_rtol=simulation.rtol,
+            solver_atol=simulation.atol,
+            solver_max_steps=simulation.max_steps,
+        )
+        if isinstance(simulation, nm.Adaptive)
+        else dict(
+            solver_rtol=1e-8 if solver_rtol is None else solver_rtol,
+            solver_atol=1e-10 if solver_atol is None else solver_atol,
+            solver_max_steps=16384 if solver_max_steps is None else solver_max_steps,
+        )
+    )
+    free = apply_start_values(start_values, model, free, experiments)
+    result = _fit_least_squares(
+        model,
+        experiments,
+        free,
+        method=None if simulation is None else simulation.name,
+        loss=noise.loss.name,
+        huber_c=getattr(noise.loss, "c", 1.5),
+        student_nu=getattr(noise.loss, "nu", 4.0),
+        sigma=noise.sigma,
+        n_starts=n_starts,
+        seed=seed,
+        max_steps=200 if max_steps is None else max_steps,
+        rtol=rtol,
+        atol=atol,
+        progress=progress,
+        **solver,
+    )
+    return dataclasses.replace(result, noise=noise)
+
+
+def apply_start_values(start_values, model, free, experiments) -> tuple:
+    """`free` after the data-based start-value hook (a callable or a `DeviceSpec`'s)."""
+    hook = getattr(start_values, "start_values", start_values)
+    if hook is None:
+        return tuple(free)
+    return tuple(hook(model, tuple(free), tuple(experiments)))
+
+
+def _fit_least_squares(
+    model,
+    experiments: Sequence[Experiment],
+    free: Sequence[FreeParameter],
+    *,
+    method: str | None = None,
+    loss: str = "huber",
+    huber_c: float = 1.5,
+    student_nu: float = 4.0,
+    sigma: float | Sequence[float] | None = None,
+    n_starts: int | None = None,
+    seed: int = 0,
+    max_steps: int = 200,
+    rtol: float = 1e-6,
+    atol: float = 1e-6,
+    solver_rtol: float = 1e-8,
+    solver_atol: float = 1e-10,
+    solver_max_steps: int = 16384,
+    progress: Callable[[str], None] | None = None,
+) -> FitResult:
+    """The least-squares back end of `fit` (free-run simulation error).
+
+    **Main arguments:**
+    - `model`: device at its starting values; fields not in `free` stay fixed.
+    - `experiments`: runs to fit (their `role` is not consulted; pass estimation runs). Runs
+      that carry `Experiment.sigma` (known noise per frame) are weighted by it.
+    - `free`: `FreeParameter`s (shared or per-experiment, bounds, priors).
+
+    **Other arguments:**
+    - `method`: "zoh" (exact, linear devices) or "adaptive" (diffrax with jump times); None
+      takes the device's default.
+    - `loss`: "huber" (default; threshold `huber_c` sigmas), "student_t" (`student_nu` dof) or "l2".
+    - `sigma`: known measurement noise [SI] per output (declared): the readings are weighted
+      by it, it is not re-estimated, and the residuals are tested against it. None estimates
+      it robustly from the residuals; an output with no valid reading in any run is left out
+      of the fit and keeps the starting guess (or its declared value) as its `sigma`.
+    - `n_starts`, `seed`: multi-start count and its random seed; None starts `AUTO_STARTS`
+      times when more than two shared parameters are free, else once.
+    - `max_steps`, `rtol`, `atol`: Levenberg-Marquardt budget and tolerances (raw space).
+    - `solver_*`: adaptive ODE solver tolerances and step budget.
+    - `progress`: called with a short text line at each stage (the CLI prints it).
+
+    **Returns:** a `FitResult`. Its `status` and `valid` say whether the estimate is usable:
+    a fit that does not converge, ends on a bound or diverges says so; it never presents NaN
+    parameters as a success.
+    """
+    require_x64("fit")
+    experiments = tuple(experiments)
+    say = progress or (lambda _msg: None)
+    if not experiments:
+        raise ValueError("experiments: zero runs in the estimation set; give at least one")
+    free = _problem.check_free(model, free)
+    method = check_method(model, method)
+    if loss not in LOSSES:
+        raise ValueError(f"loss: {loss!r} is unknown; use one of {LOSSES}")
+    free = _problem.with_scales(free, model)
+    source = _noise_source(experiments, sigma)
+
+    problem = _Problem.build(
+        model,
+        experiments,
+        free,
+        method,
+        loss,
+        huber_c,
+        student_nu,
+        solver_rtol,
+        solver_atol,
+        solver_max_steps,
+    )
+    n_y = problem.y.shape[-1]
+    if problem.n_data <= problem.n_raw:
+        raise ValueError(
+            f"experiments: {problem.n_data} valid frames cannot determine "
+            f"{problem.n_raw} parameters; add data or free fewer parameters"
+        )
+    raw0 = _initial_raw(problem, model)
+    empty = _outputs_without_data(np.asarray(problem.w))
+    if empty:
+        say(
+            f"output(s) {', '.join(str(j + 1) for j in empty)} have no valid reading in any "
+            "run: left out of the fit; their noise scale is not estimated (it stays at the "
+            "declared sigma, or the starting guess)"
+        )
+
+    def solve(raw_start, sig):
+        return _solve(problem, raw_start, sig, float(rtol), float(atol), int(max_steps))
+
+    if source == "estimated":
+        sig = np.full(n_y, _initial_sigma_guess(experiments))
+    elif source == "declared":
+        sig = np.broadcast_to(np.asarray(sigma, dtype=float), (n_y,)).copy()
+        if not np.all(sig > 0):
+            raise ValueError("sigma: noise scale must be > 0 (SI units of the output)")
+    else:
+        sig = np.ones(n_y)  # the per-frame levels are in the problem's `noise`
+
+    n_starts = _problem.n_starts_for(n_starts, problem.shared)
+    rng = np.random.default_rng(seed)
+    starts = [raw0] + [_perturbed(problem, raw0, rng) for _ in range(int(n_starts) - 1)]
+    runs = []
+    for i, start in enumerate(starts):
+        say(
+            f"start {i + 1}/{len(starts)}: Levenberg-Marquardt ({method}, {loss} loss, "
+            f"{problem.n_raw} parameters, {problem.n_data} frames)"
+        )
+        out = jax.device_get(solve(jnp.asarray(start), jnp.asarray(sig)))
+        runs.append(out)
+        say(
+            f"start {i + 1}/{len(starts)}: cost {float(out['cost']):.6g}, "
+            f"{'converged' if out['ok'] else 'not converged'} after {int(out['steps'])} steps"
+        )
+    finite = [
+        i for i, r in enumerate(runs) if np.isfinite(r["cost"]) and np.all(np.isfinite(r["raw"]))
+    ]
+    best_index = min(finite, key=lambda i: float(runs[i]["cost"])) if finite else 0
+    best = runs[best_index]
+    steps = int(best["steps"])
+
+    if source == "estimated" and np.all(np.isfinite(best["raw"])):
+        sig = _robust_sigma(np.asarray(best["data_residuals"]), np.asarray(problem.w), sig)
+        say(
+            f"noise estimated from residuals: sigma = {', '.join(f'{s:.4g}' for s in sig)} (SI); "
+            "refitting at that scale"
+        )
+        best = jax.device_get(solve(jnp.asarray(best["raw"]), jnp.asarray(sig)))
+        steps += int(best["steps"])
+
+    return _assemble(
+        problem,
+        best,
+        sig,
+        steps,
+        runs,
+        best_index,
+        raw0,
+        experiments,
+        free,
+        source,
+        say,
+        int(max_steps),
+    )
+
+
+def _initial_sigma_guess(experiments) -> float:
+    """A first noise scale: the spread of frame-to-frame differences (refined after the fit)."""
+    diffs = np.concatenate([np.diff(e.y, axis=0).reshape(-1) for e in experiments])
+    diffs = diffs[np.isfinite(diffs)]
+    scale = 1.4826 * np.median(np.abs(diffs)) / np.sqrt(2) if diffs.size else 0.0
+    span = max(np.nanmax(np.abs(e.y)) for e in experiments)
+    return float(max(scale, 1e-3 * span, 1e-300))
+
+
+def _frame_sigma(e: Experiment, sig: np.ndarray) -> np.ndarray:
+    """(N, n_y) noise sd [SI] of each reading: the known per-frame level, else `sig`."""
+    if e.sigma is not None:
+        return np.asarray(e.sigma, dtype=float)
+    return np.broadcast_to(np.asarray(sig, dtype=float), e.y.shape)
+
+
+def _rms_sigma(experiments, n_y: int) -> np.ndarray:
+    """(n_y,) RMS of the known per-frame noise over every valid reading."""
+    num, den = np.zeros(n_y), np.zeros(n_y)
+    for e in experiments:
+        s = np.where(e.mask, e.sigma, 0.0)
+        num += np.sum(s**2, axis=0)
+        den += e.mask.sum(axis=0)
+    return np.sqrt(num / np.maximum(den, 1))
+
+
+def _residual_runs(experiments, predictions) -> list:
+    """(name, t_s, residual, valid, inputs at the frames) per run, for `_residuals.analyse`."""
+    out = []
+    for e, z in zip(experiments, predictions):
+        u = np.asarray(e.inputs(e.t_s), dtype=float).reshape(e.n_frames, -1)
+        out.append((e.name, e.t_s, e.y - z, e.mask, u))
+    return out
+
+
+def _scores(
+    problem: _Problem, jac_data: np.ndarray, resid: np.ndarray, experiments, lags: int
+) -> tuple[list, int]:
+    """((t_s, per-frame score contributions (N, P)) per run, model-error coefficients fitted):
+    g_t = sum_outputs J_t^T r~_t, r~ the residuals less their FIR model-error model on the
+    run's input levels at frame lags 0..`lags`-1 on the frame grid (as the residual analysis
+    counts lags; `_residuals.model_error_residuals`)."""
+    e_n, n_f, n_y = problem.y.shape
+    j4 = jac_data.reshape(e_n, n_f, n_y, -1)
+    r3 = resid.reshape(e_n, n_f, n_y)
+    w3 = np.asarray(problem.w).reshape(e_n, n_f, n_y) > 0
+    out, fitted = [], 0
+    for i, e in enumerate(experiments):
+        n = e.n_frames
+        u = np.asarray(e.inputs(e.t_s), dtype=float).reshape(n, -1)  # levels at the frames
+        r, k = model_error_residuals(e.t_s, r3[i, :n], w3[i, :n], u, lags)
+        fitted += k
+        out.append((e.t_s, np.einsum("fyp,fy->fp", j4[i, :n], r)))
+    return out, fitted
+
+
+def _assemble(
+    problem,
+    best,
+    sig,
+    steps,
+    runs,
+    best_index,
+    raw0,
+    experiments,
+    free,
+    source,
+    say,
+    max_steps: int | None = None,
+) -> FitResult:
+    raw, cost, ok = np.asarray(best["raw"]), float(best["cost"]), bool(best["ok"])
+    raw_j = jnp.asarray(raw)
+    finite = bool(np.all(np.isfinite(raw))) and np.isfinite(cost)
+    say("computing covariance, identifiability and residual tests")
+    jac = np.asarray(best["jacobian"]) if finite else np.full_like(best["jacobian"], np.nan)
+    n_rows_data = jac.shape[0] - len(problem.priors)
+    labels, owners = _labels(problem, experiments)
+    flat_free = problem.flat_free
+    bounds = [p.bound_hit(raw[k], raw0[k]) if finite else None for k, p in enumerate(flat_free)]
+    report = analyse(jac[:n_rows_data], jac[n_rows_data:], flat_free, raw, labels, bounds)
+
+    z, solved = np.asarray(best["predictions"]), np.asarray(best["solved"])
+    preds = [z[i, : e.n_frames] for i, e in enumerate(experiments)]
+    n_y = problem.y.shape[-1]
+    residuals = analyse_residuals(_residual_runs(experiments, preds))
+
+    # Gauss-Newton and HAC sandwich covariance (same determined subspace); the meat leaves
+    # out what the inputs explain of the residuals (misfit, not noise: `_residuals`)
+    cov_gn = report.covariance_raw
+    hac = None
+    if finite:
+        resid = np.asarray(best["residuals"])[:n_rows_data]
+        scores, n_error = _scores(problem, jac[:n_rows_data], resid, experiments, residuals.max_lag)
+        hac = hac_meat(scores, n_readings=problem.n_data, n_fitted=problem.n_raw + n_error)
+        jp = jac[n_rows_data:]
+        cov_hac = cov_gn @ (hac.meat + jp.T @ jp) @ cov_gn
+    else:
+        cov_hac = np.full_like(cov_gn, np.nan)
+    se_method = "gauss-newton" if residuals.all_white else "hac"
+    cov = cov_hac if se_method == "hac" else cov_gn
+    params = parameter_estimates(
+        flat_free, raw, report, labels, owners, covariance_hac=cov_hac, headline=se_method
+    )
+    corr = correlation(report, cov)
+
+    base, per = problem.models(raw_j)
+    exp_models = tuple(
+        problem.experiment_model(base, per[i], problem.settings[i]) for i in range(problem.n_exp)
+    )
+    sigma_out = _rms_sigma(experiments, n_y) if source == "per-frame" else np.asarray(sig)
+    fits, robust, outliers, ceilings = {}, {}, {}, {}
+    scaled = []
+    for e, zi in zip(experiments, preds):
+        s_frame = _frame_sigma(e, sigma_out)
+        fits[e.name], robust[e.name], outliers[e.name], ceilings[e.name] = _scored(e, zi, s_frame)
+        scaled.append((e.y - zi) / s_frame)
+    gof = (
+        goodness_of_fit(scaled, [e.mask for e in experiments], problem.n_raw)
+        if source != "estimated" and finite
+        else None
+    )
+
+    pinned = [
+        (p.name, p.bound, _bound_value(q, p.bound))
+        for p, q in zip(params, flat_free)
+        if p.bound is not None
+    ]
+    unidentified = unidentified_with_reasons(params, report)
+    status, message, at_best = fit_status(
+        finite=finite,
+        solved=bool(np.all(solved)),
+        optimiser_ok=ok,
+        pinned=pinned,
+        costs=[float(r["cost"]) for r in runs],
+        best_index=best_index,
+        unidentified=unidentified,
+        ran_out=max_steps is not None and int(best["steps"]) >= max_steps,
+        start_converged=[bool(r["ok"]) for r in runs],
+    )
+    converged = bool(ok and finite and np.all(solved))
+    return FitResult(
+        model=base,
+        experiment_models=exp_models,
+        experiments=tuple(experiments),
+        free=tuple(free),
+        parameters=params,
+        raw=raw,
+        covariance_raw=cov,
+        correlation=corr,
+        sigma=np.asarray(sigma_out, dtype=float),
+        cost=float(cost),
+        n_data=problem.n_data,
+        converged=converged,
+        message=message,
+        n_steps=int(steps),
+        fit_percent=fits,
+        fit_percent_robust=robust,
+        n_outliers=outliers,
+        identifiability=report,
+        loss=problem.loss,
+        method=problem.method,
+        multistart_costs=tuple((float(r["cost"]), bool(r["ok"])) for r in runs),
+        status=status,
+        valid=status in VALID_STATUSES,
+        noise_ceiling=ceilings,
+        residuals=residuals,
+        covariance_gauss_newton_raw=cov_gn,
+        covariance_hac_raw=cov_hac,
+        se_method=se_method,
+        hac_bandwidth=int(hac.bandwidth) if hac is not None else 0,
+        sigma_source=source,
+        goodness_of_fit=gof,
+        best_start=int(best_index),
+        n_starts_at_best=len(at_best),
+        n_observations=problem.n_data,
+        predictions={e.name: {"simulation": zi} for e, zi in zip(experiments, preds)},
+    )
+
+
+def unidentified_with_reasons(params, report) -> list:
+    """ "name (the weak combination)" of every "not identifiable" estimate."""
+    return [
+        f"{p.name} ({report.explain(k)})"
+        for k, p in enumerate(params)
+        if p.verdict == "not identifiable"
+    ]
+
+
+def _bound_value(p: FreeParameter, bound: str) -> float:
+    return float(p.lower if bound == "lower" else p.upper)
+
+
+def _unidentified_note(names) -> str:
+    if not names:
+        return ""
+    return f"; {len(names)} parameter(s) are not identifiable from these data: {', '.join(names)}"
+
+
+def fit_status(
+    *,
+    finite: bool,
+    solved: bool,
+    optimiser_ok: bool,
+    pinned,
+    costs,
+    best_index: int,
+    unidentified=(),
+    ran_out: bool = False,
+    reason: str | None = None,
+    start_converged=None,
+    optimiser: str = "Levenberg-Marquardt",
+) -> tuple[str, str, list]:
+    """(status, message, indices of the starts that reached the lowest cost) of a fit.
+
+    Most serious first: "diverged" (non-finite estimate), "not converged" (a simulation
+    failed, or the optimiser stopped short while no parameter sits on a bound), "at bound"
+    (`pinned`: (name, "lower"/"upper", bound value) per parameter on a bound; an optimiser
+    chasing a bound often stops short, and the bound is then the cause), "local optimum"
+    (start 0, the given values, converged at a cost above the lowest cost of `costs` by more
+    than SAME_COST relative; the best start is `best_index`), else "converged".
+
+    The one place that derives the status, for both back ends. When the optimiser stopped
+    short: "ran out of steps" (`ran_out`: the step budget was spent) or "not converged"
+    (with `reason` in words when known). `start_converged`: per start, whether it met its
+    tolerances (a start that ran out of steps at a higher cost is not a local optimum).
+    """
+    costs = [float(c) for c in costs]
+    best = costs[best_index] if costs else float("nan")
+    tol = SAME_COST * abs(best) + 1e-12
+    at_best = [i for i, c in enumerate(costs) if np.isfinite(c) and c <= best + tol]
+    if not finite:
+        return (
+            "diverged",
+            "the fit diverged (non-finite parameters or cost); no estimate is reported",
+            at_best,
+        )
+    if not solved:
+        return (
+            "not converged",
+            "an experiment's simulation failed at the final parameters (the adaptive ODE "
+            "solver ran out of steps or its step size collapsed): check the parameters, or "
+            "raise the solver's step budget (`solver_max_steps`; [fit] solver_max_steps in "
+            "experiment.toml), which is not the optimiser's max_steps",
+            at_best,
+        )
+    if pinned:
+        where = ", ".join(f"{name} at its {side} bound {value:g}" for name, side, value in pinned)
+        message = (
+            f"at bound: {where}; the estimate is not valid (the best fit the bounds allow is "
+            "on the boundary, not an optimum of the data, so its standard errors and "
+            "intervals mean nothing): widen the bound, fix the parameter, or revise the model"
+        )
+        if not optimiser_ok:
+            message += " (the optimiser also stopped short, as it does chasing a bound)"
+        return "at bound", message + _unidentified_note(unidentified), at_best
+    if not optimiser_ok:
+        if ran_out:
+            return (
+                "ran out of steps",
+                f"ran out of steps: {optimiser} spent its step budget `max_steps` before "
+                "meeting its tolerances; raise max_steps or start closer; treat the "
+                "estimates as unconverged" + _unidentified_note(unidentified),
+                at_best,
+            )
+        return (
+            "not converged",
+            (
+                f"not converged: {reason}"
+                if reason
+                else f"{optimiser} stopped without meeting its tolerances (stalled); treat "
+                "the estimates as unconverged"
+            )
+            + _unidentified_note(unidentified),
+            at_best,
+        )
+    start0_converged = True if start_converged is None else bool(start_converged[0])
+    if 0 not in at_best and start0_converged:
+        status = "local optimum"
+        message = (
+            f"local optimum: the starting values stopped at cost {costs[0]:.6g}; start "
+            f"{best_index + 1} reached a lower cost {best:.6g} ({len(at_best)} of "
+            f"{len(costs)} starts reached it) and its estimate is reported"
+        )
+    else:
+        status, message = "converged", "converged"
+        if 0 not in at_best:
+            message += (
+                f" (the starting values ran out of steps at cost {costs[0]:.6g}; start "
+                f"{best_index + 1} converged at the lowest cost {best:.6g}, reported)"
+            )
+        elif len(costs) > 1 and len(at_best) < len(costs):
+            message += (
+                f" ({len(at_best)} of {len(costs)} starts reached the lowest cost; the "
+                "others stopped in local optima)"
+            )
+    return status, message + _unidentified_note(unidentified), at_best
+
+
+Z95 = 1.959963984540054  # two-sided 95 % normal quantile
+
+
+def correlation(report: IdentifiabilityReport, covariance=None) -> np.ndarray:
+    """Correlation matrix of the raw coordinates (NaN rows/columns where undetermined), of
+    `covariance` (default: the report's Gauss-Newton covariance)."""
+    cov = report.covariance_raw if covariance is None else np.asarray(covariance)
+    sd = np.where(report.undetermined, np.nan, np.sqrt(np.clip(np.diag(cov), 0, None)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return cov / np.outer(sd, sd)
+
+
+def parameter_estimates(
+    free_flat,
+    raw,
+    report: IdentifiabilityReport,
+    labels=None,
+    owners=None,
+    *,
+    covariance_hac=None,
+    headline: str = "gauss-newton",
+) -> tuple:
+    """One `ParameterEstimate` per raw coordinate: SI value, delta-method standard error and a
+    95 % interval mapped through the transform (so bounds and positivity are respected).
+
+    A parameter reported "not identifiable" or "at bound" (or touching an undetermined
+    direction) gets NaN standard error and interval: no confident-looking number for what
+    the data cannot tell. `headline` ("gauss-newton" or "hac") chooses which covariance gives
+    `se` and `ci95`; both standard errors are kept.
+    """
+    undetermined = report.undetermined
+
+    def sds(cov):
+        if cov is None:
+            return np.full(len(free_flat), np.nan)
+        return np.where(undetermined, np.nan, np.sqrt(np.clip(np.diag(cov), 0, None)))
+
+    sd_gn, sd_hac = sds(report.covariance_raw), sds(covariance_hac)
+    sd_head = sd_hac if headline == "hac" else sd_gn
+    bounds = report.bounds or (None,) * len(free_flat)
+    out = []
+    for k, p in enumerate(free_flat):
+        value = float(p.to_value(raw[k]))
+        verdict = report.verdicts[k]
+        deriv = abs(p.value_derivative(raw[k]))
+        blank = verdict in ("not identifiable", "at bound", "not needed")
+        se_gn = float("nan") if blank else deriv * sd_gn[k]
+        se_hac = float("nan") if blank else deriv * sd_hac[k]
+        if blank or not np.isfinite(sd_head[k]):
+            se, ci = float("nan"), (float("nan"), float("nan"))
+        else:
+            se = deriv * sd_head[k]
+            lo, hi = (float(p.to_value(raw[k] + s * Z95 * sd_head[k])) for s in (-1, 1))
+            ci = (min(lo, hi), max(lo, hi))
+            verdict = interval_verdict(verdict, ci)  # > WEAK_FACTOR wide: weakly identified
+        prior = (p.prior_median, p.prior_log_sd) if p.has_prior else None
+        label = labels[k] if labels is not None else p.path
+        owner = owners[k] if owners is not None else None
+        out.append(
+            ParameterEstimate(
+                label,
+                p.path,
+                p.unit,
+                value,
+                se,
+                ci,
+                verdict,
+                owner,
+                prior,
+                se_gauss_newton=float(se_gn),
+                se_hac=float(se_hac),
+                se_method=headline,
+                bound=bounds[k] if bounds[k] in ("lower", "upper") else None,
+            )
+        )
+    return tuple(out)
+
+
+def _labels(problem, experiments):
+    """Display name and owning experiment (None if shared) of each raw coordinate."""
+    return _problem.labels(problem.shared, problem.per_exp, experiments)
+
+
+@dataclasses.dataclass(frozen=True)
+class ValidationResult:
+    """Free-run simulation of runs not used for fitting (physical parameters held fixed).
+
+    Only per-run nuisance parameters (offsets, drift, initial state) are re-estimated on each
+    validation run, as MATLAB `compare` estimates initial conditions; `fit_percent` is
+    simulation fit %, never one-step prediction. Per run name: `fit_percent`,
+    `fit_percent_robust`, `noise_ceiling` ((n_y,) per output), `n_outliers`; `residuals`: the
+    residual analysis of the validation runs; `goodness_of_fit`: against the known noise
+    (None when the fit estimated it); `parameters`: the per-run values re-fitted on the
+    validation runs (`ParameterEstimate`s with `experiment` set to the run; empty when the
+    fit has no per-run parameter).
+    """
+
+    experiments: tuple
+    predictions: tuple  # (N, n_y) SI per run
+    fit_percent: dict  # every valid frame
+    fit_percent_robust: dict  # without the frames flagged as outliers
+    n_outliers: dict
+    noise_ceiling: dict
+    residuals: ResidualAnalysis
+    goodness_of_fit: GoodnessOfFit | None = None
+    horizon: str = "simulation"
+    parameters: tuple = ()
+    runs: tuple = ()  # process noise: `RunDiagnostics` per run (innovations, every horizon)
+
+    def refitted(self, run: str) -> dict:
+        """{path: ParameterEstimate} re-fitted on validation run `run`."""
+        return {p.path: p for p in self.parameters if p.experiment == run}
+
+
+def validate(
+    result: FitResult, experiments: Sequence[Experiment], **fit_kwargs
+) -> ValidationResult:
+    """Score fitted physics on new runs: re-fit only per-experiment parameters, then simulate
+    (process noise: also filter, scoring the innovations and every horizon in `runs`)."""
+    per_exp = [p for p in result.free if p.per_experiment]
+    experiments = tuple(experiments)
+    if not experiments:
+        raise ValueError("experiments: no validation runs given")
+    if result.process_noise:
+        from greybox._estimate.likelihood import validate_runs
+
+        pairs = validate_runs(result, experiments)
+        diags = tuple(d for d, _ in pairs)
+        preds = [d.y_simulation for d in diags]
+        scores = _validation_scores(experiments, preds, result.sigma, False, 0)
+        refit = tuple(p for _, ps in pairs for p in ps)
+        return dataclasses.replace(scores, parameters=refit, runs=diags)
+    known = result.noise_known
+    if not per_exp:
+        from greybox._simulate.simulate import simulate
+
+        preds = []
+        for e in experiments:
+            z = np.asarray(
+                simulate(
+                    e.apply_settings(result.model),
+                    e.inputs,
+                    e.t_s,
+                    method=result.method,
+                    t_start_s=e.t_start_s,
+                )
+            ).reshape(e.n_frames, -1)
+            preds.append(z)
+        return _validation_scores(experiments, preds, result.sigma, known, 0)
+    fit_kwargs.setdefault("method", result.method)
+    fit_kwargs.setdefault("loss", result.loss)
+    if not all(e.sigma is not None for e in experiments):
+        fit_kwargs.setdefault("sigma", result.sigma)
+    nuisance = fit(result.model, experiments, per_exp, **fit_kwargs)
+    preds = [nuisance.predict(i) for i in range(len(experiments))]
+    scores = _validation_scores(experiments, preds, result.sigma, known, nuisance.n_params)
+    return dataclasses.replace(scores, parameters=tuple(nuisance.parameters))
+
+
+def _validation_scores(experiments, preds, sigma, known: bool, n_params: int):
+    fits, robust, outl, ceilings, scaled = {}, {}, {}, {}, []
+    for e, z in zip(experiments, preds):
+        s_frame = _frame_sigma(e, sigma)
+        fits[e.name], robust[e.name], outl[e.name], ceilings[e.name] = _scored(e, z, s_frame)
+        scaled.append((e.y - z) / s_frame)
+    gof = goodness_of_fit(scaled, [e.mask for e in experiments], n_params) if known else None
+    return ValidationResult(
+        experiments,
+        tuple(preds),
+        fits,
+        robust,
+        outl,
+        ceilings,
+        analyse_residuals(_residual_runs(experiments, preds)),
+        gof,
+    )
+
+
+def _scored(e: Experiment, z: np.ndarray, s_frame) -> tuple:
+    """Per output (n_y,) arrays: (simulation fit % on every valid frame, fit % without the
+    readings more than OUTLIER_SIGMAS from the model, the number of such readings (int), the
+    noise ceiling). `s_frame`: noise sd per reading (N, n_y).
+
+    The first is MATLAB `compare`'s figure (per output channel, as `compare` reports it) and
+    the honest headline: a model that drifts away from the data loses fit % for it. The
+    second shows what a few corrupted camera frames cost; reports label both. The ceiling is
+    the fit % the true model would score at this noise on the unflagged readings (a few
+    corrupted frames would otherwise inflate std(y) and the ceiling with it); compare it with
+    the second figure.
+    """
+    s_frame = np.broadcast_to(np.asarray(s_frame, dtype=float), e.y.shape)
+    flagged = (np.abs((e.y - z) / s_frame) > OUTLIER_SIGMAS) & e.mask
+    clean = np.where(flagged, np.nan, e.y)
+    ceiling = np.array([noise_ceiling(clean[:, j], s_frame[:, j]) for j in range(e.y.shape[1])])
+    return (
+        fit_percent_per_output(e.y, z),
+        fit_percent_per_output(clean, z),
+        int(np.sum(flagged)),
+        ceiling,
+    )

@@ -1,0 +1,226 @@
+"""Uncertainty bands for simulating a new input waveform with fitted parameters (pure).
+
+Delta method: with raw (transformed) shared parameters r and their posterior covariance C
+(from `greybox._estimate.fit`), the simulated camera reading y(t) = f(r) has variance
+J C J^T, J = dy/dr computed by forward-mode autodiff through the same simulation code
+`greybox._simulate.simulate` uses. Per-run nuisance parameters (camera offset, drift) belong to the
+recorded runs, not to a new waveform: they are left out of J and C, and the model keeps its
+own values for them (0 for the device defaults), so the output is the displacement from rest.
+
+Two kinds of band, and `Band.kind` says which one a result is:
+
+- confidence band (default): parameter uncertainty only; where the model's response is
+  expected to lie.
+- prediction interval (`sigma` given): adds the measurement noise sigma^2; where new camera
+  readings are expected to fall.
+
+Parameter directions that nothing determined (a "not identifiable" combination: NaN rows
+of C, or the fit's `null_directions`) do not widen the band when the output does not depend
+on them (e.g. the new response depends only on a product that the data did fix); when it
+does depend on them, the band is infinite rather than falsely narrow.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from greybox._model.device import check_method
+from greybox._model.freeparams import apply_raw
+from greybox._simulate.simulate import (
+    as_arrays,
+    observe_schedule,
+    pad_schedules,
+    require_x64,
+    schedule_for,
+)
+
+NEGLIGIBLE_SENSITIVITY = 1e-6  # relative |dy/d direction| treated as "does not depend"
+
+
+@dataclasses.dataclass(frozen=True)
+class Band:
+    """A simulated response with a pointwise band (SI units of the outputs).
+
+    `y`, `lower`, `upper`, `sd_model`, `sd`: shape (N, n_y). `sd_model` is the parameter
+    part, `sd` what the band uses (with noise for a prediction interval).
+    """
+
+    t_s: np.ndarray
+    y: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    sd_model: np.ndarray
+    sd: np.ndarray
+    level: float
+    includes_noise: bool
+
+    @property
+    def kind(self) -> str:
+        pct = f"{self.level * 100:g} %"
+        if self.includes_noise:
+            return (
+                f"{pct} prediction interval for new camera readings: parameter "
+                "uncertainty (delta method) plus measurement noise sigma"
+            )
+        return (
+            f"{pct} confidence band of the model response: parameter uncertainty only "
+            "(delta method); single camera readings scatter further by the noise sigma"
+        )
+
+
+def prediction_band(
+    model,
+    free,
+    raw,
+    covariance_raw,
+    inputs,
+    t_s,
+    *,
+    sigma=None,
+    null_directions=None,
+    level: float = 0.95,
+    method: str | None = None,
+    t_start_s: float = 0.0,
+) -> Band:
+    """Simulate `inputs` at times `t_s` with a pointwise band from the parameter covariance.
+
+    **Arguments:**
+    - `model`: the fitted model (shared parameters at their fitted values).
+    - `free`: the fit's `FreeParameter`s, in the order of `raw` (shared ones first).
+    - `raw`, `covariance_raw`: the fit's raw vector and its covariance (all parameters;
+      only the leading shared block is used).
+    - `inputs`: waveform in SI (W for laser power); `t_s`: output times [s], increasing.
+    - `sigma`: measurement noise per output [SI]; given, the band is a prediction interval.
+    - `null_directions`: (k, n_raw) directions nothing determined (see
+      `greybox._estimate.identifiability`), if the covariance leaves them out.
+    - `level`: coverage of the pointwise band (default 0.95).
+
+    **Returns:** a `Band`. **Raises:** `ValueError` for non-finite fitted values (a fit that
+    diverged) or a failed simulation.
+    """
+    require_x64("prediction_band")
+    method = check_method(model, method)
+    if not 0 < level < 1:
+        raise ValueError(f"level: {level} must be in (0, 1)")
+    shared = tuple(p for p in free if not p.per_experiment)
+    n_shared = len(shared)
+    raw = np.asarray(raw, dtype=float)
+    cov = np.asarray(covariance_raw, dtype=float)[:n_shared, :n_shared]
+    if not np.all(np.isfinite(raw[:n_shared])):
+        raise ValueError(
+            "raw: fitted values are not finite (the fit diverged); no simulation "
+            "or band can be computed"
+        )
+    # Undetermined directions: coordinates with NaN covariance, plus any given null directions.
+    unknown = ~np.all(np.isfinite(cov), axis=1)
+    nulls = [np.eye(n_shared)[k] for k in np.flatnonzero(unknown)]
+    if null_directions is not None and np.size(null_directions):
+        nulls += [
+            v[:n_shared]
+            for v in np.atleast_2d(np.asarray(null_directions, dtype=float))
+            if np.linalg.norm(v[:n_shared]) > NEGLIGIBLE_SENSITIVITY
+        ]
+    cov = np.where(unknown[:, None] | unknown[None, :], 0.0, cov)
+    t = np.asarray(t_s, dtype=float)
+    sched = pad_schedules([schedule_for(model, inputs, t, t_start_s=t_start_s)])
+    row = {k: v[0] for k, v in sched.items()}
+    base = as_arrays(model)
+
+    def observe(r):
+        return observe_schedule(with_shared(base, shared, r), row, method=method)
+
+    @jax.jit
+    def response_and_jacobian(r):
+        z, ok = observe(r)
+        jac = jax.jacfwd(lambda rr: observe(rr)[0])(r) if n_shared else None
+        return z, ok, jac
+
+    z, ok, jac = response_and_jacobian(jnp.asarray(raw[:n_shared]))
+    if not bool(ok):
+        raise ValueError(
+            "simulation failed for this waveform (adaptive solver); check the "
+            "waveform and the fitted parameters"
+        )
+    n = t.size
+    y = np.asarray(z)[:n]
+    var = np.zeros_like(y)
+    if n_shared:
+        g = np.asarray(jac)[:n]  # (N, n_y, P): sensitivity of each output to each raw value
+        var = np.einsum("nyp,pq,nyq->ny", g, (cov + cov.T) / 2, g)
+        scale = np.linalg.norm(g, axis=-1) + 1e-300
+        for v in nulls:
+            depends = np.abs(g @ v) > NEGLIGIBLE_SENSITIVITY * scale * np.linalg.norm(v)
+            var = np.where(depends, np.inf, var)
+    sd_model = np.sqrt(np.clip(var, 0.0, None))
+    includes_noise = sigma is not None
+    total = var + (
+        np.broadcast_to(np.asarray(sigma, dtype=float), y.shape[1:]) ** 2 if includes_noise else 0.0
+    )
+    sd = np.sqrt(total)
+    zq = float(jax.scipy.special.ndtri((1.0 + level) / 2.0))
+    return Band(t, y, y - zq * sd, y + zq * sd, sd_model, sd, float(level), includes_noise)
+
+
+def with_shared(model, free, raw):
+    """`model` with each shared (not per-experiment) free parameter set from its raw value.
+
+    `raw` holds the shared raw coordinates first, in the order of `free` (as a fit's `raw`);
+    jit/vmap-able, so functions of the fitted model can be mapped over parameter draws.
+    """
+    return apply_raw(model, [p for p in free if not p.per_experiment], raw)
+
+
+def raw_draws(raw, covariance_raw, free, n: int, *, seed: int = 0) -> np.ndarray:
+    """`n` Gaussian draws (n, n_shared) of the shared raw coordinates from a fit's covariance.
+
+    Raw coordinates are log/logit/linear transforms of the parameters, so draws respect bounds
+    and positivity once mapped back. Raises ValueError when a shared parameter's covariance is
+    not finite (not identifiable): there is nothing honest to draw from.
+    """
+    n_shared = sum(not p.per_experiment for p in free)
+    mean = np.asarray(raw, dtype=float)[:n_shared]
+    cov = np.asarray(covariance_raw, dtype=float)[:n_shared, :n_shared]
+    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))):
+        raise ValueError(
+            "covariance_raw: not finite for the shared parameters (a parameter is "
+            "not identifiable or the fit diverged); free fewer parameters or add "
+            "priors before propagating uncertainty"
+        )
+    rng = np.random.default_rng(seed)
+    return rng.multivariate_normal(mean, (cov + cov.T) / 2, size=int(n))
+
+
+def propagate(fn, model, free, raw, covariance_raw, n: int, *, seed: int = 0) -> np.ndarray:
+    """Push `n` parameter draws through `fn(model) -> array`: (n, ...) samples of `fn`.
+
+    The Monte Carlo counterpart of the delta method: use it for quantities that are not
+    smooth enough (an optimum, a threshold) or when the interval may be asymmetric.
+    """
+    draws = jnp.asarray(raw_draws(raw, covariance_raw, free, n, seed=seed))
+    base = as_arrays(model)
+    return np.asarray(jax.jit(jax.vmap(lambda r: fn(with_shared(base, free, r))))(draws))
+
+
+def delta_method(fn, model, free, raw, covariance_raw) -> tuple[np.ndarray, np.ndarray]:
+    """(value, covariance) of `fn(model)` to first order in a fit's shared raw parameters.
+
+    `fn(model) -> array` must be differentiable in the parameters (no argmax, bisection or
+    thresholds: use `propagate` for those). Its Jacobian J with respect to the shared raw
+    coordinates gives cov = J C J^T. Raises ValueError if C is not finite for them.
+    """
+    n_shared = sum(not p.per_experiment for p in free)
+    cov = np.asarray(covariance_raw, dtype=float)[:n_shared, :n_shared]
+    if not np.all(np.isfinite(cov)):
+        raise ValueError(
+            "covariance_raw: not finite for the shared parameters (a parameter is "
+            "not identifiable); the delta method needs a finite covariance"
+        )
+    base = as_arrays(model)
+    of_raw = jax.jit(lambda r: jnp.atleast_1d(fn(with_shared(base, free, r))))
+    r0 = jnp.asarray(raw, dtype=float)[:n_shared]
+    jac = np.asarray(jax.jacfwd(of_raw)(r0)).reshape(-1, n_shared)
+    return np.asarray(of_raw(r0)), jac @ cov @ jac.T

@@ -1,0 +1,441 @@
+"""One simulation entry point with two paths that agree (PHYSICS.md §11, STYLE.md §G2).
+
+- ``method="zoh"``: exact zero-order-hold discretisation of a linear device. The time grid is
+  the union of the input's switching times and every camera evaluation instant, so each
+  interval has a constant input and x+ = expm(A h) x + int_0^h expm(A s) ds B u is exact;
+  the intervals are stepped with `lax.scan`, or, on an accelerator or for a long record, with
+  `lax.associative_scan` (the interval maps x -> Phi x + Gamma u compose associatively, so
+  the states are prefix compositions computed in log depth; `zoh_scan_kind`).
+- ``method="adaptive"``: diffrax Tsit5 with a PID controller clipped to the input's jump times
+  (`ClipStepSizeController(jump_ts=...)`), forward-mode adjoint (Levenberg-Marquardt builds
+  Jacobians with jvp) and ``throw=False`` so that a failed solve never aborts an outer fit.
+
+Observations are produced at arbitrary (irregular) camera timestamps; the camera's exposure is
+averaged with Gauss-Legendre nodes evaluated identically on both paths.
+
+The numpy preprocessing (`Schedule`) depends only on data, never on parameters, so it is built
+once per experiment; everything after it is a pure, jit-able function of the model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from greybox._model.data import check_times
+from greybox._model.device import METHODS, AbstractDevice, AbstractSteppedDevice, check_method
+from greybox._model.waveforms import PiecewiseConstant
+
+
+def require_x64(where: str) -> None:
+    """Fits and simulations need float64; the library never flips global config itself."""
+    if not jax.config.jax_enable_x64:
+        raise ValueError(
+            f"{where}: float64 is disabled; call jax.config.update('jax_enable_x64', True) "
+            "before using greybox (the greybox command and scripts do this for you)"
+        )
+
+
+@dataclasses.dataclass(frozen=True)
+class Schedule:
+    """Data-only simulation plan for one experiment (numpy arrays, built once).
+
+    Frames `t_s` (N,) are expanded to N*q evaluation instants (exposure quadrature). The ZOH
+    grid has L intervals of length `dt` with input level `u_grid`; `eval_index` (N*q,) points
+    into the L+1 grid states. The adaptive path uses `eval_t` (sorted), `breaks`/`levels`
+    (input lookup) and `jump_ts`; `eval_order` maps sorted evaluation back to frame order.
+    """
+
+    t_s: np.ndarray
+    t_start_s: float
+    n_quad: int
+    dt: np.ndarray
+    u_grid: np.ndarray
+    eval_index: np.ndarray
+    eval_t: np.ndarray
+    eval_order: np.ndarray
+    breaks: np.ndarray
+    levels: np.ndarray
+    jump_ts: np.ndarray
+
+    @staticmethod
+    def build(
+        inputs: PiecewiseConstant,
+        t_s,
+        quad_offsets_s,
+        *,
+        t_start_s: float = 0.0,
+        n_inputs: int | None = None,
+    ) -> Schedule:
+        t = check_times(t_s)
+        inputs = inputs.to_piecewise()
+        levels = inputs.values.reshape(len(inputs.times_s), -1)
+        if n_inputs is not None and levels.shape[1] != n_inputs:
+            raise ValueError(
+                f"inputs: the device takes {n_inputs} input channel(s) but the "
+                f"waveform has {levels.shape[1]}"
+            )
+        offsets = np.asarray(quad_offsets_s, dtype=float)
+        quad_t = (t[:, None] + offsets[None, :]).reshape(-1)
+        t_start = float(min(t_start_s, quad_t.min(), inputs.times_s[0]))
+        edges = inputs.switch_times()
+        edges = edges[(edges > t_start) & (edges < quad_t.max())]
+        eval_order = np.argsort(quad_t, kind="stable")
+        eval_t = quad_t[eval_order]
+        grid = np.unique(np.concatenate([[t_start], edges, quad_t]))
+        dt = np.diff(grid)
+        # level on [grid[i], grid[i+1]): right-continuous lookup at the left end
+        idx = np.searchsorted(inputs.times_s, grid[:-1], side="right") - 1
+        u_grid = np.where((idx >= 0)[:, None], levels[np.clip(idx, 0, None)], 0.0)
+        eval_index = np.searchsorted(grid, quad_t)
+        return Schedule(
+            t_s=t,
+            t_start_s=t_start,
+            n_quad=offsets.size,
+            dt=dt,
+            u_grid=u_grid,
+            eval_index=eval_index,
+            eval_t=eval_t,
+            eval_order=eval_order,
+            breaks=inputs.times_s.copy(),
+            levels=levels,
+            jump_ts=edges,
+        )
+
+
+def _bucket(n: int) -> int:
+    """Round a length up so similar data share one compilation: to a power of two up to 256,
+    then to a multiple of 256 (padding costs scan steps, so large records are padded less)."""
+    n = max(int(n), 1)
+    if n <= 256:
+        return max(16, 1 << (n - 1).bit_length())
+    return -(-n // 256) * 256
+
+
+def pad_schedules(schedules: Sequence[Schedule], *, on_device: bool = True) -> dict:
+    """Stack schedules of different lengths into equal-shape arrays for `jax.vmap`.
+
+    Lengths are rounded up (`_bucket`), so runs of similar size reuse one compiled function.
+    Padding is inert: ZOH intervals of length 0 (identity step), evaluation instants repeated
+    at the end, breakpoints and jump times pushed past the end of the record.
+    `on_device=False` keeps numpy arrays (for callers that stack many before one transfer).
+    """
+    n_frames = _bucket(max(s.t_s.size for s in schedules))
+    n_int = _bucket(max(s.dt.size for s in schedules))
+    n_breaks = _bucket(max(s.breaks.size for s in schedules))
+    n_jumps = _bucket(max(s.jump_ts.size for s in schedules))
+    n_u = schedules[0].levels.shape[1]
+    out = {
+        k: []
+        for k in (
+            "t_s",
+            "t_start",
+            "dt",
+            "u_grid",
+            "eval_index",
+            "eval_t",
+            "unsort",
+            "breaks",
+            "levels",
+            "jump_ts",
+        )
+    }
+    for s in schedules:
+        pad_f = n_frames - s.t_s.size
+        q = s.n_quad
+        t_end = s.eval_t[-1]
+        out["t_s"].append(np.concatenate([s.t_s, np.full(pad_f, s.t_s[-1])]))
+        out["t_start"].append(s.t_start_s)
+        out["dt"].append(np.concatenate([s.dt, np.zeros(n_int - s.dt.size)]))
+        out["u_grid"].append(np.vstack([s.u_grid, np.zeros((n_int - s.dt.size, n_u))]))
+        out["eval_index"].append(
+            np.concatenate([s.eval_index, np.full(pad_f * q, s.eval_index[-1])])
+        )
+        out["eval_t"].append(np.concatenate([s.eval_t, np.full(pad_f * q, t_end)]))
+        # frame-major position of each sorted evaluation; padded frames read the last one
+        unsort = np.empty_like(s.eval_order)
+        unsort[s.eval_order] = np.arange(s.eval_order.size)
+        out["unsort"].append(np.concatenate([unsort, np.full(pad_f * q, unsort.size - 1)]))
+        far = t_end + 1.0 + np.arange(n_breaks - s.breaks.size)
+        out["breaks"].append(np.concatenate([s.breaks, far]))
+        out["levels"].append(
+            np.vstack([s.levels, np.repeat(s.levels[-1:], n_breaks - s.breaks.size, 0)])
+        )
+        far_j = t_end + 1.0 + np.arange(n_jumps - s.jump_ts.size)
+        out["jump_ts"].append(np.concatenate([s.jump_ts, far_j]))
+    to = jnp.asarray if on_device else np.asarray
+    return {k: to(np.stack(v)) for k, v in out.items()}
+
+
+_EXPM_MAX_SQUARINGS = 24  # handles |A h| up to ~4e6: far beyond any RC time-constant ratio
+
+
+def expm_taylor(x):
+    """Matrix exponential by a degree-12 Taylor series with scaling and squaring.
+
+    Plain polynomial arithmetic with a fixed loop length: its forward-mode derivative is cheap
+    under `vmap`, unlike the branchy Pade implementation. After scaling |x / 2^s|_1 <= 1/4, so
+    the truncation error is below 1e-15 relative.
+    """
+    n = x.shape[0]
+    norm = jnp.max(jnp.sum(jnp.abs(x), axis=0))
+    s = jnp.clip(jnp.ceil(jnp.log2(jnp.maximum(norm, 1e-300) / 0.25)), 0, _EXPM_MAX_SQUARINGS)
+    y = x / 2.0**s
+    eye = jnp.eye(n, dtype=x.dtype)
+    t = eye
+    for k in range(12, 0, -1):  # Horner form of sum_k y^k / k!
+        t = eye + y @ t / k
+    return jax.lax.fori_loop(0, _EXPM_MAX_SQUARINGS, lambda i, t: jnp.where(i < s, t @ t, t), t)
+
+
+def zoh_matrices(a, b, dt):
+    """Exact ZOH transition and input matrices (Phi (L, n, n), Gamma (L, n, m)) for steps `dt`."""
+    n, m = b.shape
+    if n == 1:  # scalar state: closed form, far cheaper to differentiate than a matrix series
+        a0 = a[0, 0]
+        phi = jnp.exp(a0 * dt)
+        # Gamma = b (e^{ah} - 1) / a, written with expm1 so that tiny a h keeps full precision
+        gain = jnp.where(a0 != 0, jnp.expm1(a0 * dt) / jnp.where(a0 != 0, a0, 1.0), dt)
+        return phi[:, None, None], gain[:, None, None] * b[None]
+    aug = jnp.zeros((n + m, n + m)).at[:n, :n].set(a).at[:n, n:].set(b)
+    # expm([[A, B], [0, 0]] h) = [[Phi, Gamma], [0, I]] gives both ZOH matrices at once
+    blocks = jax.vmap(lambda h: expm_taylor(aug * h))(dt)
+    return blocks[:, :n, :n], blocks[:, :n, n:]
+
+
+ZOH_SCANS = ("auto", "sequential", "associative")
+ASSOCIATIVE_MIN_INTERVALS = 16384  # on a CPU the two scans ran within ~20 % of each other at
+# 1,000-64,000 intervals (1- and 3-node chevron, linear TCLab); beyond this, log depth wins
+
+
+def zoh_scan_kind(n_intervals: int, scan: str = "auto") -> str:
+    """Which scan steps the ZOH intervals: "sequential" (one interval after another) or
+    "associative" (`jax.lax.associative_scan`, log depth: what an accelerator needs, since a
+    sequential scan runs one tiny kernel per interval). "auto" takes the associative scan on
+    an accelerator (`jax.default_backend() != "cpu"`) or for records of at least
+    `ASSOCIATIVE_MIN_INTERVALS` intervals, else the sequential one. Both give the same
+    states to rounding (`tests/test_simulate_scan.py`)."""
+    if scan not in ZOH_SCANS:
+        raise ValueError(f"zoh_scan: {scan!r} is unknown; use one of {ZOH_SCANS}")
+    if scan != "auto":
+        return scan
+    if jax.default_backend() != "cpu" or int(n_intervals) >= ASSOCIATIVE_MIN_INTERVALS:
+        return "associative"
+    return "sequential"
+
+
+def _compose(earlier, later):
+    """(A2, b2) o (A1, b1) = (A2 A1, A2 b1 + b2): the map x -> A1 x + b1, then A2 x + b2."""
+    a1, b1 = earlier
+    a2, b2 = later
+    return a2 @ a1, (a2 @ b1[..., None])[..., 0] + b2
+
+
+def _zoh_grid_states(model: AbstractDevice, x0, dt, u_grid, scan: str = "auto"):
+    """States at every grid point (L+1, n) by exact ZOH steps x+ = Phi x + Gamma u.
+
+    Each interval is the affine map x -> Phi x + Gamma u; the maps compose associatively, so
+    the states are also the prefix compositions applied to x0 (`zoh_scan_kind`)."""
+    a, b = model.linear_dynamics()
+    phi, gamma = zoh_matrices(a, b, dt)
+    drive = (gamma @ u_grid[..., None])[..., 0]  # (L, n): Gamma u of each interval
+    if zoh_scan_kind(dt.shape[0], scan) == "associative":
+        phi_cum, drive_cum = jax.lax.associative_scan(_compose, (phi, drive))
+        xs = (phi_cum @ x0[:, None])[..., 0] + drive_cum
+    else:
+
+        def step(x, inp):
+            p, d = inp
+            x = p @ x + d
+            return x, x
+
+        _, xs = jax.lax.scan(step, x0, (phi, drive))
+    return jnp.concatenate([x0[None], xs]), jnp.array(True)
+
+
+def input_at(breaks, levels, t):
+    """Right-continuous piecewise-constant lookup (0 before the first breakpoint)."""
+    idx = jnp.searchsorted(breaks, t, side="right") - 1
+    return jnp.where(idx >= 0, levels[jnp.clip(idx, 0)], 0.0)
+
+
+ADJOINTS = {"forward": dfx.ForwardMode, "reverse": dfx.RecursiveCheckpointAdjoint}
+
+
+def _adaptive_states(
+    model: AbstractDevice,
+    x0,
+    t_start,
+    eval_t,
+    breaks,
+    levels,
+    jump_ts,
+    rtol,
+    atol,
+    max_steps,
+    adjoint="forward",
+):
+    """States at the (sorted) evaluation instants, and whether the solve succeeded."""
+
+    def vector_field(t, x, args):
+        return model.vector_field(t, x, input_at(breaks, levels, t))
+
+    controller = dfx.ClipStepSizeController(
+        dfx.PIDController(rtol=rtol, atol=atol), jump_ts=jump_ts
+    )
+    sol = dfx.diffeqsolve(
+        dfx.ODETerm(vector_field),
+        dfx.Tsit5(),
+        t_start,
+        eval_t[-1],
+        None,
+        x0,
+        saveat=dfx.SaveAt(ts=eval_t),
+        stepsize_controller=controller,
+        adjoint=ADJOINTS[adjoint](),
+        max_steps=max_steps,
+        throw=False,
+    )
+    return sol.ys, sol.result == dfx.RESULTS.successful
+
+
+def observe_schedule(
+    model: AbstractDevice,
+    sched: dict,
+    *,
+    method: str = "zoh",
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 16384,
+    adjoint: str = "forward",
+    zoh_scan: str = "auto",
+):
+    """Camera readings (N, n_y) [SI] and a success flag for one (padded) schedule dict.
+
+    Pure and jit/vmap-able: `sched` holds the arrays of one row of `pad_schedules`.
+    `adjoint` (adaptive path only): "forward" (ForwardMode; what Levenberg-Marquardt's jvp
+    Jacobians need) or "reverse" (RecursiveCheckpointAdjoint, for `jax.grad`/`jacrev`).
+    """
+    if isinstance(model, AbstractSteppedDevice):
+        return model.observe_schedule(sched, method)
+    x0 = jnp.asarray(model.initial_state(), dtype=float)
+    n_frames = sched["t_s"].shape[0]
+    if method == "zoh":
+        grid, ok = _zoh_grid_states(model, x0, sched["dt"], sched["u_grid"], zoh_scan)
+        states = grid[sched["eval_index"]]
+    elif method == "adaptive":
+        sorted_states, ok = _adaptive_states(
+            model,
+            x0,
+            sched["t_start"],
+            sched["eval_t"],
+            sched["breaks"],
+            sched["levels"],
+            sched["jump_ts"],
+            rtol,
+            atol,
+            max_steps,
+            adjoint,
+        )
+        states = sorted_states[sched["unsort"]]
+    else:
+        raise ValueError(f"method: {method!r} is unknown; use one of {METHODS}")
+    outputs = jax.vmap(model.output)(states)
+    outputs = outputs.reshape(n_frames, -1, outputs.shape[-1])
+    z = model.readout.observe(outputs, sched["t_s"], sched["t_start"])
+    return z, ok
+
+
+def schedule_for(model: AbstractDevice, inputs, t_s, *, t_start_s: float = 0.0) -> Schedule:
+    offsets, _ = model.readout.quadrature()
+    return Schedule.build(
+        inputs.to_piecewise(), t_s, offsets, t_start_s=t_start_s, n_inputs=model.n_inputs
+    )
+
+
+def schedules_for(model: AbstractDevice, experiments) -> list[Schedule]:
+    """`schedule_for` of each experiment (anything with `inputs`, `t_s`, `t_start_s`), with the
+    readout's quadrature computed once for all of them."""
+    offsets, _ = model.readout.quadrature()
+    return [
+        Schedule.build(
+            e.inputs.to_piecewise(),
+            e.t_s,
+            offsets,
+            t_start_s=e.t_start_s,
+            n_inputs=model.n_inputs,
+        )
+        for e in experiments
+    ]
+
+
+def simulate(
+    model: AbstractDevice,
+    inputs,
+    t_s,
+    *,
+    method: str | None = None,
+    t_start_s: float = 0.0,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 16384,
+    throw: bool = True,
+    zoh_scan: str = "auto",
+):
+    """Simulate what the camera sees for a given input waveform.
+
+    **Arguments:**
+    - `model`: a device (e.g. `greybox.get_device("chevron_laser").model()`).
+    - `inputs`: a waveform (`PulseTrain`, `PiecewiseConstant`, ...) in the device's input units
+      (laser power in W), one channel per device input.
+    - `t_s`: frame timestamps [s], shape (N,), strictly increasing, any spacing.
+    - `method`: "zoh" (exact, linear devices) or "adaptive" (diffrax Tsit5 with jump times);
+      None picks the device's default (`greybox._model.device.default_method`).
+    - `t_start_s`: time [s] at which the device is in `model.initial_state()` (default 0).
+    - `rtol`, `atol`, `max_steps`: adaptive solver settings (state units: K).
+    - `throw`: raise if the adaptive solve fails; with False the result is NaN instead.
+    - `zoh_scan`: how the ZOH path steps its intervals: "sequential", "associative" (a
+      parallel prefix scan, for accelerators and long records) or "auto" (`zoh_scan_kind`).
+
+    **Returns:** observations in SI (m for displacement), shape (N,) for one output, else (N, n_y).
+    """
+    require_x64("simulate")
+    method = check_method(model, method)
+    sched = pad_schedules([schedule_for(model, inputs, t_s, t_start_s=t_start_s)])
+    row = {k: v[0] for k, v in sched.items()}
+    zoh_scan_kind(0, zoh_scan)  # a clear error for a misspelt scan before compiling
+    z, ok = _observe_jit(as_arrays(model), row, method, rtol, atol, max_steps, zoh_scan)
+    if not bool(ok):
+        if throw:
+            raise ValueError(
+                "simulate: the adaptive solver failed (max_steps reached or step "
+                "size collapsed); raise the solver's max_steps or check the parameters"
+            )
+        z = jnp.full_like(z, jnp.nan)
+    z = np.asarray(z)[: np.size(t_s)]
+    return z[:, 0] if z.shape[1] == 1 else z
+
+
+def as_arrays(model):
+    """Turn Python-number leaves into float arrays, so new values never trigger a recompile."""
+    return jax.tree.map(
+        lambda x: (
+            jnp.asarray(x, dtype=float)
+            if isinstance(x, (float, int)) and not isinstance(x, bool)
+            else x
+        ),
+        model,
+    )
+
+
+@eqx.filter_jit
+def _observe_jit(model, row, method, rtol, atol, max_steps, zoh_scan="auto"):
+    return observe_schedule(
+        model, row, method=method, rtol=rtol, atol=atol, max_steps=max_steps, zoh_scan=zoh_scan
+    )

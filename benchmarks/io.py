@@ -116,7 +116,13 @@ def longest_silence(cmd, cwd) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--no-demo", action="store_true", help="skip the demo's silence")
+    parser.add_argument(
+        "--smoke", action="store_true", help="3,000 rows and no demo: checks the script runs"
+    )
     args = parser.parse_args()
+    if args.smoke:
+        global N_ROWS
+        N_ROWS, args.no_demo = 3_000, True
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         out["csv_read"] = csv_read(Path(tmp))

@@ -39,7 +39,8 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import greybox  # noqa: E402
-from greybox._estimate import batch as _batch, _fit  # noqa: E402
+from greybox._estimate import batch as _batch  # noqa: E402
+from greybox._estimate import fit as _fit  # noqa: E402
 
 SPEC = greybox.get_device("chevron_laser")
 M_PER_PX = 0.645e-6

@@ -30,6 +30,7 @@ KEYS = {
         "cpu_agreement_max_rel",
         "batch_independence_max_rel",
     },
+    "io.py": {"csv_read", "help_s", "demo_silence", "process_fit_silence"},
     "kalman.py": {"loglik_grad_s", "numpy_loglik_s", "speedup", "loglik_rel_diff"},
     "many_devices.py": {
         "loop_fits_per_s",
@@ -38,6 +39,7 @@ KEYS = {
         "backend",
         "loop_first_fit_s",
     },
+    "memory.py": {"sizes", "within_30_percent", "worst_ratio"},
     "microrobot.py": {"detailed_1000_cycles_s", "play_1000_cycles_s"},
     "tclab.py": {"greybox_sae_val", "arx_sae_val", "greybox_structure", "horizon"},
     "track.py": {"frames_per_s", "baseline_frames_per_s", "speedup"},

@@ -2,8 +2,9 @@
 
 greybox is built in rings: `_model` (devices, specs, parameters, data, waveforms; with `blocks`)
 <- `_simulate` <- `stochastic` (filters) <- `_estimate` (problem, back ends, results, verdicts)
-<- `design` <- the edges (`io`, `report`, `video`, `_registry`) <- `cli`. A module may import its
-own ring and the rings inside it, never one outside. `blackbox` stands alone. The core never
+<- `design` <- the edges (`io`, `report`, `video`, `_registry`) <- `cli`; `blackbox` sits beside
+`_estimate`. A module may import its own ring and the rings inside it, never one outside, and
+only modules that exist. The core never
 imports a device; io never names one; cli commands do not import each other; notebooks,
 experiments and models use the public API only (benchmarks may time private parts)."""
 
@@ -20,10 +21,10 @@ RING = {
     "greybox._lazy": 0,  # names imported on first use
     "greybox._extras": 0,  # the message naming a missing optional extra
     "greybox.blocks": 0,
-    "greybox.blackbox": 0,
     "greybox._simulate": 1,
     "greybox.stochastic": 2,
     "greybox._estimate": 3,
+    "greybox.blackbox": 3,  # black-box estimators share the metrics and residual tests
     "greybox.design": 4,
     "greybox.io": 5,
     "greybox.report": 5,
@@ -86,11 +87,10 @@ def test_the_rings_are_populated():
 @pytest.mark.parametrize("path", LIB_FILES, ids=lambda p: str(p.relative_to(ROOT)))
 def test_no_import_reaches_outward(path):
     own = _ring(_module(path))
-    bad = sorted(
-        m
-        for m in _imports(path)
-        if m.startswith("greybox.") and (_ring(m) or 0) > own
-    )
+    greybox_imports = [
+        m for m in _imports(path) if m.startswith("greybox.") and m != "greybox.__version__"
+    ]
+    bad = sorted(m for m in greybox_imports if _ring(m) is None or _ring(m) > own)
     devices = sorted(m for m in _imports(path) if m.split(".")[0] in ("models", "greybox_builtin_devices"))
     if own < RING["greybox.io"]:
         bad += devices

@@ -101,7 +101,8 @@ def test_trust_device_runs_it_and_the_response_is_right(lab, tmp_path):
     assert main([*argv, "--trust-device", str(device)]) == 0
     assert marker.exists()
     table = np.genfromtxt(out / "simulation.csv", delimiter=",", names=True)
-    t, y = table["t_s"], table["x_um"] * 1e-6
+    col = next(n for n in table.dtype.names if n.startswith("x_") and n.count("_") == 1)
+    t, y = table["t_s"], table[col] * {"m": 1.0, "mm": 1e-3, "um": 1e-6}[col[2:]]
     assert np.max(np.abs(y - _truth(t))) < 1e-3 * np.max(np.abs(y))
 
 

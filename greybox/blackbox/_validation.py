@@ -13,8 +13,8 @@ from statistics import NormalDist
 
 import numpy as np
 
-from .._metrics import fit_percent
-from .._residuals import lagged_sums, portmanteau
+from greybox._estimate.metrics import fit_percent
+from greybox._estimate.residuals import lagged_sums, portmanteau
 from ._data import UniformData
 from ._poly import _ar_recursion, lfilter
 

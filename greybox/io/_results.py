@@ -496,6 +496,15 @@ def _simulation_scale(runs, n_y) -> np.ndarray:
     return np.sqrt(np.nanmean(r**2, axis=0))
 
 
+def copy_device_file(folder: Path, device) -> None:
+    """A user's device file travels with the result: `load_params` (and `greybox simulate`)
+    read the copy beside params.json, which needs no --trust-device."""
+    import shutil
+
+    if device.source == "file" and Path(device.location).is_file():
+        shutil.copy2(device.location, Path(folder) / Path(device.location).name)
+
+
 def write_fit_files(
     folder: Path,
     fs,
@@ -534,6 +543,7 @@ def write_fit_files(
             folder, fs, runs, sigma, fit_percent, result=None if process else result, fmt=fmt
         )
     write_params(folder / "params.json", document)
+    copy_device_file(folder, fs.device)
     (folder / "report.md").write_text(report_text(fs, result, validation, names, metrics))
     if tables:
         per_run = {p.path for p in result.free if p.per_experiment}

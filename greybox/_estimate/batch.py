@@ -40,6 +40,7 @@ import jax.tree_util as jtu
 import numpy as np
 
 from greybox._estimate import fit as _fit
+from greybox._estimate.problem import best_start
 from greybox._model.data import Experiment
 from greybox._model.device import check_method
 from greybox._model.freeparams import FreeParameter
@@ -430,12 +431,7 @@ def fit_batch(
         best_of, refit = {}, []
         for i in members:
             runs = runs_of[i]
-            finite = [
-                j
-                for j, r in enumerate(runs)
-                if np.isfinite(r["cost"]) and np.all(np.isfinite(r["raw"]))
-            ]
-            bi = min(finite, key=lambda j: float(runs[j]["cost"])) if finite else 0
+            bi = best_start(runs)
             best_of[i] = (bi, runs[bi], prepared[i].sigma0, int(runs[bi]["steps"]))
             p = prepared[i]
             if p.source == "estimated" and np.all(np.isfinite(runs[bi]["raw"])):

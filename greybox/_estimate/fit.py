@@ -778,10 +778,7 @@ def _fit_least_squares(
             f"start {i + 1}/{len(starts)}: cost {float(out['cost']):.6g}, "
             f"{'converged' if out['ok'] else 'not converged'} after {int(out['steps'])} steps"
         )
-    finite = [
-        i for i, r in enumerate(runs) if np.isfinite(r["cost"]) and np.all(np.isfinite(r["raw"]))
-    ]
-    best_index = min(finite, key=lambda i: float(runs[i]["cost"])) if finite else 0
+    best_index = _problem.best_start(runs)
     best = runs[best_index]
     steps = int(best["steps"])
 

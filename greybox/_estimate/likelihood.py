@@ -571,13 +571,10 @@ def fit_likelihood(
             f"start {i + 1}/{len(starts)}: -log L + priors {float(out['cost']):.6g}, {state} "
             f"after {int(out['steps'])} steps"
         )
-    finite = [
-        i for i, r in enumerate(runs) if np.isfinite(r["cost"]) and np.all(np.isfinite(r["raw"]))
-    ]
-    best_index = min(finite, key=lambda i: float(runs[i]["cost"])) if finite else 0
+    best_index = _problem.best_start(runs)
     best = runs[best_index]
     raw = np.asarray(best["raw"], dtype=float)
-    ok_finite = bool(finite)
+    ok_finite = bool(_problem.finite_starts(runs))
     names, owners = _problem.labels(obj.shared, obj.per_exp, experiments)
 
     # verdicts per coordinate: at bound (raw scale), not needed (a vanishing noise intensity)

@@ -125,3 +125,16 @@ def n_starts_for(n_starts, shared) -> int:
     if int(n_starts) < 1:
         raise ValueError(f"n_starts: {n_starts} starts; give at least 1 (or None for auto)")
     return int(n_starts)
+
+
+def finite_starts(runs) -> list[int]:
+    """Indices of the starts (solver outputs with "cost" and "raw") that ended finite."""
+    return [
+        i for i, r in enumerate(runs) if np.isfinite(r["cost"]) and np.all(np.isfinite(r["raw"]))
+    ]
+
+
+def best_start(runs) -> int:
+    """Index of the finite start with the lowest cost (0 when none is finite)."""
+    finite = finite_starts(runs)
+    return min(finite, key=lambda i: float(runs[i]["cost"])) if finite else 0

@@ -10,6 +10,7 @@ device file (it lives outside the result folder).
 
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -95,10 +96,18 @@ def test_simulate_rebuilds_the_fitted_user_model(lab, tmp_path):
     sim = tmp_path / "sim"
     argv = ["simulate", "--params", str(out / "params.json"), "--waveform", str(wave),
             "--out", str(sim), "--dt-ms", "5"]  # fmt: skip
-    # the device file lives outside the result folder: running it needs the user's consent
-    assert main(argv) == 2 and not sim.exists()
-    rc = main([*argv, "--trust-device", str(root / "my_devices")])
-    assert rc == 0
+    # greybox fit copied the user's device file beside params.json: its own result runs as is
+    assert len(list(out.glob("*.py"))) == 1
+    assert main(argv) == 0
+    # a result without that copy names a device file outside its folder: that needs consent
+    bare = tmp_path / "result"
+    shutil.copytree(out, bare)
+    for p in bare.glob("*.py"):
+        p.unlink()
+    sim2 = tmp_path / "sim2"
+    argv_bare = [*argv[:2], str(bare / "params.json"), *argv[3:-3], str(sim2), *argv[-2:]]
+    assert main(argv_bare) == 2 and not sim2.exists()
+    assert main([*argv_bare, "--trust-device", str(root / "my_devices")]) == 0
     table = np.genfromtxt(sim / "simulation.csv", delimiter=",", names=True)
     y_mm = table[table.dtype.names[1]]
     truth_mm = _truth(table["t_s"], times, levels) * 1e3

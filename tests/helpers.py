@@ -30,3 +30,27 @@ def chevron_runs(
         exps.append(e)
         cleans.append(c)
     return exps, cleans
+
+# a two-run chevron experiment.toml (estimation + validation) for loader and docs tests
+GOOD_TOML = """\
+[experiment]
+device = "chevron_laser"
+description = "two small runs"
+
+[camera]
+fps = 30
+exposure_ms = 10
+um_per_px = 0.645
+
+[[runs]]
+name = "est"
+file = "est.csv"
+role = "estimation"
+waveform = { type = "pulse_train", power_mW = 20, period_ms = 400, n_pulses = 3, delay_ms = 200 }
+
+[[runs]]
+name = "val"
+file = "val.csv"
+role = "validation"
+waveform = { type = "pulse_train", power_mW = 10, period_ms = 400, n_pulses = 3, delay_ms = 200 }
+"""

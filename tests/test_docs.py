@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.helpers import GOOD_TOML
+
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ("README.md", "experiments/README.md", "DEVELOPING.md")
 FENCE = re.compile(r"(?:<!-- docs-test: (skip|short): (.*?) -->\n)?```(\w*)\n(.*?)```", re.S)
@@ -93,28 +95,6 @@ def test_python_block_runs(marker, arg, lang, body, tmp_path, monkeypatch):
 # --------------------------------------------------------------------------------------
 # the documented error messages
 
-GOOD_TOML = """\
-[experiment]
-device = "chevron_laser"
-description = "two small runs"
-
-[camera]
-fps = 30
-exposure_ms = 10
-um_per_px = 0.645
-
-[[runs]]
-name = "est"
-file = "est.csv"
-role = "estimation"
-waveform = { type = "pulse_train", power_mW = 20, period_ms = 400, n_pulses = 3, delay_ms = 200 }
-
-[[runs]]
-name = "val"
-file = "val.csv"
-role = "validation"
-waveform = { type = "pulse_train", power_mW = 10, period_ms = 400, n_pulses = 3, delay_ms = 200 }
-"""
 
 T = (np.arange(42) + 0.5) / 30.0
 Y = 312.0 + 1.5 * (np.sin(2 * np.pi * T / 0.4) > 0) * (T > 0.2)

@@ -17,32 +17,10 @@ from greybox._model.errors import InputError
 from greybox.cli import main
 from greybox.io import load_experiment_set
 from greybox.io._toml import TomlLines
+from tests.helpers import GOOD_TOML
 
 ROOT = Path(__file__).resolve().parents[1]
 EMBEDDED = ROOT / "experiments" / "chevron_laser"
-
-GOOD_TOML = """\
-[experiment]
-device = "chevron_laser"
-description = "two small runs"
-
-[camera]
-fps = 30
-exposure_ms = 10
-um_per_px = 0.645
-
-[[runs]]
-name = "est"
-file = "est.csv"
-role = "estimation"
-waveform = { type = "pulse_train", power_mW = 20, period_ms = 400, n_pulses = 3, delay_ms = 200 }
-
-[[runs]]
-name = "val"
-file = "val.csv"
-role = "validation"
-waveform = { type = "pulse_train", power_mW = 10, period_ms = 400, n_pulses = 3, delay_ms = 200 }
-"""
 
 
 def _write_csv(path, t, y, *, col="y_px", laser=None, laser_col="laser_mW"):

@@ -21,8 +21,6 @@ for.
 
 import dataclasses
 
-import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -30,6 +28,7 @@ import greybox
 from greybox.blocks._camera import SensorReadout
 
 from tests import rc3_reference as ref
+from tests.rc_building_device import RCBuilding
 
 PHYS = ("Ci", "Ce", "Ch", "Rie", "Rea", "Rih", "Aw")
 NOISE = {"q_i": "process.air", "q_e": "process.envelope", "q_h": "process.heater"}
@@ -51,45 +50,9 @@ FACTORS = {
 }
 
 
-class RC3(greybox.AbstractLinearDevice):
-    """The reference's TiTeTh model as a greybox device (states Ti, Te, Th in K)."""
-
-    Ci: float
-    Ce: float
-    Ch: float
-    Rie: float
-    Rea: float
-    Rih: float
-    Aw: float
-    Ti0: float
-    Te0: float
-    Th0: float
-    readout: SensorReadout = eqx.field(default_factory=SensorReadout)
-
-    n_inputs = 3
-    n_outputs = 2
-    n_states = 3
-
-    def linear_dynamics(self):
-        ci, ce, ch = self.Ci, self.Ce, self.Ch
-        rie, rea, rih = self.Rie, self.Rea, self.Rih
-        a = jnp.array(
-            [
-                [-1 / (rie * ci) - 1 / (rih * ci), 1 / (rie * ci), 1 / (rih * ci)],
-                [1 / (rie * ce), -1 / (rie * ce) - 1 / (rea * ce), 0.0],
-                [1 / (rih * ch), 0.0, -1 / (rih * ch)],
-            ]
-        )
-        b = jnp.array(
-            [[0.0, 0.0, self.Aw / ci], [1 / (rea * ce), 0.0, 0.0], [0.0, 1 / ch, 0.0]]
-        )
-        return a, b
-
-    def initial_state(self):
-        return jnp.stack([jnp.asarray(v, float) for v in (self.Ti0, self.Te0, self.Th0)])
-
-    def output(self, x):
-        return x[:2]
+def RC3(**values):  # noqa: N802 (the reference's TiTeTh model, air and envelope read)
+    """The reference's TiTeTh model as a user writes it (tests/rc_building_device.py)."""
+    return RCBuilding(**values, readout=SensorReadout(), nodes=3, outputs_read=2)
 
 
 STRUCTURE = greybox.NoiseStructure(process_groups=(("air", (0,)), ("envelope", (1,)), ("heater", (2,))))

@@ -10,8 +10,9 @@ This module holds the three rules about such code, shared by every loader and co
 - **Blame** (`user_frame`, `UserCodeError`): an exception (or ``sys.exit``) raised by a
   device's own code is the user's error: exit 2 naming their file and line, never a
   greybox bug.
-- **Bounds** (`time_limit`): importing and building a device is bounded in time, so a device
-  that hangs cannot hang the command.
+- **Bounds** (`time_limit`, `running_users_code`): importing and building a device, and a
+  trial simulation of its model at load, are bounded in time, so a device that hangs cannot
+  hang the command.
 """
 
 from __future__ import annotations
@@ -139,16 +140,34 @@ def time_limit(what: str, location: str | None = None, seconds: float | None = N
     signal.setitimer(signal.ITIMER_REAL, seconds)
     try:
         yield
-    except _TimedOut:
+    except _TimedOut as err:
+        where = user_frame(err)  # the user's line that was running when time ran out
         raise UserCodeError(
             f"{what} did not finish in {seconds:g} s (a loop that never ends, or waiting on "
             "something); fix the device code, or raise GREYBOX_DEVICE_TIMEOUT_S if it is "
             "really that slow",
-            file=location,
+            file=location if where is None else where[0],
+            line=None if where is None else where[1],
         ) from None
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
+
+
+@contextlib.contextmanager
+def running_users_code(what: str, location: str | None = None):
+    """Run the block (which calls a device's own code) bounded by `time_limit`; an exception
+    or ``sys.exit`` raised by the user's code becomes a `UserCodeError` at their line."""
+    try:
+        with time_limit(what, location):
+            yield
+    except UserCodeError:
+        raise
+    except (Exception, SystemExit) as err:
+        blamed = blame_user(err, what)
+        if blamed is None:
+            raise
+        raise blamed from None
 
 
 # -- trust -------------------------------------------------------------------------------------

@@ -204,18 +204,48 @@ class ExperimentSet:
 def build_device(spec, options: dict):
     """`spec.model(options)`, bounded in time; a failure in the device's own code is the
     user's (`greybox._usercode.UserCodeError`, naming their file and line)."""
-    from greybox._usercode import UserCodeError, blame_user, time_limit
+    from greybox._usercode import running_users_code
 
-    try:
-        with time_limit(f"building device {spec.name!r} with {options}"):
-            return spec.model(options)
-    except UserCodeError:
-        raise
-    except Exception as err:
-        blamed = blame_user(err, f"building device {spec.name!r} with options {options}")
-        if blamed is None:
-            raise
-        raise blamed from None
+    with running_users_code(f"building device {spec.name!r} with options {options}"):
+        return spec.model(options)
+
+
+def trial_simulation(device, model, experiment, method: str) -> None:
+    """Trace one simulation of `experiment` abstractly (`eqx.filter_eval_shape`: shapes only,
+    nothing compiled or run), bounded in time: a device whose model code loops forever or
+    raises when traced fails here, at load, naming its file and line, not after minutes of
+    fitting (or after other candidates were fitted). Built-in devices are greybox's own,
+    tested code and skip it."""
+    if device.source == "builtin":
+        return
+    import equinox as eqx
+
+    from greybox._simulate.simulate import as_arrays, pad_schedules, schedules_for
+    from greybox._usercode import running_users_code
+
+    padded = pad_schedules(schedules_for(model, [experiment]), on_device=False)
+    row = {k: v[0] for k, v in padded.items()}
+    where = device.location if device.source == "file" else None
+    what = f"a trial simulation of device {device.spec.name!r} (tracing its model code)"
+    with running_users_code(what, where):
+        eqx.filter_eval_shape(_trial, as_arrays(model), row, method)
+
+
+def _trial(model, row: dict, method: str):
+    """What a fit's simulation calls of the device's code. The adaptive path calls the
+    vector field once, not a whole ODE solve (tracing diffrax costs seconds, and the
+    device's code is the same at every step)."""
+    import jax
+    import jax.numpy as jnp
+
+    from greybox._model.device import AbstractSteppedDevice
+    from greybox._simulate.simulate import observe_schedule
+
+    if method != "adaptive" or isinstance(model, AbstractSteppedDevice):
+        return observe_schedule(model, row, method=method)
+    x0 = jnp.asarray(model.initial_state(), dtype=float)
+    dx = model.vector_field(row["t_start"], x0, row["levels"][0])
+    return dx, jax.vmap(model.output)(x0[None])
 
 
 def configure_model(spec, options: dict, camera: dict, fixed: dict):
@@ -1519,6 +1549,7 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
                 )
             )
             _raise_collected(errors)
+    trial_simulation(device, model, estimation[0], fit_options["method"])
     if spec.start_values is not None:
         free = tuple(spec.start_values(model, free, estimation))
     return ExperimentSet(

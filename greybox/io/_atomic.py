@@ -29,6 +29,7 @@ import ctypes
 import ctypes.util
 import errno
 import fcntl
+import gc
 import json
 import os
 import re
@@ -57,7 +58,30 @@ _COMMITTED: list[Path] = []  # results swapped in under `signal_handlers` (what 
 
 def _on_signal(signum, frame):
     _RECEIVED.append(signum)
+    if _swallowed_here(frame):
+        # raised here, the exception would be printed as "Exception ignored" and lost, and the
+        # command would run on to its end; deliver the signal again once the callback is over
+        threading.Timer(0.01, _deliver_again, args=(signum,)).start()
+        return
     raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+
+def _deliver_again(signum: int) -> None:
+    """Send `signum` to the main thread itself (a sleep or a wait there is woken), unless
+    the command has ended meanwhile (its handlers are gone; `received_signal` has it)."""
+    if signal.getsignal(signum) is _on_signal:
+        signal.pthread_kill(threading.main_thread().ident, signum)
+
+
+def _swallowed_here(frame) -> bool:
+    """Whether `frame` runs where Python ignores exceptions: a garbage-collector callback
+    (JAX's `_xla_gc_callback` runs at every collection) or a ``__del__``."""
+    callbacks = {getattr(cb, "__code__", None) for cb in gc.callbacks}
+    while frame is not None:
+        if frame.f_code in callbacks or frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
 
 
 def received_signal() -> int | None:

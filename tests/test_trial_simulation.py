@@ -7,46 +7,21 @@ the raising line, before any candidate is fitted (no "start" progress line).
 """
 
 import os
-import re
 import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from greybox.cli import main
+from tests.test_user_code import _example, _experiment, _line_of
 
 ROOT = Path(__file__).resolve().parents[1]
 DYNAMICS = "        m, k, c = self.mass_kg, self.stiffness_N_per_m, self.damping_N_s_per_m"
 
 
-def _example() -> str:
-    text = (ROOT / "DEVELOPING.md").read_text()
-    return re.search(r"<!-- device example: msd.py -->\n```python\n(.*?)```", text, re.S).group(1)
-
-
-def _folder(tmp_path, device: str, extra: str = "") -> Path:
-    exp = tmp_path / "exp"
-    exp.mkdir()
-    (exp / "msd.py").write_text(device)
-    t = np.arange(0, 1, 0.01)
-    (exp / "run0.csv").write_text("t_s,x_mm\n" + "".join(f"{a:.3f},{0.1 * a:.5f}\n" for a in t))
-    (exp / "experiment.toml").write_text(
-        '[experiment]\ndevice = "msd.py:SPEC"\n\n[[runs]]\nname = "run0"\nfile = "run0.csv"\n'
-        'role = "estimation"\n'
-        'waveform = { type = "steps", times_s = [0.0], F_N = [1.0], end_s = 1.0 }\n' + extra
-    )
-    return exp
-
-
-def _line(text: str, needle: str) -> int:
-    return text.splitlines().index(needle) + 1
-
-
 def test_dynamics_that_loop_forever_stop_at_load(tmp_path):
     loop = "        while True:\n            pass"
     text = _example().replace(DYNAMICS, loop + "\n" + DYNAMICS)
-    exp, out = _folder(tmp_path, text), tmp_path / "out"
+    exp, out = _experiment(tmp_path, text), tmp_path / "out"
     env = {**os.environ, "GREYBOX_DEVICE_TIMEOUT_S": "2", "PYTHONPATH": str(ROOT)}
     proc = subprocess.run(  # a subprocess: without the bound the test fails, never hangs
         [sys.executable, "-m", "greybox", "fit", str(exp), "--out", str(out), "--quiet"],
@@ -54,7 +29,7 @@ def test_dynamics_that_loop_forever_stop_at_load(tmp_path):
     )  # fmt: skip
     err = proc.stderr
     assert proc.returncode == 2, err
-    looping = {_line(text, "        while True:"), _line(text, "            pass")}
+    looping = {_line_of(text, "        while True:"), _line_of(text, "            pass")}
     assert any(f"{exp / 'msd.py'}:{n}:" in err for n in looping), err
     assert "trial simulation" in err and "did not finish in 2 s" in err, err
     assert "Traceback" not in err and not out.exists()
@@ -82,11 +57,11 @@ def test_compare_blames_a_raising_method_at_load_before_any_fit(tmp_path, capsys
         '\n[[candidates]]\nname = "light"\nmodel = { mass_kg = 1.0 }\n\n'
         '[[candidates]]\nname = "heavy"\nmodel = { mass_kg = 3.0 }\n'
     )
-    exp, out = _folder(tmp_path, text, candidates), tmp_path / "out"
+    exp, out = _experiment(tmp_path, text, candidates), tmp_path / "out"
     rc = main(["compare", str(exp), "--out", str(out)])
     err = capsys.readouterr().err
     assert rc == 2, err
-    raising = _line(text, '        raise ArithmeticError("no model for heavy masses")')
+    raising = _line_of(text, '        raise ArithmeticError("no model for heavy masses")')
     assert f"{exp / 'msd.py'}:{raising}:" in err and "no model for heavy masses" in err, err
     assert "trial simulation" in err and "Traceback" not in err, err
     assert "start 1/" not in err and not out.exists(), err  # nothing was fitted

@@ -223,12 +223,35 @@ def trial_simulation(device, model, experiment, method: str) -> None:
     from greybox._simulate.simulate import as_arrays, pad_schedules, schedules_for
     from greybox._usercode import running_users_code
 
+    import jax
+
     padded = pad_schedules(schedules_for(model, [experiment]), on_device=False)
     row = {k: v[0] for k, v in padded.items()}
+    model = as_arrays(model)
+    # a trace sees structure and shapes, never values: one trial per structure is enough
+    # (a batch of many folders of one device pays it once)
+    key = (
+        jax.tree.structure(model),
+        tuple(np.shape(x) for x in jax.tree.leaves(model)),
+        tuple((k, v.shape) for k, v in row.items()),
+        method,
+    )
+    try:
+        if key in _TRIED:
+            return
+    except TypeError:  # a static field that cannot be hashed: no reuse
+        key = None
     where = device.location if device.source == "file" else None
     what = f"a trial simulation of device {device.spec.name!r} (tracing its model code)"
     with running_users_code(what, where):
-        eqx.filter_eval_shape(_trial, as_arrays(model), row, method)
+        eqx.filter_eval_shape(_trial, model, row, method)
+    if key is not None:
+        if len(_TRIED) > 256:
+            _TRIED.clear()
+        _TRIED.add(key)
+
+
+_TRIED: set = set()  # the structures `trial_simulation` has traced without a problem
 
 
 def _trial(model, row: dict, method: str):

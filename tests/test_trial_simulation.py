@@ -1,7 +1,8 @@
 """A device's model code is tried at load: one simulation traced abstractly, bounded in time.
 
-A device file whose `linear_dynamics` loops forever when traced stops at load with exit 2
-naming the file and the looping line (GREYBOX_DEVICE_TIMEOUT_S = 2 s), nothing written; a
+A device file whose `linear_dynamics` loops forever when traced, or whose `build` loops for
+one option, stops at load with exit 2 naming the file and the looping line
+(GREYBOX_DEVICE_TIMEOUT_S = 2 s), nothing written; a
 device whose model method raises for one candidate's option stops `compare` at load, naming
 the raising line, before any candidate is fitted (no "start" progress line).
 """
@@ -11,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from greybox.cli import main
 from tests.test_user_code import _example, _experiment, _line_of
 
@@ -18,10 +21,23 @@ ROOT = Path(__file__).resolve().parents[1]
 DYNAMICS = "        m, k, c = self.mass_kg, self.stiffness_N_per_m, self.damping_N_s_per_m"
 
 
-def test_dynamics_that_loop_forever_stop_at_load(tmp_path):
-    loop = "        while True:\n            pass"
-    text = _example().replace(DYNAMICS, loop + "\n" + DYNAMICS)
-    exp, out = _experiment(tmp_path, text), tmp_path / "out"
+GOOD_BUILD = "def build(*, mass_kg: float = 1.0):"
+HANGS = {  # where the device's code never returns: (edit of the example, the looping lines, [model])
+    "dynamics when traced": (
+        lambda s: s.replace(DYNAMICS, "        while True:\n            pass\n" + DYNAMICS),
+        "trial simulation", ""),
+    "build for an option": (
+        lambda s: s.replace(GOOD_BUILD, GOOD_BUILD + "\n    while mass_kg > 2.5:\n"
+                            "            pass"),
+        "building device", "mass_kg = 3.0\n"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(HANGS))
+def test_device_code_that_never_returns_stops_at_load(tmp_path, case):
+    edit, what, model = HANGS[case]
+    text = edit(_example())
+    exp, out = _experiment(tmp_path, text, model), tmp_path / "out"
     env = {**os.environ, "GREYBOX_DEVICE_TIMEOUT_S": "2", "PYTHONPATH": str(ROOT)}
     proc = subprocess.run(  # a subprocess: without the bound the test fails, never hangs
         [sys.executable, "-m", "greybox", "fit", str(exp), "--out", str(out), "--quiet"],
@@ -29,9 +45,10 @@ def test_dynamics_that_loop_forever_stop_at_load(tmp_path):
     )  # fmt: skip
     err = proc.stderr
     assert proc.returncode == 2, err
-    looping = {_line_of(text, "        while True:"), _line_of(text, "            pass")}
+    looping = [i + 1 for i, line in enumerate(text.splitlines()) if "while " in line or
+               line.strip() == "pass"]  # fmt: skip
     assert any(f"{exp / 'msd.py'}:{n}:" in err for n in looping), err
-    assert "trial simulation" in err and "did not finish in 2 s" in err, err
+    assert what in err and "did not finish in 2 s" in err, err
     assert "Traceback" not in err and not out.exists()
 
 

@@ -15,7 +15,9 @@ The output contract of every command that writes a result folder (`greybox fit`,
   back). A crash at any instant therefore leaves the old result or the new one.
 - SIGINT and SIGTERM (`signal_handlers`, installed by the CLI for every command) raise
   `KeyboardInterrupt` / `Terminated` in the main thread and are remembered: a result is
-  never swapped in after a signal, even one that some code caught and swallowed.
+  never swapped in after a signal, even one that some code caught and swallowed. One that
+  lands where Python ignores exceptions (a gc callback such as JAX's, a ``__del__``) is
+  delivered again to the main thread just after, so the command stops there and then.
 - Leftovers of killed runs (``.NAME.partial-PID-*``, ``.NAME.old-PID``) are removed by the
   next run once their process is gone. Writers of the same folder take an `fcntl.flock` on
   its parent folder while they clean up and swap, so concurrent runs never collide (the

@@ -1,9 +1,9 @@
 """SIGINT and SIGTERM end `track`, `design` and `fit-many` as they end `fit` and `compare`.
 
 Each command runs in a child process; the signal is sent once the command's own handlers are
-installed (read from /proc/PID/status: SIGTERM is caught only from then on), after a delay
-that lands it in the command's work (decoding and tracking, compiling the design's
-information matrix, loading and compiling the batch). Every time the exit status is 130
+installed (read from /proc/PID/status: SIGTERM is caught only from then on), 0.5 s later
+(while the command imports and reads its inputs) or 1.5-2 s later (decoding and tracking,
+building the design's information matrix, loading and compiling the batch). Every time the exit status is 130
 (SIGINT) or 143 (SIGTERM), the message says nothing was written, and neither --out nor any
 ``.partial-*`` leftover exists. (`tests/test_signals.py` covers `compare` at five moments.)
 

@@ -101,3 +101,21 @@ def test_missing_pandas_names_the_extra(demo, monkeypatch):
     monkeypatch.setitem(sys.modules, "pandas", None)  # import pandas -> ModuleNotFoundError
     with pytest.raises(ImportError, match=re.escape('pip install "greybox[dataframe]"')):
         r.to_dataframe()
+
+
+def test_predictions_dataframe_carries_every_horizon_and_its_sd(demo):
+    """A process-noise result's shape (one-step and k-step with sds), in SI without a device."""
+    pytest.importorskip("pandas")
+    _, r = demo
+    run = r.experiments[0]
+    n = run.n_frames
+    z = np.linspace(0.0, 1.0, n)[:, None]
+    fake = SimpleNamespace(
+        experiments=(run,),
+        predictions={run.name: {"simulation": z, "one-step": 2 * z}},
+        prediction_sd={run.name: {"one-step": 3 * z}},
+    )
+    df = predictions_to_dataframe(fake, run.name)
+    assert list(df.columns) == ["y1_SI", "y1_SI simulation", "y1_SI one-step", "y1_SI one-step sd"]
+    np.testing.assert_array_equal(df["y1_SI one-step sd"], 3 * z[:, 0])
+    np.testing.assert_array_equal(df["y1_SI"], run.y[:, 0])

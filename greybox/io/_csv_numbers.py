@@ -41,25 +41,23 @@ def parse_cells(b: np.ndarray, delimiter: str, n_columns: int) -> np.ndarray | N
     row_ends = np.flatnonzero(b[ends] == 10)
     if np.any(np.diff(row_ends, prepend=-1) != n_columns):
         return None  # a row with a cell too many or too few
-    starts = np.empty_like(ends)
-    starts[0] = WIDTH
-    starts[1:] = ends[:-1] + 1
     rows = np.ndarray(buffer=b, dtype=f"V{WIDTH}", shape=(b.size - WIDTH + 1,), strides=(1,))
     out = np.empty(ends.size)
     rest = []
     for k in range(0, ends.size, CHUNK):
-        values, other = _fixed_point(rows, starts[k : k + CHUNK], ends[k : k + CHUNK])
-        out[k : k + CHUNK] = values
+        cells = np.arange(k, min(k + CHUNK, ends.size))
+        values, other = _fixed_point(rows, _starts(ends, cells), ends[cells])
+        out[cells] = values
         rest.append(other + k)
     rest = np.concatenate(rest)
     if rest.size > MAX_ODD:  # scientific notation: the general pass, on those cells only
-        values, odd = _plain(b, starts[rest], ends[rest])
+        values, odd = _plain(b, _starts(ends, rest), ends[rest])
         out[rest] = values
         rest = rest[odd]
         if rest.size > MAX_ODD:
             return None
     for k in rest.tolist():
-        v = _one(bytes(b[starts[k] : ends[k]]))
+        v = _one(bytes(b[_starts(ends, k) : ends[k]]))
         if v is None:
             return None
         out[k] = v
@@ -110,6 +108,11 @@ def _fixed_point(rows, starts, ends):
     v = np.where(minus, -v, v)
     v[lens == 0] = np.nan
     return v, np.flatnonzero(~plain & (lens > 0))
+
+
+def _starts(ends, cells):
+    """Where cells `cells` begin: after the previous cell's end (the first after the pad)."""
+    return np.where(cells > 0, ends[np.maximum(cells, 1) - 1] + 1, WIDTH)
 
 
 def _one(cell: bytes) -> float | None:

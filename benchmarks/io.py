@@ -8,10 +8,15 @@ and the longest silence of `greybox demo` (seconds between two lines it prints).
 - `greybox demo`: the whole command in a subprocess; every stdout/stderr line is time-stamped
   on arrival, and the longest gap (start to first line, between lines, last line to exit)
   is reported. Skip it with --no-demo (it fits the demo data: a minute or more).
-- The process-noise fit's longest silence is not measured here (no command runs one on the
-  demo data within a benchmark's time): reported as null.
+- process-noise `greybox fit`: the same measurement on the three-state stochastic RC building
+  folder of the tests (tests/rc_folder.py, 300 frames of tests/rc3_reference.py; maximum
+  likelihood through the Kalman filter, BFGS + Newton, 12 parameters): a few minutes on a
+  loaded machine. `process_fit_longest_silence_s` is its longest gap after the first line
+  (Python's start-up and `import greybox` before it are `first_line_s`), and the lines
+  around the gap name the silent phase. Skip it with --no-process.
 
-Run: .venv/bin/python benchmarks/io.py [--no-demo]     (needs pandas: the dataframe extra)
+Run: .venv/bin/python benchmarks/io.py [--no-demo] [--no-process]   (needs pandas: the
+dataframe extra); --smoke reads 3,000 rows and runs neither command.
 Last line: one JSON object.
 """
 
@@ -81,15 +86,15 @@ def help_time() -> float:
 
 def longest_silence(cmd, cwd) -> dict:
     """Run `cmd`; the longest time [s] without a line on stdout or stderr."""
-    stamps = []
+    stamps = []  # (seconds since the start, the line)
     lock = threading.Lock()
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
     def pump(stream):
-        for _ in stream:
+        for line in stream:
             with lock:
-                stamps.append(time.perf_counter() - t0)
+                stamps.append((time.perf_counter() - t0, line.rstrip()[:160]))
 
     threads = [threading.Thread(target=pump, args=(s,)) for s in (proc.stdout, proc.stderr)]
     for th in threads:
@@ -98,9 +103,12 @@ def longest_silence(cmd, cwd) -> dict:
     for th in threads:
         th.join()
     end = time.perf_counter() - t0
-    times = np.array([0.0, *sorted(stamps), end])
+    stamps.sort()
+    times = np.array([0.0, *(t for t, _ in stamps), end])
+    texts = ["(start)", *(line for _, line in stamps), "(exit)"]
     gaps = np.diff(times)
     k = int(np.argmax(gaps))
+    after = 1 + int(np.argmax(gaps[1:])) if gaps.size > 1 else 0
     return {
         "exit_status": rc,
         "total_s": end,
@@ -109,20 +117,44 @@ def longest_silence(cmd, cwd) -> dict:
         "gap_ends_at_s": float(times[k + 1]),
         # the start-up (Python, `import greybox`) before the first line, and the rest
         "first_line_s": float(times[1]),
-        "longest_gap_after_first_line_s": float(gaps[1:].max()) if gaps.size > 1 else 0.0,
+        "longest_gap_after_first_line_s": float(gaps[after]) if gaps.size > 1 else 0.0,
+        # the silent phase: the line before the longest gap after the first line, and after
+        "silent_after": texts[after],
+        "silent_until": texts[after + 1],
     }
+
+
+def process_fit_silence(folder: Path) -> dict:
+    """The longest silence of a process-noise `greybox fit` (see the module docstring)."""
+    from tests import rc3_reference
+    from tests.rc_folder import write_folder
+
+    runs = write_folder(folder, rc3_reference.simulate(seed=0, n=300))
+    cmd = [sys.executable, "-m", "greybox", "fit", str(runs), "--out", str(folder / "result")]
+    d = longest_silence(cmd, ROOT)
+    print(
+        f"process-noise fit: {d['total_s']:.0f} s, first line after {d['first_line_s']:.1f} s, "
+        f"longest silence after it {d['longest_gap_after_first_line_s']:.1f} s "
+        f"(after {d['silent_after']!r})"
+    )
+    return d
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--no-demo", action="store_true", help="skip the demo's silence")
     parser.add_argument(
-        "--smoke", action="store_true", help="3,000 rows and no demo: checks the script runs"
+        "--no-process", action="store_true", help="skip the process-noise fit's silence"
+    )
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="3,000 rows, no demo and no process-noise fit: checks the script runs",
     )
     args = parser.parse_args()
     if args.smoke:
         global N_ROWS
-        N_ROWS, args.no_demo = 3_000, True
+        N_ROWS, args.no_demo, args.no_process = 3_000, True, True
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         out["csv_read"] = csv_read(Path(tmp))
@@ -138,7 +170,9 @@ def main() -> None:
                 f"{d['first_line_s']:.1f} s; longest after it "
                 f"{d['longest_gap_after_first_line_s']:.1f} s)"
             )
-    out["process_fit_silence"] = None  # not measured (see the docstring)
+        out["process_fit_silence"] = None if args.no_process else process_fit_silence(Path(tmp))
+    pf = out["process_fit_silence"]
+    out["process_fit_longest_silence_s"] = pf and pf["longest_gap_after_first_line_s"]
     print(json.dumps(out))
 
 

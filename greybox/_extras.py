@@ -10,7 +10,31 @@ from greybox._model.errors import InputError
 EXTRAS = {
     "video": ("imageio", "imageio_ffmpeg", "skimage"),
     "distributed": ("dask", "distributed"),
+    "dataframe": ("pandas",),
 }
+
+
+def _missing(err: ModuleNotFoundError, module: str) -> bool:
+    """True when `module` itself is absent (not a module it imports that is broken)."""
+    return err.name is not None and err.name.split(".")[0] == module.split(".")[0]
+
+
+def _message(extra: str, module: str, what: str) -> str:
+    return (
+        f"{what} needs the optional extra {extra!r} ({module} is not installed); "
+        f'install it with: pip install "greybox[{extra}]"'
+    )
+
+
+def import_extra(module: str, extra: str, what: str):
+    """`module`, imported; a `ModuleNotFoundError` naming the extra when it is missing (for
+    the Python API, where an ImportError is what a user expects)."""
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as err:
+        if not _missing(err, module):
+            raise
+        raise ModuleNotFoundError(_message(extra, module, what), name=module) from None
 
 
 def require_extra(extra: str, field: str | None = None, what: str = "this command") -> None:
@@ -20,10 +44,6 @@ def require_extra(extra: str, field: str | None = None, what: str = "this comman
         try:
             importlib.import_module(module)
         except ModuleNotFoundError as err:
-            if err.name is None or err.name.split(".")[0] != module.split(".")[0]:
+            if not _missing(err, module):
                 raise
-            raise InputError(
-                f"{what} needs the optional extra {extra!r} ({module} is not installed); "
-                f'install it with: pip install "greybox[{extra}]"',
-                field=field,
-            ) from None
+            raise InputError(_message(extra, module, what), field=field) from None

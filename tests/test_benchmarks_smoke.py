@@ -30,7 +30,13 @@ KEYS = {
         "cpu_agreement_max_rel",
         "batch_independence_max_rel",
     },
-    "io.py": {"csv_read", "help_s", "demo_silence", "process_fit_silence"},
+    "io.py": {
+        "csv_read",
+        "help_s",
+        "demo_silence",
+        "process_fit_silence",
+        "process_fit_longest_silence_s",
+    },
     "kalman.py": {"loglik_grad_s", "numpy_loglik_s", "speedup", "loglik_rel_diff"},
     "many_devices.py": {
         "loop_fits_per_s",

@@ -272,6 +272,29 @@ class FitResult:
                 out[p.path] = float((self.raw[k] - float(p.to_raw(truth[p.path]))) / sd[k])
         return out
 
+    # text, HTML and DataFrame views: greybox/_estimate/result_text.py
+    def __repr__(self) -> str:
+        from greybox._estimate.result_text import short_repr
+
+        return short_repr(self)
+
+    def summary(self) -> str:
+        """The status line and the parameter table (estimate, 95 % interval, unit, verdict)."""
+        from greybox._estimate.result_text import summary_text
+
+        return summary_text(self)
+
+    def _repr_html_(self) -> str:
+        from greybox._estimate.result_text import summary_html
+
+        return summary_html(self)
+
+    def to_dataframe(self):
+        """One row per parameter in SI: value, sd, 95 % interval, unit, verdict (pandas)."""
+        from greybox._estimate.result_text import parameter_frame
+
+        return parameter_frame(self)
+
     def predict(self, experiment_index: int, method: str | None = None) -> np.ndarray:
         """Free-run simulation of experiment `experiment_index` with its fitted parameters (SI)."""
         from greybox._simulate.simulate import simulate

@@ -95,16 +95,20 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    import jax
-
-    jax.config.update("jax_enable_x64", True)
     from greybox.cli._common import print_input_errors
     from greybox.cli._ticker import Ticker
-    from greybox.io._experiment_set import InputErrors
 
     out = Path(args.out) if args.out else default_out(args.experiment_dir)
-    try:
-        with Ticker(Progress(args.quiet)) as say:  # a line at least every 5 s, in every phase
+    # a line at least every 5 s, in every phase: the imports (JAX alone takes 2 s, several
+    # on a loaded machine) included
+    with Ticker(Progress(args.quiet)) as say:
+        say.phase_is("starting (importing JAX and the fitting code)")
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+        from greybox.io._experiment_set import InputErrors
+
+        try:
             outcome = fit_experiment_dir(
                 args.experiment_dir,
                 out,
@@ -113,9 +117,9 @@ def run(args) -> int:
                 candidate=args.candidate,
                 figure_format=args.figure_format,
             )
-    except InputErrors as err:  # every loader problem, one per line
-        print_input_errors("fit", args.experiment_dir, err)
-        return 2
+        except InputErrors as err:  # every loader problem, one per line
+            print_input_errors("fit", args.experiment_dir, err)
+            return 2
     print("\n".join(parameter_lines(outcome.result) + fit_lines(outcome)))
     print(
         f"wrote {out}/ (params.json, report.md, figures/, predictions/, metrics.csv, "

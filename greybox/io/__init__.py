@@ -19,6 +19,7 @@ _NAMES = {
     "read_csv": ("greybox.io._csv", "read_csv"),
     "experiment_from_dataframe": ("greybox.io._dataframe", "experiment_from_dataframe"),
     "experiment_to_dataframe": ("greybox.io._dataframe", "experiment_to_dataframe"),
+    "predictions_to_dataframe": ("greybox.io._dataframe", "predictions_to_dataframe"),
     "experiment_toml": ("greybox.io._design_file", "experiment_toml"),
     "ExperimentSet": ("greybox.io._experiment_set", "ExperimentSet"),
     "InputErrors": ("greybox.io._experiment_set", "InputErrors"),
@@ -52,6 +53,7 @@ if TYPE_CHECKING:
     from greybox.io._csv import read_csv as read_csv
     from greybox.io._dataframe import experiment_from_dataframe as experiment_from_dataframe
     from greybox.io._dataframe import experiment_to_dataframe as experiment_to_dataframe
+    from greybox.io._dataframe import predictions_to_dataframe as predictions_to_dataframe
     from greybox.io._design_file import experiment_toml as experiment_toml
     from greybox.io._experiment_set import ExperimentSet as ExperimentSet
     from greybox.io._experiment_set import InputErrors as InputErrors

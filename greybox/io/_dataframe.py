@@ -136,28 +136,62 @@ def experiment_from_dataframe(
     )
 
 
+def _columns(arr, channels, stem) -> dict:
+    """{``<name>_<unit>``: values in that unit} per column of `arr` (SI): the channel's
+    readable unit where `channels` names it, else ``<stem><j>_SI``."""
+    from greybox.report._markdown import channel_unit
+
+    out = {}
+    for j in range(arr.shape[1]):
+        if j < len(channels):
+            factor, unit = channel_unit(channels[j])
+            col = f"{channels[j].name}_{'pct' if unit == '%' else unit}"
+        else:
+            factor, col = 1.0, f"{stem}{j + 1}_SI"
+        out[col] = arr[:, j] * factor
+    return out
+
+
+def _pandas(what: str):
+    from greybox._extras import import_extra
+
+    return import_extra("pandas", "dataframe", what)
+
+
 def experiment_to_dataframe(experiment, device=None):
     """A DataFrame of `experiment`: the index ``t_s``, one column per output and per input
     named ``<name>_<unit>`` in the channel's readable unit (``y_um``, ``T1_K``, ``laser_mW``)
     with `device`, else in SI (``y1_SI``, ``u1_SI``); the inputs as held at each frame."""
-    import pandas as pd
-
-    from greybox.report._markdown import channel_unit
-
+    pd = _pandas("experiment_to_dataframe")
     e = experiment
     t = np.asarray(e.t_s, dtype=float)
     levels = np.asarray(e.inputs(t), dtype=float).reshape(t.size, -1)
     spec = _spec(device) if device is not None else None
-    data = {}
-    for kind, arr, channels, stem in (
-        ("output", e.y, spec.outputs if spec else (), "y"),
-        ("input", levels, spec.inputs if spec else (), "u"),
-    ):
-        for j in range(arr.shape[1]):
-            if j < len(channels):
-                factor, unit = channel_unit(channels[j])
-                col = f"{channels[j].name}_{'pct' if unit == '%' else unit}"
-            else:
-                factor, col = 1.0, f"{stem}{j + 1}_SI"
-            data[col] = arr[:, j] * factor
+    data = _columns(np.asarray(e.y), spec.outputs if spec else (), "y")
+    data.update(_columns(levels, spec.inputs if spec else (), "u"))
     return pd.DataFrame(data, index=pd.Index(t, name="t_s"))
+
+
+def predictions_to_dataframe(result, run: str, device=None):
+    """A DataFrame of a fit's run `run`: the index ``t_s``, the measured outputs as in
+    `experiment_to_dataframe` (``y_um``), then per prediction horizon of the fit
+    (``FitResult.predictions``: "simulation", with process noise also "one-step" and
+    "k-step") a column ``<output> <horizon>`` and, where the fit has it, ``<output> <horizon>
+    sd``, all in the output's unit."""
+    pd = _pandas("predictions_to_dataframe")
+    names = [e.name for e in result.experiments]
+    if run not in names or run not in result.predictions:
+        raise KeyError(f"{run}: not a run of this fit; have {names}")
+    e = result.experiments[names.index(run)]
+    outputs = _spec(device).outputs if device is not None else ()
+    data = _columns(np.asarray(e.y), outputs, "y")
+    measured = list(data)
+    sds = result.prediction_sd.get(run, {})
+    for horizon, z in result.predictions[run].items():
+        for kind, arr in ((horizon, z), (f"{horizon} sd", sds.get(horizon))):
+            if arr is None:
+                continue
+            arr = np.asarray(arr, dtype=float).reshape(e.n_frames, -1)
+            for col, v in zip(measured, _columns(arr, outputs, "y").values()):
+                data[f"{col} {kind}"] = v
+    return pd.DataFrame(data, index=pd.Index(np.asarray(e.t_s, dtype=float), name="t_s"))

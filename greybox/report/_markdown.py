@@ -10,15 +10,15 @@ are white (a model that misses dynamics leaves structure in them, however good i
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 
 from greybox._estimate.fit import OUTLIER_SIGMAS
 from greybox._estimate.metrics import noise_ceiling as noise_ceiling
 from greybox._estimate.residuals import OUTLIER_SCALES, _ranges
-
-_DISPLAY = {"m": (1e6, "um"), "s": (1e3, "ms"), "m/s": (1e6, "um/s"), "W": (1e3, "mW")}
+from greybox._estimate.result_text import display_unit as display_unit
+from greybox._estimate.result_text import estimate_texts as estimate_texts
+from greybox._estimate.result_text import fmt as fmt
+from greybox._estimate.result_text import verdict_text as _verdict_text
 
 VERDICT_MEANING = {
     "identifiable": "the data alone pin it down (its 95 % interval comes from the data)",
@@ -47,33 +47,6 @@ STATUS_MEANING = {
 }
 
 
-_PREFIXES = ((1e-3, "k"), (1.0, ""), (1e3, "m"), (1e6, "u"), (1e9, "n"), (1e12, "p"))
-
-
-def display_unit(unit: str, value: float | None = None) -> tuple[float, str]:
-    """(factor, readable unit) for an SI unit: m -> um, W -> mW, s -> ms (when `value` is
-    under 1 s or not given); other units get an SI prefix when `value` is tiny or huge."""
-    if unit == "s" and value is not None and np.isfinite(value) and abs(value) >= 1.0:
-        return 1.0, "s"
-    if unit in _DISPLAY:
-        return _DISPLAY[unit]
-    # Other units get an SI prefix when the number would otherwise be unreadable
-    # (2.4e-7 J/K -> 240 nJ/K); not on units led by K (kK/W would mislead) or dimensionless ones.
-    if (
-        value is not None
-        and np.isfinite(value)
-        and value != 0
-        and unit
-        and unit[0] not in "K%1-"
-        and not _leading_power(unit)
-        and not 1e-2 <= abs(value) < 1e4
-    ):
-        for factor, prefix in _PREFIXES:
-            if abs(value) * factor >= 1.0 or factor == _PREFIXES[-1][0]:
-                return factor, prefix + unit
-    return 1.0, unit
-
-
 def channel_unit(channel) -> tuple[float, str]:
     """(factor from SI, unit) to show a channel's values in: the readable unit (um, mW) when
     the channel declares it, else the channel's own first declared unit (a heating power
@@ -88,51 +61,10 @@ def channel_unit(channel) -> tuple[float, str]:
     return 1.0, channel.si_unit
 
 
-def _leading_power(unit: str) -> bool:
-    """True when the unit's leading factor carries a power (m^2/s) or is not a plain symbol:
-    a prefix would then apply to the power (nm^2 is 1e-18 m^2, not 1e-9 m^2)."""
-    head = re.match(r"[A-Za-z]+(\^)?", unit)
-    return head is None or head.group(1) is not None
-
-
-def fmt(x, digits: int = 4) -> str:
-    """A number for a table: `digits` significant figures, "n/a" for NaN/None; an array (a
-    figure per output channel) is written as its entries joined by " / "."""
-    if x is not None and np.ndim(x) > 0:
-        return " / ".join(fmt(v, digits) for v in np.asarray(x, dtype=float).reshape(-1))
-    if x is None or not np.isfinite(x):
-        return "n/a"
-    return f"{x:.{digits}g}"
-
-
-def estimate_texts(p) -> tuple[str, str, str]:
-    """(value, 95 % interval, display unit) of a `ParameterEstimate`, in display units, with
-    as many decimals as its standard error warrants (two significant digits of the se)."""
-    f, unit = display_unit(p.unit, p.value)
-    digits = None
-    if p.se is not None and np.isfinite(p.se) and p.se * f > 0:
-        digits = max(0, 1 - int(np.floor(np.log10(abs(p.se * f)))))
-
-    def one(x):
-        if x is None or not np.isfinite(x):
-            return "n/a"
-        return f"{x * f:.{digits}f}" if digits is not None else fmt(x * f, 5)
-
-    ci = "n/a" if not np.all(np.isfinite(p.ci95)) else f"[{one(p.ci95[0])}, {one(p.ci95[1])}]"
-    return one(p.value), ci, unit
-
-
 def _value_cells(p) -> list[str]:
     value, ci, unit = estimate_texts(p)
     f, _ = display_unit(p.unit, p.value)
     return [value, unit if unit != "1" else "-", fmt(p.se * f, 2), ci]
-
-
-def _verdict_text(p) -> str:
-    text = p.verdict + (" (prior)" if p.prior else "")
-    if p.verdict == "at bound" and getattr(p, "bound", None):
-        text += f" ({p.bound})"
-    return text
 
 
 def parameter_table(

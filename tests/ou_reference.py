@@ -9,10 +9,9 @@ closed form: a = exp(-h/tau), tau = Rea Ci; x' = a x + (1 - a)(Ta + Rea Ph) + w,
 Var w = q tau (1 - a^2) / 2. The Kalman filter has a known initial state (variance 0) and
 conditions on the first frame (not scored), the convention of `greybox.InitialState()`.
 
-`information` is the expected Fisher information of the innovations form,
-I_ij = sum_k [dv_k/dth_i dv_k/dth_j / S_k + 0.5 dS_k/dth_i dS_k/dth_j / S_k^2],
-by central differences of the (deterministic) innovation means and variances: v_k(th) is the
-innovation of the filter run on the noise-free mean response at the nominal parameters.
+`information` is the expected Fisher information of that likelihood from the closed-form
+Gaussian moments of the readings (mean response, Cov(x_j, x_k) = a^|k-j| P_min(j,k)), not
+from a filter.
 """
 
 from __future__ import annotations
@@ -86,19 +85,30 @@ def mean_response(p: dict, n: int) -> np.ndarray:
     return x
 
 
-def information(p: dict, n: int, names=("Ci", "Rea", "q", "sd"), rel=1e-5) -> np.ndarray:
-    """Expected Fisher information of (log p[name] for name in `names`) for one record of `n`
-    frames (innovations form, central differences in log parameters)."""
-    y0 = mean_response(p, n)  # data at the nominal mean: innovation means vanish there
-    dv, ds = [], []
+def moments(p: dict, n: int) -> tuple:
+    """(mean (n-1,), covariance (n-1, n-1)) of the scored readings y_2..y_n (the first is
+    conditioned on; with a known initial state it is independent of the rest): closed form,
+    Cov(x_j, x_k) = a^|k-j| P_min(j,k), P_k = qd (1 - a^(2k)) / (1 - a^2)."""
+    _, a, qd = _disc(p)
+    k = np.arange(1, n)
+    P = qd * (1 - a ** (2 * k)) / (1 - a * a)
+    lag = np.abs(k[:, None] - k[None, :])
+    cov = a**lag * P[np.minimum.outer(k, k) - 1] + p["sd"] ** 2 * np.eye(n - 1)
+    return mean_response(p, n)[1:], cov
+
+
+def information(p: dict, n: int, names=("Ci", "Rea", "q", "sd"), rel=1e-6) -> np.ndarray:
+    """Expected Fisher information of (log p[name] for name in `names`) from one record of `n`
+    frames: the Gaussian formula dmu' S^-1 dmu + 0.5 tr(S^-1 dS_i S^-1 dS_j) on the closed-form
+    moments, derivatives by central differences in log parameters."""
+    mu, cov = moments(p, n)
+    dmu, dcov = [], []
     for name in names:
         hi, lo = dict(p), dict(p)
         hi[name] *= np.exp(rel)
         lo[name] *= np.exp(-rel)
-        vh, sh = innovations(hi, y0)
-        vl, sl = innovations(lo, y0)
-        dv.append((vh - vl) / (2 * rel))
-        ds.append((sh - sl) / (2 * rel))
-    _, s = innovations(p, y0)
-    dv, ds = np.array(dv), np.array(ds)
-    return (dv / s) @ dv.T + 0.5 * (ds / s**2) @ ds.T
+        (mh, ch), (ml, cl) = moments(hi, n), moments(lo, n)
+        dmu.append((mh - ml) / (2 * rel))
+        dcov.append(np.linalg.solve(cov, (ch - cl) / (2 * rel)))
+    dmu = np.array(dmu)
+    return dmu @ np.linalg.solve(cov, dmu.T) + 0.5 * np.einsum("iab,jba->ij", dcov, dcov)

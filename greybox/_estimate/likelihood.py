@@ -606,25 +606,14 @@ def fit_likelihood(
     free,
     noise: ProcessNoise,
     *,
-    n_starts: int | None = None,
-    seed: int = 0,
-    max_steps: int | None = None,
-    start_values=None,
     progress: Callable[[str], None] | None = None,
+    **options,
 ):
-    """The likelihood back end of `greybox.fit` (see the module docstring); a `FitResult`."""
+    """The likelihood back end of `greybox.fit` (see the module docstring); a `FitResult`.
+    `options`: those of `setup` (n_starts, seed, max_steps, start_values)."""
     require_x64("fit")
     say = progress or (lambda _m: None)
-    su = setup(
-        model,
-        experiments,
-        free,
-        noise,
-        n_starts=n_starts,
-        seed=seed,
-        max_steps=max_steps,
-        start_values=start_values,
-    )
+    su = setup(model, experiments, free, noise, **options)
 
     def solve(items):
         return [

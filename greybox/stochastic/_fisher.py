@@ -108,21 +108,12 @@ def expected_information(model: StochasticDevice, free, raw, inputs, t_s, *, t_s
     (module docstring). Its inverse is the Cramer-Rao bound of the raw estimates."""
     import numpy as np
 
-    from greybox._model.data import Experiment
-    from greybox._model.waveforms import PiecewiseConstant
     from greybox._simulate.simulate import as_arrays
-    from greybox.stochastic._sde_device import _grid, _t0
+    from greybox.stochastic._sde_device import _grid, _t0, unread_run
 
-    t = np.asarray(t_s, dtype=float)
-    e = Experiment(
-        "design",
-        t,
-        np.zeros((t.size, int(model.n_outputs))),
-        inputs if isinstance(inputs, PiecewiseConstant) else inputs.to_piecewise(),
-        t_start_s=t_start_s,
-    )
+    e = unread_run(model, inputs, t_s, t_start_s)
     out = _information(
-        as_arrays(model), tuple(free), jnp.asarray(raw, dtype=float), _grid(e), jnp.asarray(t),
-        _t0(e),
+        as_arrays(model), tuple(free), jnp.asarray(raw, dtype=float), _grid(e),
+        jnp.asarray(e.t_s), _t0(e),
     )
     return np.asarray(out)

@@ -310,6 +310,41 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
     return prepared, out_groups
 
 
+def _fit_process(devices, free, noise, sigma, n_starts, seed, max_steps, chunk_size, say):
+    """The process-noise branch of `fit_batch` (`greybox._estimate.likelihood_batch`)."""
+    from greybox._estimate import likelihood as _lik
+    from greybox._estimate.likelihood_batch import fit_likelihood_batch
+
+    names = [d.name for d in devices]
+    if len(set(names)) != len(names):
+        raise ValueError("devices: two devices share a name; names must be unique")
+    if sigma is not None or any(d.sigma is not None for d in devices):
+        raise ValueError(
+            "sigma: a ProcessNoise fit estimates the measurement sd (free measurement.* "
+            "parameters) or takes it from the stochastic device; give no sigma"
+        )
+    setups = [
+        (
+            d.name,
+            _lik.setup(
+                d.model,
+                d.experiments,
+                tuple(d.free) if d.free is not None else free,
+                noise,
+                n_starts=n_starts,
+                seed=seed,
+                max_steps=max_steps,
+            ),
+        )
+        for d in devices
+    ]
+    results, groups, chunk, calls = fit_likelihood_batch(
+        setups, chunk_size=chunk_size, progress=say
+    )
+    ordered = {d.name: results[d.name] for d in devices}
+    return BatchResult(ordered, groups, chunk, calls, 0)
+
+
 def device_from_spec(
     spec, name: str, experiments, *, model=None, options=None, free=None, sigma=None
 ) -> Device:
@@ -362,7 +397,7 @@ def fit_batch(
     sigma=None,
     n_starts: int | None = None,
     seed: int = 0,
-    max_steps: int = 200,
+    max_steps: int | None = None,
     rtol: float = 1e-6,
     atol: float = 1e-6,
     solver_rtol: float = 1e-8,
@@ -371,6 +406,7 @@ def fit_batch(
     chunk_size: int | None = None,
     memory_budget_bytes: float | None = None,
     progress: Callable[[str], None] | None = None,
+    noise=None,
 ) -> BatchResult:
     """Fit every device of `devices` (each as `greybox.fit(device.model, device.experiments,
     free, ...)` would) with one compiled, vmapped solver per problem structure.
@@ -387,6 +423,11 @@ def fit_batch(
     `chunk_size`: solves per compiled call (None: from `memory_budget_bytes` and
     `bytes_per_item`); `memory_budget_bytes`: bytes one call may allocate (None: from the
     device's memory, `device_budget`); `progress`: called with a text line after each chunk.
+    `noise`: None or `OutputError(loss, sigma)` (least squares, as above; `max_steps`
+    default 200) or `ProcessNoise(...)`: maximum likelihood per device, the likelihood
+    back end's compiled BFGS / Newton solver vmapped over devices
+    (`greybox._estimate.likelihood_batch`; `max_steps` default that of `fit`; `method`,
+    `loss`, `sigma` and the solver tolerances do not apply).
 
     **Returns:** a `BatchResult` whose `results[name]` is that device's `FitResult`.
     """
@@ -398,6 +439,20 @@ def fit_batch(
     if not free:
         raise ValueError("free: no free parameters; list at least one FreeParameter")
     say = progress or (lambda _msg: None)
+    from greybox._estimate import noise_models as nm
+
+    if isinstance(noise, nm.ProcessNoise):
+        return _fit_process(devices, free, noise, sigma, n_starts, seed, max_steps, chunk_size, say)
+    if isinstance(noise, nm.OutputError):
+        loss, sigma = noise.loss.name, noise.sigma
+        huber_c = getattr(noise.loss, "c", huber_c)
+        student_nu = getattr(noise.loss, "nu", student_nu)
+    elif noise is not None:
+        raise ValueError(
+            f"noise: {noise!r} is not a noise model; use greybox.OutputError(...) or "
+            "greybox.ProcessNoise(...)"
+        )
+    max_steps = 200 if max_steps is None else int(max_steps)
     solver = (solver_rtol, solver_atol, solver_max_steps)
     prepared, groups = _prepare(
         devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver

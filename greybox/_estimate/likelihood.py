@@ -310,41 +310,57 @@ def _zero_suffices(obj: _Objective, raw, k: int, nll_hat: float, start: float) -
     return bool(np.isfinite(nll0) and 2.0 * (nll0 - nll_hat) < NOT_NEEDED_LR)
 
 
-def _solve_reviving(obj, flat, start, raw0, budget: int, say, i: int, n: int) -> dict:
-    """`_newton` from `start`; then, while a noise intensity has vanished (log coordinate
-    driven towards -inf, where its gradient vanishes too: a stationary point at infinity that
-    need not be a maximum), the solve is repeated with those intensities back at their
-    starting values, keeping the better end point. A zero intensity that survives this is a
-    real answer ("not needed")."""
-    out = jax.device_get(_newton(obj, jnp.asarray(start), jnp.asarray(budget)))
-    steps = int(out["steps"])
+def _gone(flat, raw0, raw) -> list[int]:
+    """Coordinates of the noise intensities that vanished (fell below `NOT_NEEDED_DROP` of
+    their start) at `raw`."""
+    raw = np.asarray(raw, dtype=float)
+    return [
+        k
+        for k, p in enumerate(flat)
+        if _vanishing(p.path)
+        and np.isfinite(raw[k])
+        and float(p.to_value(raw[k])) < NOT_NEEDED_DROP * float(p.to_value(raw0[k]))
+    ]
+
+
+def revive(outs, flats, raw0s, solve, say, labels) -> list[dict]:
+    """Solver outputs `outs` (one per item) after reviving vanished noise intensities.
+
+    While a noise intensity has vanished (log coordinate driven towards -inf, where its
+    gradient vanishes too: a stationary point at infinity that need not be a maximum), the
+    solve is repeated with those intensities back at their starting values, keeping the
+    better end point (at most twice). A zero intensity that survives this is a real answer
+    ("not needed"). `solve([(item, raw), ...])` returns one output per pair, so one device's
+    starts (`fit`) and many devices' (`fit_batch`) share this rule; `labels[item]` names an
+    item in the progress line."""
+    outs = [dict(o) for o in outs]
+    steps = [int(o["steps"]) for o in outs]
+    active = list(range(len(outs)))
     for _ in range(2):
-        raw = np.asarray(out["raw"], dtype=float)
-        gone = [
-            k
-            for k, p in enumerate(flat)
-            if _vanishing(p.path)
-            and np.isfinite(raw[k])
-            and float(p.to_value(raw[k])) < NOT_NEEDED_DROP * float(p.to_value(raw0[k]))
-        ]
-        if not gone:
+        trials = []
+        for i in active:
+            gone = _gone(flats[i], raw0s[i], outs[i]["raw"])
+            if gone:
+                trial = np.asarray(outs[i]["raw"], dtype=float).copy()
+                trial[gone] = np.asarray(raw0s[i])[gone]
+                trials.append((i, trial, gone))
+        if not trials:
             break
-        trial = raw.copy()
-        trial[gone] = np.asarray(raw0)[gone]
-        again = jax.device_get(_newton(obj, jnp.asarray(trial), jnp.asarray(budget)))
-        steps += int(again["steps"])
-        names = ", ".join(flat[k].path for k in gone)
-        if float(again["cost"]) < float(out["cost"]) - 1e-6:
-            say(
-                f"start {i + 1}/{n}: {names} had vanished; restarted from its start value, "
-                f"-log L + priors {float(out['cost']):.6g} -> {float(again['cost']):.6g}"
-            )
-            out = again
-        else:
-            break
-    out = dict(out)
-    out["steps"] = steps
-    return out
+        again = solve([(i, t) for i, t, _ in trials])
+        active = []
+        for (i, _, gone), new in zip(trials, again):
+            steps[i] += int(new["steps"])
+            if float(new["cost"]) < float(outs[i]["cost"]) - 1e-6:
+                names = ", ".join(flats[i][k].path for k in gone)
+                say(
+                    f"{labels[i]}: {names} had vanished; restarted from its start value, "
+                    f"-log L + priors {float(outs[i]['cost']):.6g} -> {float(new['cost']):.6g}"
+                )
+                outs[i] = dict(new)
+                active.append(i)
+    for o, n in zip(outs, steps):
+        o["steps"] = n
+    return outs
 
 
 def _structure_model(model, noise: ProcessNoise) -> StochasticDevice:
@@ -516,7 +532,35 @@ def _indefinite_note(H, labels) -> str | None:
     )
 
 
-def fit_likelihood(
+@dataclasses.dataclass
+class Setup:
+    """One device's likelihood problem, ready to solve: the filtered `StochasticDevice` `sd`,
+    the checked `free` list (noise starts and scales applied), the objective `obj`, the raw
+    start `raw0` and the multi-start points `starts`."""
+
+    sd: StochasticDevice
+    free: tuple
+    obj: _Objective
+    raw0: np.ndarray
+    starts: list
+    budget: int
+    noise: ProcessNoise
+    experiments: tuple
+
+    @property
+    def flat(self) -> list:
+        return self.obj.flat
+
+    @property
+    def label(self) -> str:
+        filt = "extended Kalman filter" if self.sd.use_ekf else "Kalman filter"
+        return (
+            f"maximum likelihood ({filt}, BFGS + Newton, {self.raw0.size} parameters, "
+            f"{len(self.experiments)} runs)"
+        )
+
+
+def setup(
     model,
     experiments,
     free,
@@ -526,14 +570,10 @@ def fit_likelihood(
     seed: int = 0,
     max_steps: int | None = None,
     start_values=None,
-    progress: Callable[[str], None] | None = None,
-):
-    """The likelihood back end of `greybox.fit` (see the module docstring); a `FitResult`."""
+) -> Setup:
+    """The `Setup` of one device (what `fit_likelihood` solves; `fit_batch` stacks many)."""
     from greybox._estimate import fit as _fit
-    from greybox._estimate.residuals import analyse as analyse_residuals
 
-    require_x64("fit")
-    say = progress or (lambda _m: None)
     experiments = tuple(experiments)
     if not experiments:
         raise ValueError("experiments: zero runs in the estimation set; give at least one")
@@ -545,32 +585,64 @@ def fit_likelihood(
         sd = start_noise(sd, experiments, free)
     free = _problem.with_scales(free, sd)
     obj = _build(sd, experiments, free)
-    flat = obj.flat
-    raw0 = _problem.initial_raw(flat, sd)
+    raw0 = _problem.initial_raw(obj.flat, sd)
     n_start = _problem.n_starts_for(n_starts, obj.shared)
     rng = np.random.default_rng(seed)
     starts = [raw0] + [_problem.perturbed(obj.shared, raw0, rng) for _ in range(n_start - 1)]
     budget = MAX_STEPS if max_steps is None else int(max_steps)
-    filt = "extended Kalman filter" if sd.use_ekf else "Kalman filter"
+    return Setup(sd, free, obj, raw0, starts, budget, noise, experiments)
+
+
+def start_state(out) -> str:
+    """A solver output's ending in words."""
+    if out["converged"]:
+        return "converged"
+    return "ran out of steps" if out["ran_out"] else "stalled"
+
+
+def fit_likelihood(
+    model,
+    experiments,
+    free,
+    noise: ProcessNoise,
+    *,
+    progress: Callable[[str], None] | None = None,
+    **options,
+):
+    """The likelihood back end of `greybox.fit` (see the module docstring); a `FitResult`.
+    `options`: those of `setup` (n_starts, seed, max_steps, start_values)."""
+    require_x64("fit")
+    say = progress or (lambda _m: None)
+    su = setup(model, experiments, free, noise, **options)
+
+    def solve(items):
+        return [
+            jax.device_get(_newton(su.obj, jnp.asarray(r), jnp.asarray(su.budget)))
+            for _, r in items
+        ]
+
     runs = []
-    for i, s in enumerate(starts):
-        say(
-            f"start {i + 1}/{len(starts)}: maximum likelihood ({filt}, BFGS + Newton, "
-            f"{raw0.size} parameters, {len(experiments)} runs)"
-        )
-        out = _solve_reviving(obj, flat, s, raw0, budget, say, i, len(starts))
+    n = len(su.starts)
+    for i, s in enumerate(su.starts):
+        say(f"start {i + 1}/{n}: {su.label}")
+        out = revive(solve([(0, s)]), [su.flat], [su.raw0], solve, say, [f"start {i + 1}/{n}"])[0]
         runs.append(out)
-        state = (
-            "converged"
-            if out["converged"]
-            else "ran out of steps"
-            if out["ran_out"]
-            else "stalled"
-        )
         say(
-            f"start {i + 1}/{len(starts)}: -log L + priors {float(out['cost']):.6g}, {state} "
+            f"start {i + 1}/{n}: -log L + priors {float(out['cost']):.6g}, {start_state(out)} "
             f"after {int(out['steps'])} steps"
         )
+    return assemble(su, runs, say)
+
+
+def assemble(su: Setup, runs, say):
+    """The `FitResult` of one device from its solver outputs `runs` (one per start)."""
+    from greybox._estimate import fit as _fit
+    from greybox._estimate.residuals import analyse as analyse_residuals
+
+    sd, free, obj, raw0, noise, experiments = (
+        su.sd, su.free, su.obj, su.raw0, su.noise, su.experiments
+    )
+    flat = obj.flat
     best_index = _problem.best_start(runs)
     best = runs[best_index]
     raw = np.asarray(best["raw"], dtype=float)

@@ -37,8 +37,26 @@ class Posterior:
 
     def band(self, inputs, t_s, *, noise: bool = False, level: float = 0.95, t_start_s=0.0):
         """The response to `inputs` at `t_s` with its pointwise band (`greybox.Band`): a
-        confidence band of the model response, or with `noise` a prediction interval."""
-        from greybox._estimate.prediction import prediction_band
+        confidence band of the model response, or with `noise` a prediction interval.
+
+        With process noise (`model` a `StochasticDevice`: a `ProcessNoise` fit) the band is that of sample
+        paths (`greybox._estimate.prediction.process_band`): process noise and parameter
+        draws, with `noise` measurement noise too; its `kind` says so."""
+        from greybox._estimate.prediction import prediction_band, process_band
+        from greybox.stochastic._sde_device import StochasticDevice
+
+        if isinstance(self.model, StochasticDevice):
+            return process_band(
+                self.model,
+                self.free,
+                self.raw,
+                self.covariance_raw,
+                inputs,
+                t_s,
+                measurement_noise=noise,
+                level=level,
+                t_start_s=t_start_s,
+            )
 
         return prediction_band(
             self.model,

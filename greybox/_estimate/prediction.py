@@ -72,6 +72,70 @@ class Band:
         )
 
 
+@dataclasses.dataclass(frozen=True)
+class SampledBand(Band):
+    """A band from sample paths (process noise), which says how it was made in `kind`."""
+
+    description: str = ""
+
+    @property
+    def kind(self) -> str:
+        return self.description
+
+
+N_PATHS = 200  # sample paths behind a process-noise band
+
+
+def process_band(
+    model,
+    free,
+    raw,
+    covariance_raw,
+    inputs,
+    t_s,
+    *,
+    measurement_noise: bool = False,
+    level: float = 0.95,
+    n_paths: int = N_PATHS,
+    seed: int = 0,
+    t_start_s: float = 0.0,
+) -> SampledBand:
+    """The pointwise `level` band of `n_paths` sample paths of a process-noise model
+    (`StochasticDevice`): process noise by exact discretisation of the SDE, the shared
+    parameters drawn from `covariance_raw` (at `raw` when it is not finite), measurement noise
+    with `measurement_noise`. `y` is the noise-free response at `raw`."""
+    from greybox._simulate.simulate import simulate
+    from greybox.stochastic._sde_device import draw_paths
+
+    shared = [p for p in free if not p.per_experiment]
+    k = len(shared)
+    raw = np.asarray(raw, dtype=float)[:k]
+    cov = np.asarray(covariance_raw, dtype=float)[:k, :k]
+    rng = np.random.default_rng(seed)
+    if cov.size and np.all(np.isfinite(cov)):
+        draws = rng.multivariate_normal(raw, 0.5 * (cov + cov.T), size=n_paths)
+        what = "parameter draws from the fit's covariance"
+    else:
+        draws = np.tile(raw, (n_paths, 1))
+        what = "parameters at the estimate (their covariance is not finite)"
+    t = np.asarray(t_s, dtype=float)
+    paths = draw_paths(
+        model, shared, draws, inputs, t, t_start_s=t_start_s, seed=seed,
+        measurement_noise=measurement_noise,
+    )
+    at = apply_raw(as_arrays(model), shared, jnp.asarray(raw))
+    y = np.asarray(simulate(at.device, inputs, t, t_start_s=t_start_s)).reshape(t.size, -1)
+    tail = 50 * (1 - level)
+    lo, hi = np.percentile(paths, [tail, 100 - tail], axis=0)
+    pct = f"{level * 100:g} %"
+    kind = (
+        f"{pct} band of {n_paths} sample paths: process noise (exact discretisation of the "
+        f"SDE) and {what}" + ("; measurement noise added" if measurement_noise else "")
+    )
+    sd = (hi - lo) / (2 * float(jax.scipy.stats.norm.ppf(0.5 + level / 2)))
+    return SampledBand(t, y, lo, hi, sd, sd, level, measurement_noise, kind)
+
+
 def prediction_band(
     model,
     free,

@@ -152,7 +152,9 @@ def check_same_structure(loaded) -> None:
 
 
 def _option_key(fs) -> str:
-    return json.dumps({k: repr(v) for k, v in sorted(fs.fit_options.items())})
+    key = {k: repr(v) for k, v in sorted(fs.fit_options.items())}
+    key["[noise]"] = repr(fs.noise)  # one noise model (least squares or one ProcessNoise) a batch
+    return json.dumps(key)
 
 
 def _why(err: BaseException) -> str:
@@ -176,22 +178,11 @@ def fit_devices(loaded, args, say):
     if process and args.scheduler:
         raise InputError(
             f"{process[0][0]} is a process-noise fit, which --scheduler does not distribute; "
-            "leave --scheduler out (process-noise devices are fitted one after another)",
+            "leave --scheduler out (process-noise devices are batched in this process)",
             field="--scheduler",
         )
-    for name, fs in process:  # the likelihood back end: one `fit` per device
-        from greybox.cli._common import fit_loaded
-
-        say(f"{name}: process-noise fit")
-        try:
-            results[name], _ = fit_loaded(fs, say, validate_runs=False)
-        except (InputError, KeyboardInterrupt):
-            raise
-        except Exception as err:
-            failed[name] = _why(err)
-    for name, fs in loaded:
-        if fs.noise is None:
-            by_options.setdefault(_option_key(fs), []).append((name, fs))
+    for name, fs in loaded:  # process-noise devices batch with those of the same [noise]
+        by_options.setdefault(_option_key(fs), []).append((name, fs))
     for members in by_options.values():
         try:
             results.update(_fit_group(members, args, say))
@@ -228,6 +219,15 @@ def _fit_group(members, args, say) -> dict:
     budget = None if args.memory_budget_mb is None else args.memory_budget_mb * 1e6
     opts = dict(members[0][1].fit_options)
     opts.pop("progress", None)
+    if members[0][1].noise is not None:  # the likelihood back end, vmapped over devices
+        from greybox.io._noise_table import noise_model
+
+        devices, noise = [], None
+        for n, fs in members:
+            model, noise, noise_free = noise_model(fs.noise, fs.model, fs.spec)
+            devices.append(Device(n, model, fs.estimation, free=(*fs.free, *noise_free)))
+        out = fit_batch(devices, devices[0].free, noise=noise, progress=say, **opts)
+        return dict(out.results)
     devices = [Device(n, fs.model, fs.estimation, free=fs.free) for n, fs in members]
     free = members[0][1].free
     if args.scheduler:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import math
 from pathlib import Path
@@ -312,7 +311,7 @@ def _run(args, tick) -> int:
             "level": band.level,
             "includes_noise": band.includes_noise,
             "includes_process_noise": process,
-            "n_paths": N_PATHS if process else None,
+            "n_paths": _n_paths() if process else None,
             "sigma_m": [float(s) for s in fitted.sigma] if args.noise else None,
         },
         "columns": described,
@@ -405,57 +404,12 @@ def with_initial_state(fitted, specs):
     return dataclasses.replace(fitted, model=model)
 
 
-N_PATHS = 200  # sample paths behind a process-noise band
+def _n_paths() -> int:
+    from greybox._estimate.prediction import N_PATHS
+
+    return N_PATHS
 
 
 def process_band(fitted, wave, t, measurement_noise: bool):
-    """The 95 % pointwise band of `N_PATHS` sample paths of a process-noise fit: process noise
-    by exact discretisation of the SDE, parameters drawn from the fit's covariance (at the
-    estimate when it is not finite), measurement noise if asked."""
-    from greybox.stochastic._sde_device import draw_paths
-    from greybox._simulate.simulate import simulate
-
-    sd = fitted.model
-    shared = [p for p in fitted.free if not p.per_experiment]
-    k = len(shared)
-    raw, cov = fitted.raw[:k], fitted.covariance_raw[:k, :k]
-    rng = np.random.default_rng(0)
-    if cov.size and np.all(np.isfinite(cov)):
-        draws = rng.multivariate_normal(raw, 0.5 * (cov + cov.T), size=N_PATHS)
-        what = "parameter draws from the fit's covariance"
-    else:
-        draws = np.tile(raw, (N_PATHS, 1))
-        what = "parameters at the estimate (their covariance is not finite)"
-    paths = draw_paths(sd, shared, draws, wave, t, measurement_noise=measurement_noise)
-    n = t.size
-    y = np.asarray(simulate(sd.device, wave, t)).reshape(n, -1)
-    lo, hi = np.percentile(paths, [2.5, 97.5], axis=0)
-    kind = (
-        f"95 % band of {N_PATHS} sample paths: process noise (exact discretisation of the SDE) "
-        f"and {what}" + ("; measurement noise added" if measurement_noise else "")
-    )
-    sdv = (hi - lo) / (2 * 1.96)
-    return _SampledBand(t, y, lo, hi, sdv, sdv, 0.95, measurement_noise, kind)
-
-
-@functools.lru_cache(maxsize=1)
-def _sampled_band_class():  # defined on first use: greybox._estimate.prediction imports JAX
-    import dataclasses
-
-    from greybox._estimate.prediction import Band
-
-    @dataclasses.dataclass(frozen=True)
-    class SampledBand(Band):
-        """A band from sample paths, which says so."""
-
-        description: str = ""
-
-        @property
-        def kind(self) -> str:
-            return self.description
-
-    return SampledBand
-
-
-def _SampledBand(*args):  # noqa: N802 (a constructor)
-    return _sampled_band_class()(*args)
+    """The 95 % band of sample paths of a process-noise fit (`Posterior.band`'s)."""
+    return fitted.posterior.band(wave, t, noise=measurement_noise)

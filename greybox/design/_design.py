@@ -34,6 +34,15 @@ Waveform families and how they are optimised (honest choices):
   gradients through the simulator (`jax.grad` of the criterion of `jax.jacfwd` Jacobians);
   the projection enforces the power range and the average-power cap exactly.
 
+**Process noise.** For a `StochasticDevice` (a model with process noise, e.g. the `model`
+of a `ProcessNoise` fit) the information of a run is the expected Fisher information of the
+Kalman-filter likelihood that fit maximises (`greybox.stochastic._fisher`: the Gaussian
+information of the readings' mean and covariance, exact for a linear device), so process
+noise, which makes long runs less informative than output error would, is in every
+criterion. `sigma` is then the model's measurement sd; per-run parameters are marginalised
+the same way; pulse trains only (the multilevel gradient and `track_target` are output-error
+only).
+
 **Inverse design.** `track_target` finds a piecewise-constant laser waveform on a fixed
 grid that makes the shuttle follow a target (a step to a stroke within a settling time),
 by projected gradient descent through the simulator, and reports whether the target is met
@@ -198,7 +207,7 @@ def design_problem(
     model,
     free: Sequence[FreeParameter],
     interest: Sequence[str],
-    sigma,
+    sigma=None,
     *,
     raw=None,
     covariance_raw=None,
@@ -215,7 +224,8 @@ def design_problem(
       (shared and per-run, as for `greybox.fit`); priors in `free` add information.
     - `interest`: paths of the shared parameters whose standard errors the design shrinks
       (the other shared ones are nuisance parameters, marginalised).
-    - `sigma`: camera noise sd per output [SI].
+    - `sigma`: camera noise sd per output [SI]; None for a `StochasticDevice` (process
+      noise: its measurement sd, and the information is the Kalman-filter likelihood's).
     - `raw`, `covariance_raw`: a fitted posterior (`FitResult` or `load_params` fields);
       the information is evaluated at `raw`, and with `n_draws > 0` averaged over draws from
       the covariance (Bayesian design). `include_existing=True` adds the information the
@@ -228,7 +238,7 @@ def design_problem(
     free = tuple(free)
     if exposure_s is not None:
         model = with_camera(model, exposure_s=exposure_s)
-    method = check_method(model, method)
+    method = check_method(model.device if _stochastic(model) else model, method)
     shared = [p for p in free if not p.per_experiment]
     per_run = [p for p in free if p.per_experiment]
     free = tuple(shared + per_run)
@@ -244,6 +254,8 @@ def design_problem(
                 "(add it to the free list) or choose another"
             )
         idx.append(paths.index(path))
+    if sigma is None and _stochastic(model):  # process noise: the model's measurement sd
+        sigma = np.asarray(model.measurement.values, dtype=float)
     sig = np.atleast_1d(np.asarray(sigma, dtype=float))
     if not np.all(sig > 0):
         raise ValueError("sigma: the noise sd must be > 0 (SI units of the output)")
@@ -307,7 +319,11 @@ def _marginal(jac, weight, sigma, ns):
 
     `jac` (N, n_y, P), `weight` (N,) 1 for real frames, 0 for padding."""
     j = (jac * (weight[:, None, None] / sigma[None, :, None])).reshape(-1, jac.shape[-1])
-    f = j.T @ j
+    return _schur(j.T @ j, ns)
+
+
+def _schur(f, ns):
+    """The first `ns` parameters' information with the others marginalised (Schur)."""
     a, b, d = f[:ns, :ns], f[:ns, ns:], f[ns:, ns:]
     if d.shape[0] == 0:
         return a
@@ -372,6 +388,8 @@ def run_information(problem: DesignProblem, waveforms, t_s, *, chunk: int = 64) 
     waveforms = list(waveforms)
     t_list = t_s if isinstance(t_s, (list, tuple)) else [np.asarray(t_s)] * len(waveforms)
     points = problem.draws if problem.draws.shape[0] else problem.raw_shared[None]
+    if _stochastic(problem.model):
+        return _process_information(problem, points, waveforms, t_list)
     out = []
     for start in range(0, len(waveforms), chunk):
         sched, weight, _ = _schedules(
@@ -398,6 +416,42 @@ def run_information(problem: DesignProblem, waveforms, t_s, *, chunk: int = 64) 
             )
         )
     return np.concatenate(out, axis=1)
+
+
+def _stochastic(model) -> bool:
+    from greybox.stochastic._sde_device import StochasticDevice
+
+    return isinstance(model, StochasticDevice)
+
+
+def _process_information(problem: DesignProblem, points, waveforms, t_list) -> np.ndarray:
+    """`run_information` for a process-noise model: the expected information of the
+    Kalman-filter likelihood per run (`greybox.stochastic._fisher`), per-run parameters
+    marginalised."""
+    from greybox.stochastic._fisher import expected_information
+
+    ns = len(problem.shared)
+    free = problem.shared + problem.per_run
+    return np.stack(
+        [
+            np.stack(
+                [
+                    np.asarray(
+                        _schur(
+                            jnp.asarray(
+                                expected_information(
+                                    problem.model, free, np.append(r, problem.raw_per), w, t
+                                )
+                            ),
+                            ns,
+                        )
+                    )
+                    for w, t in zip(waveforms, t_list, strict=True)
+                ]
+            )
+            for r in points
+        ]
+    )
 
 
 def design_score(problem: DesignProblem, total_info: np.ndarray, kind: str = "D") -> float:
@@ -713,6 +767,11 @@ def design_experiment(
         runs = [dataclasses.replace(r, name=f"d{i + 1}_{r.name}") for i, r in enumerate(runs)]
         total = infos[:, chosen].sum(axis=1)
     else:
+        if _stochastic(problem.model):
+            raise ValueError(
+                f"family: {family!r} optimises levels by gradients of the output-error "
+                "information; a process-noise model designs pulse trains (family='pulse_train')"
+            )
         # start from the best pulse-train union sampled on the hold grid, then refine by
         # projected gradient ascent (a random start converges far more slowly)
         start = design_experiment(

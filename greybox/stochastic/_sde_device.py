@@ -795,17 +795,9 @@ def draw_paths(
     the paths is the band of a simulation with process noise and parameter uncertainty.
     """
     require_x64("draw_paths")
-    from greybox._model.waveforms import PiecewiseConstant
-
     free = tuple(free)
-    t = np.asarray(t_s, dtype=float)
-    e = Experiment(
-        "paths",
-        t,
-        np.zeros((t.size, int(model.n_outputs))),
-        inputs if isinstance(inputs, PiecewiseConstant) else inputs.to_piecewise(),
-        t_start_s=t_start_s,
-    )
+    e = unread_run(model, inputs, t_s, t_start_s)
+    t = e.t_s
     draws = jnp.asarray(np.asarray(raw_draws, dtype=float).reshape(-1, len(free)))
     keys = jax.random.split(jax.random.PRNGKey(int(seed)), draws.shape[0])
     z = _draw_jit(
@@ -819,6 +811,21 @@ def draw_paths(
         bool(measurement_noise),
     )
     return np.asarray(z)
+
+
+def unread_run(model, inputs, t_s, t_start_s: float = 0.0) -> Experiment:
+    """A run of `model` driven by `inputs` at frames `t_s` with no readings yet (zeros): the
+    grid of a prediction or a design run."""
+    from greybox._model.waveforms import PiecewiseConstant
+
+    t = np.asarray(t_s, dtype=float)
+    return Experiment(
+        "unread",
+        t,
+        np.zeros((t.size, int(model.n_outputs))),
+        inputs if isinstance(inputs, PiecewiseConstant) else inputs.to_piecewise(),
+        t_start_s=t_start_s,
+    )
 
 
 @eqx.filter_jit

@@ -311,11 +311,29 @@ class _Problem(eqx.Module):
     solver_opts: tuple = eqx.field(static=True)
 
     @staticmethod
-    def build(model, experiments, free, method, loss, huber_c, student_nu, rtol, atol, max_steps):
-        schedules = [
-            schedule_for(model, e.inputs, e.t_s, t_start_s=e.t_start_s) for e in experiments
-        ]
-        sched = pad_schedules(schedules)
+    def build(
+        model,
+        experiments,
+        free,
+        method,
+        loss,
+        huber_c,
+        student_nu,
+        rtol,
+        atol,
+        max_steps,
+        *,
+        schedules=None,
+        on_device: bool = True,
+    ):
+        """`schedules`: the runs' `Schedule`s when already built; `on_device=False` keeps
+        numpy leaves (a batch stacks many problems before one transfer)."""
+        if schedules is None:
+            schedules = [
+                schedule_for(model, e.inputs, e.t_s, t_start_s=e.t_start_s) for e in experiments
+            ]
+        sched = pad_schedules(schedules, on_device=on_device)
+        put = jnp.asarray if on_device else np.asarray
         n_exp = len(experiments)
         n_frames = sched["t_s"].shape[1]
         n_y = experiments[0].y.shape[1]
@@ -331,12 +349,12 @@ class _Problem(eqx.Module):
                 noise[i, : e.n_frames] = np.where(e.mask, e.sigma, 1.0)
         setting_paths, settings = _problem.settings_matrix(model, experiments, free)
         return _Problem(
-            model=as_arrays(model),
+            model=as_arrays(model, put),
             sched=sched,
-            y=jnp.asarray(y),
-            w=jnp.asarray(w),
-            noise=jnp.asarray(noise),
-            settings=jnp.asarray(settings),
+            y=put(y),
+            w=put(w),
+            noise=put(noise),
+            settings=put(settings),
             setting_paths=setting_paths,
             shared=_problem.split(free)[0],
             per_exp=_problem.split(free)[1],
@@ -465,6 +483,17 @@ def _response(problem: _Problem, raw):
 
     jac, (z, ok) = jax.jacfwd(f, has_aux=True)(raw)
     return z, ok, jac
+
+
+@eqx.filter_jit
+def _fitted_models(problem: _Problem, raw):
+    """(shared model, per-run models) at `raw`: one compiled call, not a chain of eager
+    updates per run (most of a batch's per-device host time before)."""
+    base, per = problem.models(raw)
+    runs = tuple(
+        problem.experiment_model(base, per[i], problem.settings[i]) for i in range(problem.n_exp)
+    )
+    return base, runs
 
 
 _start_values = _problem.start_values  # (kept for greybox._estimate.batch)
@@ -905,7 +934,11 @@ def _assemble(
     source,
     say,
     max_steps: int | None = None,
+    models=None,
 ) -> FitResult:
+    """The `FitResult` of the best solve `best` (covariance, identifiability, residual tests,
+    scores). `models`: (shared model, per-run models) at its raw vector when already
+    computed (`fit_batch` computes them for many devices in one call)."""
     raw, cost, ok = np.asarray(best["raw"]), float(best["cost"]), bool(best["ok"])
     raw_j = jnp.asarray(raw)
     finite = bool(np.all(np.isfinite(raw))) and np.isfinite(cost)
@@ -942,10 +975,7 @@ def _assemble(
     corr = correlation(report, cov)
     band_sd = _simulation_sd(problem, best, cov, experiments, solved if finite else None)
 
-    base, per = problem.models(raw_j)
-    exp_models = tuple(
-        problem.experiment_model(base, per[i], problem.settings[i]) for i in range(problem.n_exp)
-    )
+    base, exp_models = _fitted_models(problem, raw_j) if models is None else models
     sigma_out = _rms_sigma(experiments, n_y) if source == "per-frame" else np.asarray(sig)
     fits, robust, outliers, ceilings = {}, {}, {}, {}
     scaled = []

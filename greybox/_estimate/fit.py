@@ -311,21 +311,10 @@ class _Problem(eqx.Module):
     solver_opts: tuple = eqx.field(static=True)
 
     @staticmethod
-    def build(
-        model,
-        experiments,
-        free,
-        method,
-        loss,
-        huber_c,
-        student_nu,
-        rtol,
-        atol,
-        max_steps,
-        *,
-        schedules=None,
-        on_device: bool = True,
-    ):
+    def build(  # the problem's settings, in `fit`'s order
+        model, experiments, free, method, loss, huber_c, student_nu, rtol, atol, max_steps,
+        *, schedules=None, on_device: bool = True,
+    ):  # fmt: skip
         """`schedules`: the runs' `Schedule`s when already built; `on_device=False` keeps
         numpy leaves (a batch stacks many problems before one transfer)."""
         if schedules is None:

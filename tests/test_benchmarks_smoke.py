@@ -50,6 +50,7 @@ KEYS = {
     "tclab.py": {"greybox_sae_val", "arx_sae_val", "greybox_structure", "horizon"},
     "track.py": {"frames_per_s", "baseline_frames_per_s", "speedup"},
     "whiteness.py": {"replicates"},
+    "write_share.py": {"write_share", "compiles_after_fit", "write_s", "total_s"},
 }
 TIMEOUT_S = 240  # per script, on a loaded machine
 

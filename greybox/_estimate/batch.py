@@ -183,6 +183,33 @@ def _solve_many(dynamic, static, raw, sigma, rtol, atol, max_steps):
     return jax.vmap(one)(dynamic, raw, sigma)
 
 
+@eqx.filter_jit
+def _models_many(dynamic, static, raw):
+    """`_fit._fitted_models` vmapped over a stacked chunk of problems and raw vectors."""
+
+    def one(dyn, r):
+        return _fit._fitted_models(eqx.combine(dyn, static), r)
+
+    return eqx.filter_vmap(one)(dynamic, raw)
+
+
+def _fitted_models(prepared, members, raws, chunk) -> dict:
+    """{member: (shared model, per-run models)} at each member's raw vector, in chunks of
+    `chunk` (the last padded, so every chunk reuses one compiled call); numpy leaves."""
+    group = prepared[members[0]].group
+    out = {}
+    for c in range(0, len(members), chunk):
+        part = members[c : c + chunk]
+        padded = part + [part[-1]] * (chunk - len(part))
+        stacked = group.rows([prepared[i].row for i in padded])
+        raw = jnp.asarray(np.stack([raws[i] for i in padded]))
+        models = jax.device_get(_models_many(stacked, group.static, raw))
+        leaves, tree = jtu.tree_flatten(models)
+        for k, i in enumerate(part):
+            out[i] = jtu.tree_unflatten(tree, [x[k] if eqx.is_array(x) else x for x in leaves])
+    return out
+
+
 @dataclasses.dataclass
 class _Group:
     """Devices of one problem structure: their common static part and their array leaves
@@ -245,7 +272,19 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
         f = tuple(p.with_scale_from(v) for p, v in zip(f, _fit._start_values(f, d.model)))
         sig_d = d.sigma if d.sigma is not None else _device_sigma(sigma, d.name)
         source = _fit._noise_source(d.experiments, sig_d)
-        prob = _fit._Problem.build(d.model, d.experiments, f, m, loss, huber_c, student_nu, *solver)
+        scheds = schedules_for(d.model, d.experiments)  # built once: the group pads them jointly
+        prob = _fit._Problem.build(
+            d.model,
+            d.experiments,
+            f,
+            m,
+            loss,
+            huber_c,
+            student_nu,
+            *solver,
+            schedules=scheds,
+            on_device=False,
+        )
         if prob.n_data <= prob.n_raw:
             raise ValueError(
                 f"{d.name}: {prob.n_data} valid frames cannot determine {prob.n_raw} parameters"
@@ -253,7 +292,7 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
         raw0 = _fit._initial_raw(prob, d.model)
         # the starting values live in raw0; `FreeParameter.initial` takes no part in the static
         # part's equality, so every device of the same structure shares one compiled solver
-        built.append((d, prob, f, source, sig_d, raw0))
+        built.append((d, prob, f, source, sig_d, raw0, scheds))
 
     # group by structure (static fields) and pad every run of a group jointly
     groups: dict = {}
@@ -265,10 +304,7 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
     out_groups = []
     for members in groups.values():
         # one joint padding of every run of the group, kept in numpy until a chunk needs it
-        scheds = [
-            s for i in members for s in schedules_for(built[i][0].model, built[i][0].experiments)
-        ]
-        joint = pad_schedules(scheds, on_device=False)
+        joint = pad_schedules([s for i in members for s in built[i][6]], on_device=False)
         n_f = joint["t_s"].shape[1]
         dyns, start = [], 0
         for i in members:
@@ -289,7 +325,7 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
         group = _Group(list(members), static, stacked)
         out_groups.append(group)
         for row, i in enumerate(members):
-            d, prob, f, source, sig_d, raw0 = built[i]
+            d, prob, f, source, sig_d, raw0, _ = built[i]
             k = n_starts
             if k is None:
                 k = _fit.AUTO_STARTS if len(prob.shared) > 2 else 1
@@ -499,6 +535,8 @@ def fit_batch(
             for (i, _, sig), out in zip(refit, outs):
                 bi, _, _, steps = best_of[i]
                 best_of[i] = (bi, out, sig, steps + int(out["steps"]))
+        raws = {i: np.asarray(best_of[i][1]["raw"]) for i in members}
+        models = _fitted_models(prepared, members, raws, chunk)
         for i in members:
             p = prepared[i]
             bi, best, sig, steps = best_of[i]
@@ -514,6 +552,7 @@ def fit_batch(
                 p.free,
                 p.source,
                 lambda _msg: None,
+                models=models[i],
             )
         say(f"{label}: {len(members)} devices assembled")
     ordered = {d.name: results[d.name] for d in devices}

@@ -334,11 +334,18 @@ class _Problem(eqx.Module):
     solver_opts: tuple = eqx.field(static=True)
 
     @staticmethod
-    def build(model, experiments, free, method, loss, huber_c, student_nu, rtol, atol, max_steps):
-        schedules = [
-            schedule_for(model, e.inputs, e.t_s, t_start_s=e.t_start_s) for e in experiments
-        ]
-        sched = pad_schedules(schedules)
+    def build(  # the problem's settings, in `fit`'s order
+        model, experiments, free, method, loss, huber_c, student_nu, rtol, atol, max_steps,
+        *, schedules=None, on_device: bool = True,
+    ):  # fmt: skip
+        """`schedules`: the runs' `Schedule`s when already built; `on_device=False` keeps
+        numpy leaves (a batch stacks many problems before one transfer)."""
+        if schedules is None:
+            schedules = [
+                schedule_for(model, e.inputs, e.t_s, t_start_s=e.t_start_s) for e in experiments
+            ]
+        sched = pad_schedules(schedules, on_device=on_device)
+        put = jnp.asarray if on_device else np.asarray
         n_exp = len(experiments)
         n_frames = sched["t_s"].shape[1]
         n_y = experiments[0].y.shape[1]
@@ -354,12 +361,12 @@ class _Problem(eqx.Module):
                 noise[i, : e.n_frames] = np.where(e.mask, e.sigma, 1.0)
         setting_paths, settings = _problem.settings_matrix(model, experiments, free)
         return _Problem(
-            model=as_arrays(model),
+            model=as_arrays(model, put),
             sched=sched,
-            y=jnp.asarray(y),
-            w=jnp.asarray(w),
-            noise=jnp.asarray(noise),
-            settings=jnp.asarray(settings),
+            y=put(y),
+            w=put(w),
+            noise=put(noise),
+            settings=put(settings),
             setting_paths=setting_paths,
             shared=_problem.split(free)[0],
             per_exp=_problem.split(free)[1],
@@ -424,12 +431,19 @@ class _Problem(eqx.Module):
         return jax.vmap(one)(per, self.settings, self.sched)
 
     def data_residuals(self, raw, sigma):
-        z, ok = self.predictions(raw)
+        return self.scaled_errors(*self.predictions(raw), sigma)
+
+    def scaled_errors(self, z, ok, sigma):
+        """Data residuals (E, N, n_y) of the predictions `z` (success flags `ok`)."""
         r = (z - self.y) / (sigma * self.noise) * self.w
         return jnp.where(ok[:, None, None], r, FAILED_SOLVE_RESIDUAL * self.w)
 
     def residuals(self, raw, sigma):
-        r = _robust(self.data_residuals(raw, sigma), self.loss, self.huber_c, self.student_nu)
+        return self.loss_residuals(self.data_residuals(raw, sigma), raw)
+
+    def loss_residuals(self, data_residuals, raw):
+        """The least-squares residual vector: robustified data residuals, then the priors."""
+        r = _robust(data_residuals, self.loss, self.huber_c, self.student_nu)
         parts = [r.reshape(-1)]
         if self.priors:
             parts.append(jnp.stack([p.prior_residual(p.to_value(raw[k])) for k, p in self.priors]))
@@ -447,18 +461,51 @@ def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_st
     raw, ok, steps = levenberg_marquardt(
         problem.residuals, raw_start, sigma, rtol=rtol, atol=atol, max_steps=max_steps
     )
-    z, solved = problem.predictions(raw)
+
+    def at_end(r):  # one simulation at the end point gives every output below
+        z, solved = problem.predictions(r)
+        d = problem.scaled_errors(z, solved, sigma)
+        res = problem.loss_residuals(d, r)
+        return (res, z), (res, d, z, solved)
+
+    (jac, jac_z), (res, d, z, solved) = jax.jacfwd(at_end, has_aux=True)(raw)
     return dict(
         raw=raw,
         ok=ok,
         steps=steps,
-        cost=0.5 * jnp.sum(problem.residuals(raw, sigma) ** 2),
-        residuals=problem.residuals(raw, sigma),
-        data_residuals=problem.data_residuals(raw, sigma),
-        jacobian=jax.jacfwd(lambda r: problem.residuals(r, sigma))(raw),
+        cost=0.5 * jnp.sum(res**2),
+        residuals=res,
+        data_residuals=d,
+        jacobian=jac,
         predictions=z,
+        # d predictions / d raw (E, N, n_y, n_raw): the 95 % bands the result folder draws
+        prediction_jacobian=jac_z,
         solved=solved,
     )
+
+
+@eqx.filter_jit
+def _response(problem: _Problem, raw):
+    """Predictions (E, N, n_y), success flags (E,) and d predictions / d raw (E, N, n_y,
+    n_raw) of `problem` at `raw`: one compiled simulation with its sensitivities."""
+
+    def f(r):
+        z, ok = problem.predictions(r)
+        return z, (z, ok)
+
+    jac, (z, ok) = jax.jacfwd(f, has_aux=True)(raw)
+    return z, ok, jac
+
+
+@eqx.filter_jit
+def _fitted_models(problem: _Problem, raw):
+    """(shared model, per-run models) at `raw`: one compiled call, not a chain of eager
+    updates per run (most of a batch's per-device host time before)."""
+    base, per = problem.models(raw)
+    runs = tuple(
+        problem.experiment_model(base, per[i], problem.settings[i]) for i in range(problem.n_exp)
+    )
+    return base, runs
 
 
 _start_values = _problem.start_values  # (kept for greybox._estimate.batch)
@@ -899,7 +946,11 @@ def _assemble(
     source,
     say,
     max_steps: int | None = None,
+    models=None,
 ) -> FitResult:
+    """The `FitResult` of the best solve `best` (covariance, identifiability, residual tests,
+    scores). `models`: (shared model, per-run models) at its raw vector when already
+    computed (`fit_batch` computes them for many devices in one call)."""
     raw, cost, ok = np.asarray(best["raw"]), float(best["cost"]), bool(best["ok"])
     raw_j = jnp.asarray(raw)
     finite = bool(np.all(np.isfinite(raw))) and np.isfinite(cost)
@@ -934,11 +985,9 @@ def _assemble(
         flat_free, raw, report, labels, owners, covariance_hac=cov_hac, headline=se_method
     )
     corr = correlation(report, cov)
+    band_sd = _simulation_sd(problem, best, cov, experiments, solved if finite else None)
 
-    base, per = problem.models(raw_j)
-    exp_models = tuple(
-        problem.experiment_model(base, per[i], problem.settings[i]) for i in range(problem.n_exp)
-    )
+    base, exp_models = _fitted_models(problem, raw_j) if models is None else models
     sigma_out = _rms_sigma(experiments, n_y) if source == "per-frame" else np.asarray(sig)
     fits, robust, outliers, ceilings = {}, {}, {}, {}
     scaled = []
@@ -1006,7 +1055,29 @@ def _assemble(
         n_starts_at_best=len(at_best),
         n_observations=problem.n_data,
         predictions={e.name: {"simulation": zi} for e, zi in zip(experiments, preds)},
+        prediction_sd={e.name: {"simulation": band_sd[i]} for i, e in enumerate(experiments)},
     )
+
+
+def _simulation_sd(problem, best, cov, experiments, solved) -> list:
+    """Per run, the (N, n_y) sd of the simulated response from the shared parameters'
+    covariance `cov` (delta method, `prediction.delta_variance`; inf where it depends on an
+    undetermined direction), from the fit's own prediction Jacobian; NaN for a run whose
+    simulation failed, or for every run when `solved` is None (a fit that is not finite)."""
+    from greybox._estimate.prediction import delta_variance
+
+    n_shared = len(problem.shared)
+    jac = best.get("prediction_jacobian")
+    out = []
+    for i, e in enumerate(experiments):
+        n_y = problem.y.shape[-1]
+        if solved is None or jac is None or not bool(solved[i]):
+            out.append(np.full((e.n_frames, n_y), np.nan))
+            continue
+        g = np.asarray(jac[i, : e.n_frames, :, :n_shared])
+        var = delta_variance(g, cov[:n_shared, :n_shared])
+        out.append(np.sqrt(np.clip(var, 0.0, None)))
+    return out
 
 
 def unidentified_with_reasons(params, report) -> list:
@@ -1236,6 +1307,9 @@ class ValidationResult:
     horizon: str = "simulation"
     parameters: tuple = ()
     runs: tuple = ()  # process noise: `RunDiagnostics` per run (innovations, every horizon)
+    # least squares: per run (N, n_y) sd of the shared physics' simulated response (delta
+    # method, the fit's covariance; per-run values at the model's own): the 95 % band
+    prediction_sd: tuple = ()
 
     def refitted(self, run: str) -> dict:
         """{path: ParameterEstimate} re-fitted on validation run `run`."""
@@ -1261,30 +1335,50 @@ def validate(
         refit = tuple(p for _, ps in pairs for p in ps)
         return dataclasses.replace(scores, parameters=refit, runs=diags)
     known = result.noise_known
+    z, sd, ok = _shared_response(result, experiments, fit_kwargs)
     if not per_exp:
-        from greybox._simulate.simulate import simulate
-
-        preds = []
-        for e in experiments:
-            z = np.asarray(
-                simulate(
-                    e.apply_settings(result.model),
-                    e.inputs,
-                    e.t_s,
-                    method=result.method,
-                    t_start_s=e.t_start_s,
-                )
-            ).reshape(e.n_frames, -1)
-            preds.append(z)
-        return _validation_scores(experiments, preds, result.sigma, known, 0)
+        if not ok:
+            raise ValueError(
+                "validate: the adaptive solver failed (max_steps reached or step size "
+                "collapsed); raise the solver's max_steps or check the parameters"
+            )
+        scores = _validation_scores(experiments, z, result.sigma, known, 0)
+        return dataclasses.replace(scores, prediction_sd=tuple(sd))
     fit_kwargs.setdefault("method", result.method)
     fit_kwargs.setdefault("loss", result.loss)
     if not all(e.sigma is not None for e in experiments):
         fit_kwargs.setdefault("sigma", result.sigma)
     nuisance = fit(result.model, experiments, per_exp, **fit_kwargs)
-    preds = [nuisance.predict(i) for i in range(len(experiments))]
+    preds = [nuisance.predictions[e.name]["simulation"] for e in experiments]
     scores = _validation_scores(experiments, preds, result.sigma, known, nuisance.n_params)
-    return dataclasses.replace(scores, parameters=tuple(nuisance.parameters))
+    return dataclasses.replace(
+        scores, parameters=tuple(nuisance.parameters), prediction_sd=tuple(sd)
+    )
+
+
+def _shared_response(result: FitResult, experiments, fit_kwargs) -> tuple[list, list, bool]:
+    """(per run (N, n_y) simulation, its sd from the shared parameters' covariance (NaN where
+    it cannot be had), every simulation succeeded) of the fitted physics on `experiments`
+    (per-run values at the model's own), with the fit's solver settings (`fit_kwargs`
+    solver_*): one compiled simulation with its sensitivities."""
+    from greybox._estimate.prediction import delta_variance
+
+    shared = tuple(p for p in result.free if not p.per_experiment)
+    solver = [fit_kwargs.get(k) for k in ("solver_rtol", "solver_atol", "solver_max_steps")]
+    solver = [d if v is None else v for v, d in zip(solver, (1e-8, 1e-10, 16384))]
+    problem = _Problem.build(
+        result.model, experiments, shared, result.method, "l2", 1.5, 4.0, *solver
+    )
+    n = len(shared)
+    z, ok, jac = jax.device_get(_response(problem, jnp.asarray(result.raw[:n])))
+    cov = np.asarray(result.covariance_raw, dtype=float)[:n, :n]
+    finite = np.all(np.isfinite(result.raw[:n]))
+    preds, sds = [], []
+    for i, e in enumerate(experiments):
+        preds.append(np.asarray(z[i, : e.n_frames]))
+        var = delta_variance(jac[i, : e.n_frames], cov) if finite and ok[i] else np.nan
+        sds.append(np.sqrt(np.clip(var, 0.0, None)) * np.ones_like(preds[-1]))
+    return preds, sds, bool(np.all(ok))
 
 
 def _validation_scores(experiments, preds, sigma, known: bool, n_params: int):

@@ -179,16 +179,13 @@ def prediction_band(
             "raw: fitted values are not finite (the fit diverged); no simulation "
             "or band can be computed"
         )
-    # Undetermined directions: coordinates with NaN covariance, plus any given null directions.
-    unknown = ~np.all(np.isfinite(cov), axis=1)
-    nulls = [np.eye(n_shared)[k] for k in np.flatnonzero(unknown)]
+    nulls = []
     if null_directions is not None and np.size(null_directions):
-        nulls += [
+        nulls = [
             v[:n_shared]
             for v in np.atleast_2d(np.asarray(null_directions, dtype=float))
             if np.linalg.norm(v[:n_shared]) > NEGLIGIBLE_SENSITIVITY
         ]
-    cov = np.where(unknown[:, None] | unknown[None, :], 0.0, cov)
     t = np.asarray(t_s, dtype=float)
     sched = pad_schedules([schedule_for(model, inputs, t, t_start_s=t_start_s)])
     row = {k: v[0] for k, v in sched.items()}
@@ -213,12 +210,7 @@ def prediction_band(
     y = np.asarray(z)[:n]
     var = np.zeros_like(y)
     if n_shared:
-        g = np.asarray(jac)[:n]  # (N, n_y, P): sensitivity of each output to each raw value
-        var = np.einsum("nyp,pq,nyq->ny", g, (cov + cov.T) / 2, g)
-        scale = np.linalg.norm(g, axis=-1) + 1e-300
-        for v in nulls:
-            depends = np.abs(g @ v) > NEGLIGIBLE_SENSITIVITY * scale * np.linalg.norm(v)
-            var = np.where(depends, np.inf, var)
+        var = delta_variance(np.asarray(jac)[:n], cov, nulls)
     sd_model = np.sqrt(np.clip(var, 0.0, None))
     includes_noise = sigma is not None
     total = var + (
@@ -227,6 +219,24 @@ def prediction_band(
     sd = np.sqrt(total)
     zq = float(jax.scipy.special.ndtri((1.0 + level) / 2.0))
     return Band(t, y, y - zq * sd, y + zq * sd, sd_model, sd, float(level), includes_noise)
+
+
+def delta_variance(g, cov, nulls=()) -> np.ndarray:
+    """(N, n_y) variance g C g^T of a response whose sensitivities to the raw coordinates are
+    `g` (N, n_y, P), their covariance `cov` (P, P) (delta method). Undetermined directions (the
+    coordinates whose covariance is not finite, and the given `nulls`, (P,) vectors) make the
+    variance infinite where the response depends on them, and add nothing where it does not."""
+    g = np.asarray(g, dtype=float)
+    cov = np.asarray(cov, dtype=float)
+    unknown = ~np.all(np.isfinite(cov), axis=1)
+    nulls = [np.eye(cov.shape[0])[k] for k in np.flatnonzero(unknown)] + list(nulls)
+    cov = np.where(unknown[:, None] | unknown[None, :], 0.0, cov)
+    var = np.einsum("nyp,pq,nyq->ny", g, (cov + cov.T) / 2, g)
+    scale = np.linalg.norm(g, axis=-1) + 1e-300
+    for v in nulls:
+        depends = np.abs(g @ v) > NEGLIGIBLE_SENSITIVITY * scale * np.linalg.norm(v)
+        var = np.where(depends, np.inf, var)
+    return var
 
 
 def with_shared(model, free, raw):

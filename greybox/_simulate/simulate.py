@@ -422,13 +422,12 @@ def simulate(
     return z[:, 0] if z.shape[1] == 1 else z
 
 
-def as_arrays(model):
-    """Turn Python-number leaves into float arrays, so new values never trigger a recompile."""
+def as_arrays(model, put=jnp.asarray):
+    """Turn Python-number leaves into float arrays, so new values never trigger a recompile
+    (`put`: jnp.asarray, on the device, or np.asarray, kept on the host)."""
     return jax.tree.map(
         lambda x: (
-            jnp.asarray(x, dtype=float)
-            if isinstance(x, (float, int)) and not isinstance(x, bool)
-            else x
+            put(x, dtype=float) if isinstance(x, (float, int)) and not isinstance(x, bool) else x
         ),
         model,
     )

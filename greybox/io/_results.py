@@ -337,29 +337,19 @@ def horizon_labels(result) -> dict:
     return {"simulation": SIMULATION, "one-step": ONE_STEP, "k-step": f"{k}-step prediction"}
 
 
-def _band_halfwidths(model, result, e):
-    """(lower, upper) distances (N, n_y) [SI] of the simulation's 95 % confidence band from
-    the response, from the shared parameters' covariance (delta method); None when it cannot
-    be had."""
-    from greybox._estimate.prediction import prediction_band
+BAND_Z = 1.959963984540054  # the 95 % two-sided normal quantile
 
-    try:
-        band = prediction_band(
-            model,
-            result.free,
-            result.raw,
-            result.covariance_raw,
-            e.inputs,
-            e.t_s,
-            method=result.method,
-            t_start_s=e.t_start_s,
-        )
-    except (ValueError, FloatingPointError):
+
+def _band(sd, e):
+    """(lower, upper) distances (N, n_y) [SI] of the simulation's 95 % confidence band from
+    the response, from the sd the fit computed (delta method; `FitResult.prediction_sd`);
+    None when it could not be had (no sd, or an infinite or NaN one)."""
+    if sd is None:
         return None
-    y, lo, hi = (np.asarray(a).reshape(e.n_frames, -1) for a in (band.y, band.lower, band.upper))
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+    half = BAND_Z * np.asarray(sd, dtype=float).reshape(e.n_frames, -1)
+    if not np.all(np.isfinite(half)):
         return None
-    return y - lo, hi - y
+    return half, half
 
 
 def _whiteness_doc(whiteness, outputs) -> dict:
@@ -435,16 +425,18 @@ def run_outputs(fs, result, validation) -> list:
                 extra["refitted"] = _refitted(validation, e.name)
                 out.append(RunOutput("validation", e, horizons, None, {ONE_STEP: np.abs(sd1)}, extra))
         return out
-    for i, e in enumerate(result.experiments):
-        z = np.asarray(result.predict(i)).reshape(e.n_frames, -1)
-        band = _band_halfwidths(result.experiment_models[i], result, e)
+    # the fit's own predictions and band sds: writing simulates and compiles nothing
+    for e in result.experiments:
+        z = np.asarray(result.predictions[e.name][SIMULATION]).reshape(e.n_frames, -1)
+        band = _band(result.prediction_sd.get(e.name, {}).get(SIMULATION), e)
         out.append(RunOutput("estimation", e, {SIMULATION: z}, band))
     if validation is not None:
-        for e, z in zip(validation.experiments, validation.predictions):
+        sds = validation.prediction_sd or (None,) * len(validation.experiments)
+        for e, z, sd in zip(validation.experiments, validation.predictions, sds):
             z = np.asarray(z).reshape(e.n_frames, -1)
             # the band of the shared physics, around the validated response (per-run values
             # re-fitted on the run shift it, they do not widen it here)
-            band = _band_halfwidths(e.apply_settings(result.model), result, e)
+            band = _band(sd, e)
             extra = {"refitted": _refitted(validation, e.name)}
             out.append(RunOutput("validation", e, {SIMULATION: z}, band, {}, extra))
     return out
@@ -456,12 +448,8 @@ def check_finite_result(fs, result) -> None:
 
     bad = [p.name for p in result.parameters if not np.isfinite(p.value)]
     if not bad:
-        for i, e in enumerate(result.experiments):
-            z = (
-                result.predictions[e.name]["simulation"]
-                if _is_process(result)
-                else result.predict(i)
-            )
+        for e in result.experiments:
+            z = result.predictions[e.name][SIMULATION]
             if not np.all(np.isfinite(np.asarray(z))):
                 bad = [f"the model response of run {e.name}"]
                 break

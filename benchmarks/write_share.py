@@ -1,0 +1,114 @@
+"""Writing a fit's result folder: its share of `greybox fit` and the compilations it triggers
+(issue 24: "writing the result takes under 15 % of the wall time and triggers no compilation
+after the fit").
+
+Runs the work of `greybox fit experiments/tclab/two_heaters` in this process
+(`greybox.cli._common.fit_experiment_dir`: load, fit, validate, write params.json, report.md,
+figures, predictions/, metrics.csv) into a temporary folder, timing each phase off the
+command's own progress lines, and counts XLA compilations (JAX's monitoring event of each
+backend compile) before and after the "writing" line. `write_share` = write time / (load +
+fit + write) time (Python start-up and imports left out, so the share is, if anything, an
+overestimate of the command's); `compiles_after_fit` should be 0.
+
+Run: .venv/bin/python benchmarks/write_share.py [--smoke] [--folder DIR]
+
+`--smoke`: the same command on a 60-reading cut of both runs with a small solver budget
+(checks that the script still runs; the share is not meaningful there). Last line: one JSON
+object.
+"""
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import shutil  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from greybox.cli._common import fit_experiment_dir  # noqa: E402
+
+FOLDER = ROOT / "experiments" / "tclab" / "two_heaters"
+SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
+COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+
+
+class Clock:
+    """The progress callback of the command: records when each phase starts and how many
+    compilations had happened by then."""
+
+    def __init__(self, compiles):
+        self.compiles = compiles
+        self.marks = []
+
+    def __call__(self, message: str) -> None:
+        self.marks.append((message, time.perf_counter(), self.compiles[0]))
+
+    def first(self, prefix: str):
+        return next((t, n) for m, t, n in self.marks if m.startswith(prefix))
+
+
+def smoke_folder(tmp: Path) -> Path:
+    """A copy of the two-heater folder with 60 readings per run."""
+    dest = tmp / "two_heaters_smoke"
+    dest.mkdir()
+    for f in FOLDER.glob("*.csv"):
+        lines = f.read_text().splitlines()
+        (dest / f.name).write_text("\n".join(lines[:61]) + "\n")
+    toml = (FOLDER / "experiment.toml").read_text()
+    (dest / "experiment.toml").write_text(toml)
+    return dest
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
+    ap.add_argument("--folder", default=str(FOLDER), help="experiment folder to fit")
+    args = ap.parse_args(argv)
+    compiles = [0]
+
+    def count(event, _secs, **_kw):
+        if event == COMPILE_EVENT:
+            compiles[0] += 1
+
+    jax.monitoring.register_event_duration_secs_listener(count)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = smoke_folder(Path(tmp)) if args.smoke else Path(args.folder)
+        clock = Clock(compiles)
+        t0 = time.perf_counter()
+        fit_experiment_dir(folder, Path(tmp) / "result", clock)
+        t_end = time.perf_counter()
+        n_end = compiles[0]
+        t_fit, _ = clock.first("fitting")
+        t_write, n_write = clock.first("writing")
+        written = sorted(p.name for p in (Path(tmp) / "result").iterdir())
+        shutil.rmtree(Path(tmp) / "result")
+    total = t_end - t0
+    out = {
+        "write_share": round((t_end - t_write) / total, 4),
+        "write_s": round(t_end - t_write, 3),
+        "fit_s": round(t_write - t_fit, 3),
+        "load_s": round(t_fit - t0, 3),
+        "total_s": round(total, 3),
+        "compiles_during_fit": n_write,
+        "compiles_after_fit": n_end - n_write,
+        "folder": str(folder.relative_to(ROOT)) if folder.is_relative_to(ROOT) else folder.name,
+        "written": written,
+        "smoke": bool(args.smoke),
+    }
+    print(
+        f"load {out['load_s']} s, fit + validation {out['fit_s']} s ({n_write} compilations), "
+        f"writing {out['write_s']} s ({out['compiles_after_fit']} compilations): write share "
+        f"{out['write_share']:.1%}"
+    )
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()

@@ -144,8 +144,9 @@ class FitResult:
     - `noise`: the noise-model object of the fit (`OutputError` or `ProcessNoise`);
       `process_noise`: True for the likelihood back end.
     - `predictions`: {run: {horizon: (N, n_y) SI}}: "simulation" always, "one-step" and
-      "k-step" (`noise.k_step` frames ahead) with process noise; `prediction_sd` their sds
-      (process noise only).
+      "k-step" (`noise.k_step` frames ahead) with process noise; `prediction_sd` their sds (least squares: the
+      simulation's 95 % band sd from the parameters' covariance, computed with the fit's
+      solver settings, so writing a result simulates nothing again).
     - process noise only (NaN / empty for least squares): `log_likelihood` (data term; the
       first frame conditioned on when the initial state is known), `aic`, `bic`,
       `whiteness` ({run: Ljung-Box per output of the standardised innovations}), `runs`

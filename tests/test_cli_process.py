@@ -1,19 +1,17 @@
-"""`greybox fit`, `compare`, `simulate` and `load_params` on process-noise experiment folders,
-checked against the numpy/scipy reference of tests/rc3_reference.py (a three-state stochastic
-RC building model: exact discretisation of the SDE, irregular frames, dropped readings).
+"""`greybox compare`, `fit --candidate`, `fit-many` and the `[noise]` table on process-noise
+experiment folders, checked against the numpy/scipy reference of tests/rc3_reference.py (a
+three-state stochastic RC building model: exact discretisation of the SDE, irregular frames,
+dropped readings). `greybox fit`, its result folder, `load_params` and `simulate` on such a
+folder are tested in tests/test_process_engine.py (one 1,500-frame fit serves both the library
+and the command line there).
 
-- `greybox fit` on a folder with `noise_model = "process"` converges, every physical parameter
-  (and every identifiable noise parameter) lies within 3 standard errors of the truth, and
-  the log-likelihood in params.json is the reference numpy Kalman filter's at the estimate.
-- The process-noise params.json loads through `greybox.io.load_params` and drives
-  `greybox simulate`, whose response is the reference's exact ZOH discretisation.
 - `greybox compare` with one-, two- and three-state candidates (the air temperature read
   alone, each candidate with its own noise table) prefers the three-state structure; its
   likelihood-ratio p-values are chi-square tail areas of the candidates' log-likelihoods.
 - A folder whose third candidate is invalid exits 2 at once, fitting nothing, with every
   problem listed; `greybox fit --candidate` reproduces that candidate's row of compare.json.
 
-Records are short (300 frames) so the four fits stay within a few minutes on two cores.
+Records are short (300 frames) so the fits stay within a few minutes on two cores.
 """
 
 import json
@@ -21,7 +19,6 @@ import time
 
 import numpy as np
 import pytest
-import scipy.linalg as sla
 from scipy.stats import chi2
 
 from greybox.cli import main
@@ -30,133 +27,10 @@ from tests import rc3_reference as ref
 from tests.rc_folder import CANDIDATES, write_candidates_folder, write_folder
 
 N_FRAMES = 300
-PHYSICAL = ("Ci", "Ce", "Ch", "Rie", "Rea", "Rih", "Aw")
-NOISE = {
-    "process.air": "q_i",
-    "process.envelope": "q_e",
-    "process.heater": "q_h",
-    "measurement.Ti": "sd_Ti",
-    "measurement.Te": "sd_Te",
-}
 
 @pytest.fixture(scope="module")
 def data():
     return ref.simulate(seed=0, n=N_FRAMES)
-
-
-@pytest.fixture(scope="module")
-def fitted(tmp_path_factory, data):
-    root = tmp_path_factory.mktemp("rc3")
-    folder = write_folder(root, data, validation=ref.simulate(seed=1, n=100))
-    out = root / "result"
-    code = main(["fit", str(folder), "--out", str(out), "--quiet"])
-    return code, folder, out, json.loads((out / "params.json").read_text())
-
-
-@pytest.mark.slow
-def test_process_noise_fit_recovers_the_truth(fitted, data):
-    code, _, out, doc = fitted
-    assert code == 0
-    assert doc["schema"] == "greybox.params/3"
-    assert doc["noise_model"]["kind"] == "process noise"
-    assert doc["convergence"]["status"] == "converged"
-    by_path = {p["path"]: p for p in doc["parameters"]}
-    truth = data["truth"]
-    for path in PHYSICAL:
-        p = by_path[path]
-        assert abs(p["value"] - truth[path]) < 3 * p["se"], (path, p["value"], p["se"])
-    for path, name in NOISE.items():
-        p = by_path[path]
-        if p["verdict"] == "identifiable":
-            assert abs(p["value"] - truth[name]) < 3 * p["se"], (path, p["value"], p["se"])
-    # the likelihood the CLI reports is the independent numpy Kalman filter's at the estimate
-    estimate = {k: by_path[k]["value"] for k in PHYSICAL}
-    estimate.update({name: by_path[path]["value"] for path, name in NOISE.items()})
-    assert doc["log_likelihood"] == pytest.approx(ref.loglik(estimate, data), abs=1e-6)
-
-
-@pytest.mark.slow
-def test_process_noise_result_folder(fitted):
-    _, _, out, doc = fitted
-    metrics = (out / "metrics.csv").read_text().splitlines()
-    assert metrics[0] == "run,role,output,horizon,unit,n,fit_percent,rmse,mae,sae"
-    horizons = {line.split(",")[3] for line in metrics[1:]}
-    assert horizons == {"simulation", "one-step prediction", "10-step prediction"}
-    header = (out / "predictions" / "rc3.csv").read_text().splitlines()[0].split(",")
-    for col in ("Ti_K", "Ti_sim_K", "Ti_onestep_K", "Ti_10step_K", "Ti_innovation_K"):
-        assert col in header
-    # the innovations in the CSV are measured - one-step prediction (10 significant digits)
-    table = np.genfromtxt(out / "predictions" / "rc3.csv", delimiter=",", names=True)
-    ok = np.isfinite(table["Ti_K"])
-    np.testing.assert_allclose(
-        table["Ti_innovation_K"][ok], (table["Ti_K"] - table["Ti_onestep_K"])[ok], atol=2e-7
-    )
-    report = (out / "report.md").read_text()
-    assert "prediction-error form" in report and "one-step prediction" in report
-    # the headline verdict (residual test on the innovations) opens report.md, as params.json
-    head = doc["headline"]
-    assert head["verdict"] == "valid", head  # the true structure, white innovations
-    assert report.splitlines()[2] == f"**{head['text']}**"
-    assert doc["runs"]["rc3"]["whiteness"]["Ti"]["test"] == "Ljung-Box"
-    assert (out / "figures" / "innovations_Ti.png").is_file()
-    # the validation run: filtered at the estimate, scored at every horizon
-    assert {tuple(line.split(",")[:2]) for line in metrics[1:]} == {
-        ("rc3", "estimation"),
-        ("val", "validation"),
-    }
-    val = json.loads((out / "validation_runs.json").read_text())["runs"]["val"]
-    assert set(val["fit_percent"]) == horizons and val["whiteness"]["Te"]["test"] == "Ljung-Box"
-    assert np.isfinite(val["log_likelihood"]) and val["refitted"] == {}
-
-
-def _numpy_response(p: dict, x0, t, levels):
-    """The deterministic response (air, envelope) of the reference model with inputs held
-    constant on each step (exact ZOH discretisation, scipy's expm)."""
-    A, B, *_ = ref.matrices({**ref.TRUTH, **p})
-    x, out = np.asarray(x0, float), [np.asarray(x0, float)[:2]]
-    for k in range(t.size - 1):
-        h = t[k + 1] - t[k]
-        m = np.zeros((6, 6))
-        m[:3, :3], m[:3, 3:] = A * h, B * h
-        e = sla.expm(m)
-        x = e[:3, :3] @ x + e[:3, 3:] @ levels[k]
-        out.append(x[:2])
-    return np.array(out)
-
-
-@pytest.mark.slow
-def test_process_params_load_and_drive_simulate(fitted, data, tmp_path):
-    from greybox.io import load_params
-
-    _, _, out, doc = fitted
-    device_file = str(doc["device"]["location"])  # a user's file beside the folder: trusted
-    loaded = load_params(out / "params.json", trust_device=(device_file,))
-    assert loaded.noise_model == "process noise"
-    from greybox._model.parameters import get_value
-
-    for path, value in doc["noise_model"]["values"].items():
-        assert float(get_value(loaded.model, path)) == pytest.approx(value, rel=1e-12)
-    sim = tmp_path / "sim"
-    args = ["simulate", "--params", str(out / "params.json"), "--out", str(sim)]
-    args += ["--trust-device", device_file, "--dt-ms", "600000", "--waveform", "Ta=const:280", "--waveform", "Ps=const:0"]
-    args += ["--waveform", "Ph=pulse:Ph_W=1500,period_s=86400,duty=0.5,n=2"]
-    assert main(args) == 0
-    meta = json.loads((sim / "simulation.json").read_text())
-    assert meta["noise_model"] == "process noise"
-    assert "process noise" in meta["band"]["kind"]
-    table = np.genfromtxt(sim / "simulation.csv", delimiter=",", names=True)
-    t = table["t_s"]
-    levels = np.column_stack(
-        [np.full(t.size, 280.0), np.where((t % 86400) < 43200, 1500.0, 0.0), np.zeros(t.size)]
-    )
-    by_path = {p["path"]: p["value"] for p in doc["parameters"]}
-    y = _numpy_response({k: by_path[k] for k in PHYSICAL}, data["x0"], t, levels)
-    # simulation.csv holds 6 significant digits: 1e-3 K at 293 K
-    np.testing.assert_allclose(table["Ti_K"], y[:, 0], atol=5.1e-4)
-    np.testing.assert_allclose(table["Te_K"], y[:, 1], atol=5.1e-4)
-    width = table["Ti_hi95_K"] - table["Ti_lo95_K"]
-    assert width[0] < 1e-6  # the initial state is known
-    assert width[-1] > 0.1  # process noise and the parameters' spread widen it
 
 
 # ------------------------------------------------------------------------------------------

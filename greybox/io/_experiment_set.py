@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from greybox._model.data import Experiment
-from greybox._model.device import check_method, with_camera
+from greybox._model.device import check_method, default_method, with_camera
 from greybox._model.errors import InputError
 from greybox._model.freeparams import FreeParameter
 from greybox._model.parameters import check_scalar_path
@@ -1572,7 +1572,9 @@ def load_experiment_set(directory, *, candidate: int | None = None) -> Experimen
                 )
             )
             _raise_collected(errors)
-    trial_simulation(device, model, estimation[0], fit_options["method"])
+    # a process-noise fit has no `method` of its own: trace the device's default path
+    method = fit_options.get("method") or default_method(model)
+    trial_simulation(device, model, estimation[0], method)
     if spec.start_values is not None:
         free = tuple(spec.start_values(model, free, estimation))
     return ExperimentSet(

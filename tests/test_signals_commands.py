@@ -42,7 +42,7 @@ def inputs(tmp_path_factory):
     from greybox.io._video import write_video
 
     base = tmp_path_factory.mktemp("sig")
-    frames = (np.random.default_rng(0).random((900, 64, 64)) * 255).astype(np.uint8)
+    frames = (np.random.default_rng(0).random((6000, 64, 64)) * 255).astype(np.uint8)
     video = write_video(base / "v.avi", frames, fps=30.0)
     text = (ROOT / "DEVELOPING.md").read_text()
     dev = re.search(r"<!-- device example: msd.py -->\n```python\n(.*?)```", text, re.S).group(1)

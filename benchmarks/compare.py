@@ -87,7 +87,8 @@ def run(smoke: bool) -> dict:
         if done.returncode not in (0, 1):  # 1: no valid candidate (a result all the same)
             sys.exit(f"greybox compare failed ({done.returncode}):\n{done.stderr[-3000:]}")
         doc = json.loads((Path(tmp) / "out" / "compare.json").read_text())
-    stamps = {}  # name -> [start, end] from "[  t s] candidate 1/4 'name'" / "candidate 'name': AIC"
+    # name -> [start, end]: "[  t s] candidate 1/4 'name'" and "[  t s] candidate 'name': AIC"
+    stamps = {}
     for line in done.stderr.splitlines():
         m = re.match(r"\[\s*([\d.]+) s\] candidate (?:\d+/\d+ )?'(.*?)'(:?)", line)
         if m:

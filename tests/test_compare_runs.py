@@ -40,7 +40,8 @@ ONE = '[[candidates]]\nname = "light"\nmodel = { mass_kg = 1.0 }\n'
 
 
 def write_folder(folder: Path, runs: dict, free: str, candidates: str = ONE) -> Path:
-    """`runs`: name -> (step force [N] at t = 0, readings [m]); all estimation runs."""
+    """`runs`: name -> (step force [N] at t = 0, readings [m]); estimation runs, but a name
+    starting with "v" is a validation run."""
     folder.mkdir()
     if not (folder.parent / "msd.py").exists():  # one device file: its code compiles once
         (folder.parent / "msd.py").write_text(_device())
@@ -49,7 +50,8 @@ def write_folder(folder: Path, runs: dict, free: str, candidates: str = ONE) -> 
         rows = "".join(f"{a:.3f},{b:.8g}\n" for a, b in zip(T, y))
         (folder / f"{name}.csv").write_text("t_s,x_m\n" + rows)
         tables.append(
-            f'[[runs]]\nname = "{name}"\nfile = "{name}.csv"\nrole = "estimation"\n'
+            f'[[runs]]\nname = "{name}"\nfile = "{name}.csv"\n'
+            f'role = "{"validation" if name.startswith("v") else "estimation"}"\n'
             f'waveform = {{ type = "steps", times_s = [0.0], F_N = [{force}], end_s = 2.0 }}\n'
         )
     (folder / "experiment.toml").write_text(
@@ -88,6 +90,8 @@ def offsets(root):
             "r1": (1.0, x + o1 + NOISE_M * rng.standard_normal(T.size)),
             "r2": (0.5, 0.5 * x + o2 + NOISE_M * rng.standard_normal(T.size)),
         }
+        if label == "equal":  # and a validation run with the same offset
+            runs["v3"] = (1.0, x + o1 + NOISE_M * rng.standard_normal(T.size))
         folder = write_folder(root / label, runs, PER_RUN_FREE)
         docs[label] = compare(folder, root / f"out-{label}")
     return docs
@@ -103,7 +107,8 @@ def test_equal_per_run_offsets_agree_across_runs(offsets):
     rc, doc = offsets["equal"]
     assert rc == 0
     cand, a = _agreement(doc)
-    assert a["path"] == "readout.offset" and a["runs"] == ["r1", "r2"] and a["dof"] == 1
+    assert a["path"] == "readout.offset" and a["runs"] == ["r1", "r2", "v3"] and a["dof"] == 2
+    assert a["validation_runs"] == ["v3"]
     assert not a["run_specific"] and a["p_value"] > 0.01, a
     assert a["mean"] == pytest.approx(1e-3, abs=5 * max(a["se"]))
 
@@ -146,3 +151,33 @@ def test_strict_exits_1_when_the_preferred_structure_is_rejected(root, tmp_path)
     rc_strict, doc_strict = compare(folder, tmp_path / "strict", "--strict")
     assert rc_strict == 1
     assert doc_strict["preferred"] == doc["preferred"]  # the same result, written either way
+
+
+def _est(path, run, value, se):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(path=path, experiment=run, value=value, se=se, unit="m")
+
+
+def test_the_wald_statistic_matches_its_closed_form():
+    """Two correlated estimation values and one independent validation value: the statistic
+    equals the closed form of the Wald test (raw coordinates = values, so no delta method)."""
+    from greybox._estimate.compare import run_agreement
+
+    # estimation runs: values 1.0, 1.3, sd 0.1, 0.2, correlation 0.5; a shared parameter too
+    est = [_est("k", None, 5.0, 1.0), _est("off", "a", 1.0, 0.1), _est("off", "b", 1.3, 0.2)]
+    cov = np.array([[1.0, 0.0, 0.0], [0.0, 0.01, 0.01], [0.0, 0.01, 0.04]])
+    (a,) = run_agreement(est, cov)
+    assert a["statistic"] == pytest.approx(0.3**2 / (0.01 + 0.04 - 2 * 0.01))
+    assert a["p_value"] == pytest.approx(chi2.sf(3.0, 1)) and not a["run_specific"]
+    # one estimation run and a validation run: independent, X^2 = d^2 / (s1^2 + s2^2)
+    (b,) = run_agreement(est[:2], cov[:2, :2], validation=[_est("off", "v", 1.5, 0.1)])
+    assert b["statistic"] == pytest.approx(0.25 / 0.02) and b["run_specific"]
+    assert b["runs"] == ["a", "v"] and b["validation_runs"] == ["v"]
+    # three runs, independent errors: X^2 = sum (v_i - weighted mean)^2 / se_i^2
+    v, se = np.array([1.0, 1.3, 0.8]), np.array([0.1, 0.2, 0.15])
+    three = [_est("off", r, x, s) for r, x, s in zip("abc", v, se)]
+    (c,) = run_agreement(three)
+    mean = np.sum(v / se**2) / np.sum(1 / se**2)
+    assert c["statistic"] == pytest.approx(np.sum((v - mean) ** 2 / se**2))
+    assert c["mean"] == pytest.approx(mean) and c["dof"] == 2

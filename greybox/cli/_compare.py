@@ -43,8 +43,8 @@ The preferred candidate is the one with the lowest criterion among those whose f
 and physically plausible; compare.md opens with why no candidate is, or with what it means
 when the residual test rejects every one, and each candidate in compare.json carries its
 headline verdict (as params.json of `greybox fit`). Across runs: each per-run parameter
-(fitted on every estimation run) is tested for equality between the runs (Wald test with its
-joint covariance) and flagged run-specific when its estimates differ (p < 0.01): chosen on
+(fitted on every estimation run, re-fitted on each validation run) is tested for equality
+between the runs (Wald test with its joint covariance) and flagged run-specific when its estimates differ (p < 0.01): chosen on
 one run, it does not hold on the others (compare.md section, per_run_agreement in JSON).
 Exit status: 0 done; 1 no valid, physically plausible candidate (with --strict also a
 preferred candidate whose structure the residual test rejects); 2 bad input; 3 a bug.
@@ -312,15 +312,20 @@ def _run_agreement_lines(scores) -> list[str]:
         "",
         "## Per-run parameters across runs",
         "",
-        "Each per-run parameter's estimates on the estimation runs, tested for equality (Wald "
-        "test with their joint covariance, chi-square with runs - 1 dof); p < "
+        "Each per-run parameter's estimates on the estimation runs (and its values re-fitted "
+        "on the validation runs), tested for equality (Wald test with their joint covariance, "
+        "chi-square with runs - 1 dof); p < "
         f"{RUN_ALPHA:g}: **run-specific**, a property of each run, not of the device.",
         "",
         "| candidate | parameter | runs: value | weighted mean | unit | across runs |",
         "|---|---|---|---|---|---|",
     ]
     for name, a in rows:
-        per = ", ".join(f"{r}: {v:.5g}" for r, v in zip(a["runs"], a["values"]))
+        val = set(a["validation_runs"])
+        per = ", ".join(
+            f"{r}{' (validation)' if r in val else ''}: {v:.5g}"
+            for r, v in zip(a["runs"], a["values"])
+        )
         lines.append(
             f"| {name} | `{a['path']}` | {per} | {a['mean']:.5g} | {a['unit']} | "
             f"{run_agreement_text(a)} |"

@@ -44,8 +44,9 @@ and physically plausible; compare.md opens with why no candidate is, or with wha
 when the residual test rejects every one, and each candidate in compare.json carries its
 headline verdict (as params.json of `greybox fit`). Across runs: each per-run parameter
 (fitted on every estimation run, re-fitted on each validation run) is tested for equality
-between the runs (Wald test with its joint covariance) and flagged run-specific when its estimates differ (p < 0.01): chosen on
-one run, it does not hold on the others (compare.md section, per_run_agreement in JSON).
+between the runs (Wald test with its joint covariance) and flagged run-specific when its
+estimates differ (p < 0.01): chosen on one run, it does not hold on the others (a compare.md
+section; per_run_agreement in compare.json).
 Exit status: 0 done; 1 no valid, physically plausible candidate (with --strict also a
 preferred candidate whose structure the residual test rejects); 2 bad input; 3 a bug.
 """

@@ -9,7 +9,9 @@ three validation runs) with the candidates
 
 The whole command runs in a subprocess (import, loading and checking every candidate,
 compiling, fitting, validating, writing); the time of each candidate is read from its
-time-stamped progress lines (from the line that starts it to the line that scores it).
+time-stamped progress lines (from the line that starts it to the line that scores it). The
+command's processor time and the load average when it started are reported beside the wall
+time: on a shared machine the wall time says more about the neighbours than about greybox.
 
 Run: .venv/bin/python benchmarks/compare.py [--smoke]
 --smoke: two candidates, one start of 5 steps each, on the first 1.6 s of one estimation run
@@ -21,6 +23,7 @@ import argparse
 import json
 import os
 import re
+import resource
 import shutil
 import subprocess
 import sys
@@ -81,9 +84,12 @@ def run(smoke: bool) -> dict:
             fh.write(candidate_tables(candidates, SMOKE_FIT if smoke else ""))
         env = dict(os.environ, PYTHONPATH=str(ROOT))
         cmd = [sys.executable, "-m", "greybox", "compare", str(folder), "--out", f"{tmp}/out"]
-        t0 = time.perf_counter()
+        load = os.getloadavg()[0]  # a loaded machine stretches the wall time: say how loaded
+        t0, cpu0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
         done = subprocess.run(cmd, capture_output=True, text=True, env=env)
         total = time.perf_counter() - t0
+        cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
         if done.returncode not in (0, 1):  # 1: no valid candidate (a result all the same)
             sys.exit(f"greybox compare failed ({done.returncode}):\n{done.stderr[-3000:]}")
         doc = json.loads((Path(tmp) / "out" / "compare.json").read_text())
@@ -103,6 +109,8 @@ def run(smoke: bool) -> dict:
         "preferred": doc["preferred"],
         "aic": {c["name"]: c["aic"] for c in doc["candidates"]},
         "verdicts": {c["name"]: c.get("headline", {}).get("verdict") for c in doc["candidates"]},
+        "cpu_s": round(cpu, 1),  # the command's processor time (all its threads)
+        "load_average_1min": round(load, 2),
         "smoke": smoke,
         "cpu_count": os.cpu_count(),
     }

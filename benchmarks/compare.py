@@ -13,6 +13,11 @@ time-stamped progress lines (from the line that starts it to the line that score
 command's processor time and the load average when it started are reported beside the wall
 time: on a shared machine the wall time says more about the neighbours than about greybox.
 
+Measured (2026-11-26, shared 2-core machine, load average 3.2 at the start): 765 s wall, 857 s
+of processor time; per candidate 6 s (1 node, valid, preferred), 82 s (2 nodes), 420 s (2 nodes
++ lag: the lag runs to its lower bound, every start uses its 200 steps) and 255 s (3 nodes):
+over the 240 s target, almost all of it in structures the one-node data do not support.
+
 Run: .venv/bin/python benchmarks/compare.py [--smoke]
 --smoke: two candidates, one start of 5 steps each, on the first 1.6 s of one estimation run
 (checks that the script runs).

@@ -21,6 +21,7 @@ BENCH = ROOT / "benchmarks"
 KEYS = {
     "batch_independence.py": {"max_rel", "steps_differ", "ok_differ", "backend"},
     "blackbox.py": {"arx_speedup_vs_sippy", "armax_speedup_vs_sippy", "armax_fit_pct"},
+    "compare.py": {"compare_4_candidates_s", "candidates", "target_s", "per_candidate_s"},
     "design.py": {"det_gain", "predicted_se_ratio", "measured_se_ratio", "replicates"},
     "fit_chevron.py": {"compile_s", "zoh_fit_s", "adaptive_fit_s", "ratio_vs_scipy"},
     "gpu_many_devices.py": {

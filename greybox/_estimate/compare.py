@@ -18,6 +18,19 @@ Nested pairs (a candidate that contains another: the same options and a larger f
 declared with ``nests = [...]``) also get a likelihood-ratio test: D = 2 (log L_big -
 log L_small), referred to chi-square with k_big - k_small degrees of freedom (Wilks); a small
 p-value says the larger structure explains the data better than the nested one can.
+
+Across runs: a per-run parameter (an offset, a drift, an ambient temperature fitted on each
+estimation run) is either a property of each run or, if its estimates agree, something one
+shared value would do. For each per-run path with two or more runs, the Wald test of equality
+
+    X^2 = (C v)' (C V C')^-1 (C v),   C v = the differences v_i - v_m,
+
+with V the joint covariance of the per-run estimates (the fit's headline covariance mapped to
+values by the delta method, correlations included), is referred to chi-square with m - 1
+degrees of freedom; p < `RUN_ALPHA` flags the parameter "run-specific": chosen on one run, it
+does not hold on the others. The values re-fitted on the validation runs (physics fixed) join
+the test as independent estimates, so a per-run effect chosen on a single estimation run is
+held against the validation runs too.
 """
 
 from __future__ import annotations
@@ -28,6 +41,7 @@ from collections.abc import Sequence
 import numpy as np
 
 RULES = ("aic", "bic")
+RUN_ALPHA = 0.01  # below this p-value per-run estimates differ between runs: run-specific
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,6 +70,9 @@ class CandidateScore:
     estimates: tuple = ()
     noise_model: str = "output error"  # or "process noise"
     nests: tuple = ()  # names of candidates declared nested in this one
+    # per-run paths across runs: {"path", "unit", "runs", "values", "mean", "statistic",
+    # "dof", "p_value", "run_specific"} (`run_agreement`)
+    run_agreement: tuple = ()
 
 
 def gaussian_loglik(experiments: Sequence, predictions: Sequence) -> tuple[float, int, int]:
@@ -94,6 +111,80 @@ def _estimates(result) -> tuple:
     )
 
 
+def run_agreement(
+    estimates: Sequence, covariance_raw=None, validation: Sequence = (), alpha: float = RUN_ALPHA
+) -> tuple:
+    """The Wald test of equality across runs of each per-run parameter (module text).
+
+    `estimates`: `ParameterEstimate`s (one per raw coordinate, in the covariance's order);
+    `covariance_raw`: their raw-coordinate covariance (None: standard errors taken as
+    independent); `validation`: the per-run values re-fitted on the validation runs
+    (`ValidationResult.parameters`), independent of the estimation runs' (other data), so a
+    value chosen on one estimation run is also held against the validation runs. Paths with
+    fewer than two runs of finite standard error are left out."""
+    from scipy.stats import chi2
+
+    def usable(p):
+        return p.experiment is not None and np.isfinite(p.se) and p.se > 0
+
+    groups: dict = {}
+    for k, p in enumerate(estimates):
+        if usable(p):
+            groups.setdefault(p.path, ([], []))[0].append(k)
+    for p in validation:
+        if usable(p) and p.path in groups:
+            groups[p.path][1].append(p)
+    cov = None if covariance_raw is None else np.asarray(covariance_raw, dtype=float)
+    out = []
+    for path, (idx, val) in groups.items():
+        if len(idx) + len(val) < 2:
+            continue
+        v = np.array([estimates[k].value for k in idx] + [p.value for p in val])
+        se = np.array([estimates[k].se for k in idx] + [p.se for p in val])
+        var = np.diag(se**2)
+        if cov is not None and cov.shape[0] == len(estimates):
+            sd_raw = np.sqrt(np.clip(np.diag(cov)[idx], 0, None))
+            g = se[: len(idx)] / np.where(sd_raw > 0, sd_raw, np.nan)  # d value / d raw
+            block = cov[np.ix_(idx, idx)] * np.outer(g, g)  # delta method, correlations kept
+            if np.all(np.isfinite(block)):
+                var[: len(idx), : len(idx)] = block
+        m = v.size
+        c = np.eye(m)[:-1] - np.eye(m)[-1]  # v_i - v_m
+        d = c @ v
+        stat = float(d @ np.linalg.lstsq(c @ var @ c.T, d, rcond=None)[0])
+        dof = m - 1
+        p_value = float(chi2.sf(max(stat, 0.0), dof))
+        w = 1.0 / se**2
+        out.append(
+            {
+                "path": path,
+                "unit": estimates[idx[0]].unit,
+                "runs": [estimates[k].experiment for k in idx] + [p.experiment for p in val],
+                "validation_runs": [p.experiment for p in val],
+                "values": [float(x) for x in v],
+                "se": [float(x) for x in se],
+                "mean": float(np.sum(w * v) / np.sum(w)),
+                "statistic": stat,
+                "dof": dof,
+                "p_value": p_value,
+                "run_specific": bool(p_value < alpha),
+            }
+        )
+    return tuple(out)
+
+
+def run_agreement_text(a: dict) -> str:
+    """One line for compare.md: what the test of equality across runs says."""
+    test = f"X^2 = {a['statistic']:.4g} on {a['dof']} dof, p = {a['p_value']:.3g}"
+    if a["run_specific"]:
+        return (
+            f"run-specific ({test}): the runs' estimates differ beyond their standard errors, "
+            "so it is a property of each run, not of the device; a structure that needs it on "
+            "one run must be checked on the others"
+        )
+    return f"agrees across runs ({test}): one shared value would do"
+
+
 def _is_process(result) -> bool:
     return getattr(getattr(result, "noise", None), "name", "") == "process noise"
 
@@ -117,6 +208,11 @@ def score(name: str, options: dict, result, validation=None, nests=()) -> Candid
         message=result.message,
         estimates=_estimates(result),
         nests=tuple(nests),
+        run_agreement=run_agreement(
+            result.parameters,
+            getattr(result, "covariance_raw", None),
+            getattr(validation, "parameters", ()),
+        ),
     )
     if _is_process(result):
         white = all(all(w.p_value > 0.01 for w in r.whiteness) for r in result.runs)

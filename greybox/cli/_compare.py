@@ -42,7 +42,11 @@ Output (--out, written atomically like `greybox fit`): compare.md, compare.json.
 The preferred candidate is the one with the lowest criterion among those whose fit is valid
 and physically plausible; compare.md opens with why no candidate is, or with what it means
 when the residual test rejects every one, and each candidate in compare.json carries its
-headline verdict (as params.json of `greybox fit`).
+headline verdict (as params.json of `greybox fit`). Across runs: each per-run parameter
+(fitted on every estimation run, re-fitted on each validation run) is tested for equality
+between the runs (Wald test with its joint covariance) and flagged run-specific when its
+estimates differ (p < 0.01): chosen on one run, it does not hold on the others (a compare.md
+section; per_run_agreement in compare.json).
 Exit status: 0 done; 1 no valid, physically plausible candidate (with --strict also a
 preferred candidate whose structure the residual test rejects); 2 bad input; 3 a bug.
 """
@@ -270,6 +274,7 @@ def report_lines(experiment_dir, scores, best, rule: str, tests=(), verdicts=())
             lines.append(
                 f"| {t.big} | {t.small} | {by} | {t.statistic:.6g} | {t.dof} | {p} |"
             )
+    lines += _run_agreement_lines(scores)
     nested = [s for s in scores if s.note]
     if nested:
         lines += ["", "Nested structures (each must fit at least as well as one nested in it):", ""]
@@ -295,6 +300,38 @@ def report_lines(experiment_dir, scores, best, rule: str, tests=(), verdicts=())
             )
         lines.append("")
     return lines + [""]
+
+
+def _run_agreement_lines(scores) -> list[str]:
+    """compare.md's section on per-run parameters: does each hold across the runs?"""
+    from greybox._estimate.compare import RUN_ALPHA, run_agreement_text
+
+    rows = [(s.name, a) for s in scores for a in s.run_agreement]
+    if not rows:
+        return []
+    lines = [
+        "",
+        "## Per-run parameters across runs",
+        "",
+        "Each per-run parameter's estimates on the estimation runs (and its values re-fitted "
+        "on the validation runs), tested for equality (Wald test with their joint covariance, "
+        "chi-square with runs - 1 dof); p < "
+        f"{RUN_ALPHA:g}: **run-specific**, a property of each run, not of the device.",
+        "",
+        "| candidate | parameter | runs: value | weighted mean | unit | across runs |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, a in rows:
+        val = set(a["validation_runs"])
+        per = ", ".join(
+            f"{r}{' (validation)' if r in val else ''}: {v:.5g}"
+            for r, v in zip(a["runs"], a["values"])
+        )
+        lines.append(
+            f"| {name} | `{a['path']}` | {per} | {a['mean']:.5g} | {a['unit']} | "
+            f"{run_agreement_text(a)} |"
+        )
+    return lines
 
 
 def _g(x) -> str:
@@ -336,6 +373,10 @@ def candidate_record(s, verdict=None) -> dict:
         "aic": _num(s.aic),
         "bic": _num(s.bic),
         "estimates": list(s.estimates),
+        "per_run_agreement": [
+            {k: _num(v) if isinstance(v, float) else v for k, v in a.items()}
+            for a in s.run_agreement
+        ],
         "fit_percent_estimation": _per_run(s.fit_estimation),
         "fit_percent_validation": _per_run(s.fit_validation),
         "residuals": s.residual_verdict,

@@ -24,7 +24,21 @@ from typing import TYPE_CHECKING as _TYPE_CHECKING
 
 from greybox._lazy import lazy_names as _lazy_names
 
-_SUBPACKAGES = ('blackbox', 'blocks', 'design', 'devices', 'io', 'metrics', 'parameters', 'plots', 'population', 'stochastic', 'uncertainty', 'video', 'waveforms')
+_SUBPACKAGES = (
+    "blackbox",
+    "blocks",
+    "design",
+    "devices",
+    "io",
+    "metrics",
+    "parameters",
+    "plots",
+    "population",
+    "stochastic",
+    "uncertainty",
+    "video",
+    "waveforms",
+)
 # public name -> (module, attribute)
 _NAMES = {
     "DeviceSpec": ("greybox._model.spec", "DeviceSpec"),

@@ -1,4 +1,4 @@
-"""Scores and diagnostics of a fitted model: fit %, RMSE and kin, the Ljung-Box
+"""Scores and diagnostics of a fitted model: fit %, RMSE, MAE, SAE and R^2, the Ljung-Box
 whiteness test of residuals, identifiability, per-run likelihood diagnostics and the scores of
 compared candidate structures.
 

@@ -104,7 +104,7 @@ SMOKE_HELP = "smallest setting (a few seconds): checks that the script still run
 def numpy_truth():
     spec = greybox.get_device("chevron_laser")
     m = spec.model()
-    g = greybox.get_value
+    g = greybox.parameters.get_value
     return NumpyChevron(
         TRUE["absorptance"],
         TRUE["thermal.tau_s"],
@@ -128,7 +128,7 @@ def baseline_runs() -> list[greybox.design.DesignedRun]:
         if r["role"] != "estimation":
             continue
         wave, _ = waveform_from_description(
-            r["waveform"], greybox.LASER_POWER, lambda msg, *_: ValueError(msg)
+            r["waveform"], greybox.devices.LASER_POWER, lambda msg, *_: ValueError(msg)
         )
         out.append(greybox.design.DesignedRun(r["name"], wave, r["waveform"], "pulse_train"))
     return out
@@ -158,7 +158,7 @@ def replicate_estimates(runs, sim, model0, free, n_rep, rng):
 def independent_check(sim, nominal, base) -> float:
     """Max |difference| [m] of the independent simulator against greybox at the truth on the
     last baseline run (a sanity check of both)."""
-    truth_model = greybox.set_values(nominal, list(TRUE), list(TRUE.values()))
+    truth_model = greybox.parameters.set_values(nominal, list(TRUE), list(TRUE.values()))
     w0 = base[-1].waveform
     return float(
         np.max(
@@ -182,7 +182,7 @@ def main(argv=None) -> None:
     t_start = time.perf_counter()
 
     spec = greybox.get_device("chevron_laser")
-    nominal = greybox.with_camera(spec.model(), exposure_s=EXPOSURE_S)
+    nominal = greybox.devices.with_camera(spec.model(), exposure_s=EXPOSURE_S)
     free = spec.free_parameters()
     base = baseline_runs()
     base_T = sum(r.waveform.duration_s for r in base)
@@ -221,7 +221,10 @@ def main(argv=None) -> None:
 
     # the same prediction evaluated at the truth (what the replicates can confirm exactly)
     at_truth = greybox.design.design_problem(
-        greybox.set_values(nominal, list(TRUE), list(TRUE.values())), free, INTEREST, NOISE_M
+        greybox.parameters.set_values(nominal, list(TRUE), list(TRUE.values())),
+        free,
+        INTEREST,
+        NOISE_M,
     )
     rows_truth = greybox.design.comparison_table(
         at_truth,

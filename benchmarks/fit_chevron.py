@@ -26,13 +26,9 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 from scipy import integrate, optimize  # noqa: E402
 
-from greybox import (  # noqa: E402
-    CameraDefects,
-    PulseTrain,  # noqa: E402
-    fit,  # noqa: E402
-    record,
-    set_values,  # noqa: E402
-)
+from greybox import PulseTrain, fit  # noqa: E402
+from greybox.parameters import set_values  # noqa: E402
+from greybox.waveforms import CameraDefects, record  # noqa: E402
 
 CHEVRON = greybox.get_device("chevron_laser")
 default_model = CHEVRON.model

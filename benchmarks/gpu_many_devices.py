@@ -2,7 +2,7 @@
 
 Meant for one GPU (H100/H200; one device window, under 8 minutes); `--smoke` runs the same
 path on a CPU at the smallest size. The devices are those of `benchmarks/many_devices.py`
-(six short pulse-train runs each): `--pool` of them are recorded by `greybox.record` with
+(six short pulse-train runs each): `--pool` of them are recorded by `greybox.waveforms.record` with
 their parameters drawn from the known population, and every further device is one of them
 with fresh measurement noise on the same clean signal and dropped frames (so that making
 32,768 devices takes seconds, not the half hour of recording each).
@@ -66,17 +66,19 @@ def pool_devices(n_pool, seed=24):
     devices, cleans = [], []
     for k in range(n_pool):
         vals = {p: med * np.exp(sd * rng.normal()) for p, (med, sd) in md.POPULATION.items()}
-        dev = greybox.set_values(model, list(vals), list(vals.values()))
+        dev = greybox.parameters.set_values(model, list(vals), list(vals.values()))
         exps, clean = [], []
         for j, wave in enumerate(waves):
             offset = (312 + rng.uniform(-4, 4)) * md.M_PER_PX
-            run = greybox.set_values(dev, ["camera.offset_m"], [offset])
-            defects = greybox.CameraDefects(fps=30.0, noise_m=NOISE_M, drop_fraction=DROP)
+            run = greybox.parameters.set_values(dev, ["camera.offset_m"], [offset])
+            defects = greybox.waveforms.CameraDefects(fps=30.0, noise_m=NOISE_M, drop_fraction=DROP)
             seed_k = int(rng.integers(2**31))
-            e, c = greybox.record(run, wave, name=f"r{j}", defects=defects, seed=seed_k)
+            e, c = greybox.waveforms.record(run, wave, name=f"r{j}", defects=defects, seed=seed_k)
             exps.append(e)
             clean.append(c)
-        devices.append(greybox.device_from_spec(md.SPEC, f"pool{k:04d}", exps, model=model))
+        devices.append(
+            greybox.population.device_from_spec(md.SPEC, f"pool{k:04d}", exps, model=model)
+        )
         cleans.append(clean)
     return devices, cleans
 
@@ -203,14 +205,14 @@ def main(argv=None):
 
 
 def _device_from_rows(pool, cleans, k, rows, noisy):
-    """Device k of the replicated set as a `greybox.Device` (for `fit_batch`)."""
+    """Device k of the replicated set as a `greybox.population.Device` (for `fit_batch`)."""
     base = pool[rows[k]]
     exps = []
     for e_i, e in enumerate(base.experiments):
         y = noisy[k, e_i, : e.n_frames]
         y = np.where(np.isfinite(e.y), y, np.nan)
         exps.append(greybox.Experiment(e.name, e.t_s, y, e.inputs))
-    return greybox.Device(f"dev{k:05d}", base.model, tuple(exps), free=base.free)
+    return greybox.population.Device(f"dev{k:05d}", base.model, tuple(exps), free=base.free)
 
 
 if __name__ == "__main__":

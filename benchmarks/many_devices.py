@@ -1,8 +1,8 @@
 """Many devices: a loop of `greybox.fit` calls vs one vmapped batch (issues 19 and 24).
 
 Synthetic chevron-laser devices (six short pulse-train runs each, 30 fps camera with jitter,
-noise and dropped frames, from `greybox.record`) whose absorptance and thermal time constant
-are drawn from a known log-normal population. It measures
+noise and dropped frames, from `greybox.waveforms.record`) whose absorptance and thermal time
+constant are drawn from a known log-normal population. It measures
 
 (a) `loop_fits_per_s`: a Python loop of `greybox.fit` over NEW devices of one structure
     (`--loop-sample` of them, default 3), after a first fit whose time (compile included)
@@ -51,7 +51,7 @@ SMOKE_HELP = "smallest setting (a few seconds): checks that the script still run
 
 
 def camera_model():
-    return greybox.with_camera(SPEC.model(), exposure_s=10e-3, m_per_px=M_PER_PX)
+    return greybox.devices.with_camera(SPEC.model(), exposure_s=10e-3, m_per_px=M_PER_PX)
 
 
 def waveform(power_mw, period_ms):
@@ -72,18 +72,18 @@ def synthetic_devices(n, seed=0, population=POPULATION, runs=RUNS, outlier=None)
         vals = {p: med * np.exp(sd * rng.normal()) for p, (med, sd) in population.items()}
         if outlier is not None and k == outlier[0]:
             vals = {p: v * outlier[1].get(p, 1.0) for p, v in vals.items()}
-        dev_model = greybox.set_values(model, list(vals), list(vals.values()))
+        dev_model = greybox.parameters.set_values(model, list(vals), list(vals.values()))
         exps = []
         for j, wave in enumerate(waves):
             offset = (312.0 + rng.uniform(-4, 4)) * M_PER_PX
-            run_model = greybox.set_values(dev_model, ["camera.offset_m"], [offset])
-            defects = greybox.CameraDefects(fps=30.0, noise_m=0.05e-6, drop_fraction=0.05)
-            e, _ = greybox.record(
+            run_model = greybox.parameters.set_values(dev_model, ["camera.offset_m"], [offset])
+            defects = greybox.waveforms.CameraDefects(fps=30.0, noise_m=0.05e-6, drop_fraction=0.05)
+            e, _ = greybox.waveforms.record(
                 run_model, wave, name=f"r{j}", defects=defects, seed=int(rng.integers(2**31))
             )
             exps.append(e)
         name = f"chevron{k:04d}"
-        devices.append(greybox.device_from_spec(SPEC, name, exps, model=model))
+        devices.append(greybox.population.device_from_spec(SPEC, name, exps, model=model))
         truth[name] = vals
     return devices, truth
 
@@ -130,7 +130,7 @@ def max_rel_diff(a, b):
 def population_z(results):
     """Recovery z-scores of the known population median and spread from batch estimates."""
     kinds = {"absorptance": "random", "thermal.tau_s": "random"}
-    pop = greybox.population_from_batch(results, kinds)
+    pop = greybox.population.population_from_batch(results, kinds)
     out = {}
     for path, (med, sd) in POPULATION.items():
         p = pop.parameters[path]
@@ -209,7 +209,7 @@ def main(argv=None):
     }
     if args.dask:
         t0 = time.perf_counter()
-        dask_res = greybox.fit_distributed(batch_devs, free, n_workers=args.workers)
+        dask_res = greybox.population.fit_distributed(batch_devs, free, n_workers=args.workers)
         dask_s = time.perf_counter() - t0
         out["dask_fits_per_min"] = round(60.0 * args.devices / dask_s, 1)
         out["dask_vs_batch_max_rel"] = max_rel_diff(dask_res.results, batch.results)

@@ -2,12 +2,12 @@
 
 Run: .venv/bin/python benchmarks/whiteness.py [--replicates 200] [--smoke]
 
-1. False alarms. Well-specified data (the one-node chevron recorded by `greybox.record`: two
-   pulse runs of 4 s at ~30 fps with 2 ms jitter, 5 % dropped frames, 0.05 um white noise)
-   fitted with the one-node model: how often does the pooled Ljung-Box test call the
-   residuals not white? Reported at the verdict's level (1 %) and at 5 %, each with the
-   binomial 95 % interval of the rejection rate that a test of exactly nominal size gives
-   over this many replicates.
+1. False alarms. Well-specified data (the one-node chevron recorded by
+   `greybox.waveforms.record`: two pulse runs of 4 s at ~30 fps with 2 ms jitter, 5 % dropped
+   frames, 0.05 um white noise) fitted with the one-node model: how often does the pooled
+   Ljung-Box test call the residuals not white? Reported at the verdict's level (1 %) and at
+   5 %, each with the binomial 95 % interval of the rejection rate that a test of exactly
+   nominal size gives over this many replicates.
 2. Coverage under misspecification. Data from an independent two-node chevron (the numpy
    simulator of tests/test_residuals.py: pad and beam nodes plus an elongation lag, time
    constants 4, 21 and 79 ms; the same static stroke map), fitted with the one-node model.
@@ -54,7 +54,9 @@ from scipy.signal import lfilter  # noqa: E402
 from scipy.stats import beta, binom  # noqa: E402
 
 import greybox  # noqa: E402
-from greybox import CameraDefects, Experiment, PiecewiseConstant, fit, record, set_values  # noqa: E402
+from greybox import Experiment, PiecewiseConstant, fit  # noqa: E402
+from greybox.parameters import set_values  # noqa: E402
+from greybox.waveforms import CameraDefects, record  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 # the independent two-node chevron simulator (numpy) the tests use

@@ -14,7 +14,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from greybox import set_values
+from greybox.parameters import set_values
 
 
 def pulse_schedule(period_s, duty, power_W, n_cycles: int, steps_per_cycle: int):

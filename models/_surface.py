@@ -21,7 +21,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from greybox import r_squared, rmse
+from greybox.metrics import r_squared, rmse
 
 
 def _finite(name: str, values) -> np.ndarray:

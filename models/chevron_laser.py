@@ -33,15 +33,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from greybox import (
-    DISPLACEMENT,
-    LASER_POWER,
-    AbstractLinearDevice,
-    DeviceSpec,
-    FreeParameter,
-    Option,
-    ParameterInfo,
-)
+from greybox import AbstractLinearDevice, DeviceSpec, FreeParameter, Option, ParameterInfo
 from greybox.blocks import (
     AbstractThermal,
     Camera,
@@ -54,6 +46,7 @@ from greybox.blocks import (
     ThermalChain,
     ThermalElongation,
 )
+from greybox.devices import DISPLACEMENT, LASER_POWER
 
 from ._common import rest_level_offsets
 from ._thermal_chevron import (

@@ -42,7 +42,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from greybox import (
-    DISPLACEMENT,
     AbstractStateAffineDevice,
     Channel,
     DeviceSpec,
@@ -63,6 +62,7 @@ from greybox.blocks import (
     chevron_blocked_force_N,
     chevron_stiffness_N_per_m,
 )
+from greybox.devices import DISPLACEMENT
 
 from . import _surface as surface  # noqa: F401  (polynomial response surfaces of ch. 5)
 from ._force_sensor import ForceSensor, RepeatAverage, average_repeats  # noqa: F401
@@ -144,7 +144,7 @@ class ElectrothermalChevron(AbstractThermalChevron, AbstractStateAffineDevice):
     def dc_rise_K(self, voltage_V):
         """Steady heated-node rise [K] under a constant voltage (closed form, one-node model)."""
         if not isinstance(self.thermal, FirstOrderThermal):
-            from greybox import steady_state
+            from greybox.waveforms import steady_state
 
             return self.beam_rise_K(steady_state(self, jnp.reshape(voltage_V, (1,))))
         return self.joule.steady_rise_K(voltage_V, self.thermal.resistance_K_per_W)

@@ -31,15 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from greybox import (
-    LASER_POWER,
-    AbstractSteppedDevice,
-    Channel,
-    DeviceSpec,
-    FreeParameter,
-    Option,
-    ParameterInfo,
-)
+from greybox import AbstractSteppedDevice, Channel, DeviceSpec, FreeParameter, Option, ParameterInfo
 from greybox.blocks import (
     BodyGeometry,
     Camera,
@@ -52,6 +44,7 @@ from greybox.blocks import (
     absorbed_fractions,
     material_absorptance,
 )
+from greybox.devices import LASER_POWER
 
 from ._gait import (  # noqa: F401  (the robot's gait analyses, used through this module)
     cycle_summary,
@@ -393,7 +386,7 @@ def play_width_estimate(result) -> tuple[float, float]:
 
     Delta method on the fit's raw covariance: W is what pose data identify even when the
     friction capacities and the stiffness are each prior-dominated."""
-    from greybox import delta_method
+    from greybox.uncertainty import delta_method
 
     value, cov = delta_method(
         lambda m: m.locomotion.play_width_m(),

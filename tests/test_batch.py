@@ -21,7 +21,7 @@ OUTLIER = 5  # this device's time constant is 2.5x its draw
 
 def _devices(n, seed=9):
     rng = np.random.default_rng(seed)
-    model = greybox.with_camera(SPEC.model(), exposure_s=10e-3, m_per_px=M_PER_PX)
+    model = greybox.devices.with_camera(SPEC.model(), exposure_s=10e-3, m_per_px=M_PER_PX)
     waves = [
         greybox.PulseTrain(
             p * 1e-3, per * 1e-3, n_pulses=max(1, 1200 // per), delay_s=0.1, tail_s=0.2
@@ -33,17 +33,17 @@ def _devices(n, seed=9):
         vals = {p: MEDIAN[p] * np.exp(OMEGA[p] * rng.normal()) for p in MEDIAN}
         if k == OUTLIER:
             vals["thermal.tau_s"] *= 2.5
-        dev = greybox.set_values(model, list(vals), list(vals.values()))
+        dev = greybox.parameters.set_values(model, list(vals), list(vals.values()))
         exps = []
         for j, w in enumerate(waves):
-            run = greybox.set_values(
+            run = greybox.parameters.set_values(
                 dev, ["camera.offset_m"], [(312 + rng.uniform(-4, 4)) * M_PER_PX]
             )
-            e, _ = greybox.record(
+            e, _ = greybox.waveforms.record(
                 run,
                 w,
                 name=f"r{j}",
-                defects=greybox.CameraDefects(noise_m=0.05e-6),
+                defects=greybox.waveforms.CameraDefects(noise_m=0.05e-6),
                 seed=int(rng.integers(2**31)),
             )
             exps.append(e)

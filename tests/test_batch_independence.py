@@ -20,16 +20,16 @@ M_PER_PX = 0.645e-6
 
 def _devices(n, seed=5):
     rng = np.random.default_rng(seed)
-    model = greybox.with_camera(SPEC.model(), exposure_s=10e-3, m_per_px=M_PER_PX)
+    model = greybox.devices.with_camera(SPEC.model(), exposure_s=10e-3, m_per_px=M_PER_PX)
     wave = greybox.PulseTrain(0.02, 0.3, n_pulses=3, delay_s=0.05, tail_s=0.2)
     out = []
     for k in range(n):
         vals = [0.62 * np.exp(0.1 * rng.normal()), 0.045 * np.exp(0.2 * rng.normal())]
-        dev = greybox.set_values(model, ["absorptance", "thermal.tau_s"], vals)
-        e, _ = greybox.record(
-            dev, wave, name="r0", defects=greybox.CameraDefects(noise_m=0.05e-6), seed=k
+        dev = greybox.parameters.set_values(model, ["absorptance", "thermal.tau_s"], vals)
+        e, _ = greybox.waveforms.record(
+            dev, wave, name="r0", defects=greybox.waveforms.CameraDefects(noise_m=0.05e-6), seed=k
         )
-        out.append(greybox.Device(f"d{k}", model, (e,)))
+        out.append(greybox.population.Device(f"d{k}", model, (e,)))
     return out
 
 

@@ -186,7 +186,7 @@ def test_library_matches_reference_simulator():
     """The loaded model at the true values reproduces the reference data (noise-free)."""
     model = SPEC.model({"thermal_nodes": 2, "elongation_lag": True})
     for path, value in TRUE.items():
-        model = greybox.set_values(model, [path], [value])
+        model = greybox.parameters.set_values(model, [path], [value])
     a_lib, _ = model.linear_dynamics()
     np.testing.assert_allclose(np.asarray(a_lib), true_matrices()[0], rtol=1e-12)
     fraction = float(model.target.fraction(model.spot))
@@ -251,7 +251,7 @@ def test_every_listed_path_is_a_freeable_scalar(spec, options):
     model = spec.model(options)
     table = spec.parameter_table(options)
     for p in table:
-        value = greybox.check_scalar_path(model, p.path)
+        value = greybox.parameters.check_scalar_path(model, p.path)
         assert p.lower is None or p.lower <= value <= p.upper, p
     assert {f.path for f in spec.free_parameters(options)} <= {p.path for p in table}
 

@@ -32,7 +32,7 @@ def _read(path):
 def _true_model():
     truth = json.loads((EMBEDDED / "truth.json").read_text())
     cam = truth["camera"]
-    model = greybox.with_camera(
+    model = greybox.devices.with_camera(
         chevron_laser.SPEC.model(),
         exposure_s=cam["exposure_ms"] * 1e-3,
         m_per_px=cam["um_per_px"] * 1e-6,

@@ -19,21 +19,21 @@ SPEC = greybox.get_device("chevron_laser")
 
 def _device(seed):
     rng = np.random.default_rng(seed)
-    model = greybox.with_camera(SPEC.model(), exposure_s=10e-3)
-    truth = greybox.set_values(
+    model = greybox.devices.with_camera(SPEC.model(), exposure_s=10e-3)
+    truth = greybox.parameters.set_values(
         model, ["absorptance", "thermal.tau_s"], [0.6 * np.exp(0.1 * rng.normal()), 0.045]
     )
     runs = [
-        greybox.record(
+        greybox.waveforms.record(
             truth,
             greybox.PulseTrain(p, 0.3, n_pulses=3, delay_s=0.05, tail_s=0.2),
             name=f"r{j}",
-            defects=greybox.CameraDefects(noise_m=0.05e-6),
+            defects=greybox.waveforms.CameraDefects(noise_m=0.05e-6),
             seed=seed * 10 + j,
         )[0]
         for j, p in enumerate((0.01, 0.02))
     ]
-    return greybox.device_from_spec(SPEC, f"d{seed}", runs, model=model)
+    return greybox.population.device_from_spec(SPEC, f"d{seed}", runs, model=model)
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ NOISE_M = 0.05e-6
 @pytest.fixture(scope="module")
 def chevron():
     spec = greybox.get_device("chevron_laser")
-    model = greybox.with_camera(spec.model(), exposure_s=0.010)
+    model = greybox.devices.with_camera(spec.model(), exposure_s=0.010)
     return spec, model, tuple(spec.free_parameters())
 
 
@@ -99,7 +99,7 @@ def test_pulse_train_design_beats_a_plain_union_and_writes_a_loadable_toml(
     assert doc["camera"]["exposure_ms"] == pytest.approx(10.0)
     for run, r in zip(doc["runs"], design.runs):
         wave, _ = waveform_from_description(
-            run["waveform"], greybox.LASER_POWER, lambda m, *_: ValueError(m)
+            run["waveform"], greybox.devices.LASER_POWER, lambda m, *_: ValueError(m)
         )
         tt = np.linspace(0, c.run_duration_s, 2001)[:-1]
         np.testing.assert_allclose(wave(tt), r.waveform(tt), atol=1e-12)
@@ -157,7 +157,7 @@ def test_inverse_design_meets_target_within_constraints(chevron):
     )
     assert tr.met
     # independent check with the public simulator on the written waveform (no exposure)
-    m0 = greybox.with_camera(model, exposure_s=0.0)
+    m0 = greybox.devices.with_camera(model, exposure_s=0.0)
     y = greybox.simulate(m0, tr.waveform, tr.t_s)
     err = np.abs(y - tr.target)[tr.settled]
     assert err.max() <= 0.02 * 1e-6
@@ -168,7 +168,9 @@ def test_inverse_design_meets_target_within_constraints(chevron):
     assert w.mean() * w.duration_s / 0.6 <= cap + 1e-12
     assert np.min(np.diff(np.append(w.times_s, w.end_s))) >= hold - 1e-9  # min pulse width
     # with a posterior the response has a band
-    res_raw = np.array([float(p.to_raw(greybox.get_value(model, p.path))) for p in free[:2]])
+    res_raw = np.array(
+        [float(p.to_raw(greybox.parameters.get_value(model, p.path))) for p in free[:2]]
+    )
     cov = np.diag([0.05, 0.02]) ** 2
     tr2 = D.track_target(
         model,

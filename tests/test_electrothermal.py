@@ -35,7 +35,7 @@ def test_joule_steady_rise_solves_the_balance():
 def test_device_linearity_flags(linear_model, tcr_model):
     assert linear_model.is_state_affine() and not tcr_model.is_state_affine()
     # V^2 input: the ZOH path of simulate does not apply
-    assert greybox.default_method(linear_model) == "adaptive"
+    assert greybox.devices.default_method(linear_model) == "adaptive"
     with pytest.raises(ValueError, match="needs a linear device"):
         greybox.simulate(linear_model, greybox.PulseTrain(1.0, 0.01, 0.5, 2), [0.01], method="zoh")
     with pytest.raises(ValueError, match="adaptive"):
@@ -64,12 +64,16 @@ def test_periodic_cycle_matches_long_simulation(
 ):
     model = linear_model if which == "linear" else tcr_model
     volts, freq = 24.0, 50.0
-    t_cycle, states = greybox.square_wave_cycle(model, volts, freq, n_steps=n_steps, method=method)
+    t_cycle, states = greybox.waveforms.square_wave_cycle(
+        model, volts, freq, n_steps=n_steps, method=method
+    )
     y_cycle = np.array([float(model.output(x)[0]) for x in states])
     # 40 cycles = 800 ms = 114 tau from a cold start: the transient is gone to 1e-49
     y_sim = _last_cycle_reference(model, volts, freq, 40, np.asarray(t_cycle))
     assert np.max(np.abs(y_cycle - y_sim)) < tol * np.max(y_sim)
-    mean, pp = greybox.square_wave_response(model, volts, freq, n_steps=n_steps, method=method)
+    mean, pp = greybox.waveforms.square_wave_response(
+        model, volts, freq, n_steps=n_steps, method=method
+    )
     assert float(pp) == pytest.approx(y_sim.max() - y_sim.min(), rel=10 * tol)
 
 
@@ -78,21 +82,21 @@ def test_thermal_swing_matches_closed_form(linear_model):
     volts, tau = 20.0, ec.NOMINAL_TAU_S
     theta_ss = ec.NOMINAL_RESISTANCE_K_PER_W * volts**2 / ec.NOMINAL_R0_OHM
     for freq in (10.0, 100.0, 400.0):
-        _, x = greybox.square_wave_cycle(linear_model, volts, freq, n_steps=16)
+        _, x = greybox.waveforms.square_wave_cycle(linear_model, volts, freq, n_steps=16)
         swing = float(np.max(x) - np.min(x))
         assert swing == pytest.approx(theta_ss * np.tanh(1 / freq / (4 * tau)), rel=1e-10)
 
 
 def test_dc_limit_and_bad_input(tcr_model):
-    mean, pp = greybox.square_wave_response(tcr_model, [24.0], [0.0])
+    mean, pp = greybox.waveforms.square_wave_response(tcr_model, [24.0], [0.0])
     stroke = float(tcr_model.stroke(tcr_model.dc_rise_K(24.0)))
     assert pp[0] == pytest.approx(stroke, rel=1e-10) and mean[0] == pytest.approx(
         stroke / 2, rel=1e-10
     )
     with pytest.raises(ValueError, match="frequency_Hz"):
-        greybox.square_wave_response(tcr_model, [10.0], [-5.0])
+        greybox.waveforms.square_wave_response(tcr_model, [10.0], [-5.0])
     with pytest.raises(ValueError, match="affine"):
-        greybox.square_wave_response(tcr_model, [10.0], [5.0], method="analytic")
+        greybox.waveforms.square_wave_response(tcr_model, [10.0], [5.0], method="analytic")
     with pytest.raises(ValueError, match="resistance_ohm"):
         JouleHeating(resistance_ohm=0.0)
 
@@ -101,14 +105,14 @@ def test_dc_limit_and_bad_input(tcr_model):
 def synthetic_table(tcr_model):
     amps, freqs = np.meshgrid(np.arange(0.0, 25.0, 4.0), np.arange(0.0, 401.0, 40.0), indexing="ij")
     a, f = amps.ravel(), freqs.ravel()
-    _, pp = greybox.square_wave_response(tcr_model, a, f, n_steps=16)
+    _, pp = greybox.waveforms.square_wave_response(tcr_model, a, f, n_steps=16)
     noise = 0.1e-6
     return a, f, pp + np.random.default_rng(7).normal(0.0, noise, pp.shape), noise
 
 
 def test_greybox_table_fit_recovers_parameters(tcr_model, synthetic_table):
     a, f, y, noise = synthetic_table
-    respond = greybox.response_function(tcr_model, n_steps=16)
+    respond = greybox.waveforms.response_function(tcr_model, n_steps=16)
     start = ec.SPEC.model(
         thermal__tau_s=0.015, thermal__resistance_K_per_W=150.0, joule__tcr_per_K=0.0
     )

@@ -32,6 +32,13 @@ RING = {
     "greybox._registry": 5,
     "greybox._usercode": 5,  # imports a user's device code, with consent
     "greybox.plots": 5,
+    # public re-exports by job (no code of their own): each at the ring of what it re-exports
+    "greybox.waveforms": 1,
+    "greybox.metrics": 3,
+    "greybox.uncertainty": 3,
+    "greybox.population": 3,
+    "greybox.parameters": 5,  # parameter_table comes from greybox.report
+    "greybox.devices": 5,  # the registry of installed devices
     "greybox.cli": 6,
     "greybox.__main__": 6,
 }

@@ -27,7 +27,9 @@ NOISE = greybox.ProcessNoise(od.STRUCTURE)
 @pytest.fixture(scope="module")
 def devices():
     return [
-        greybox.Device(f"d{k}", od.model(START), [od.experiment(ou.simulate(p, 200, 10 + k))])
+        greybox.population.Device(
+            f"d{k}", od.model(START), [od.experiment(ou.simulate(p, 200, 10 + k))]
+        )
         for k, p in enumerate(TRUTHS)
     ]
 

@@ -19,7 +19,7 @@ P_W = 0.02
 
 def linear_model(exposure_s=0.0):
     """Chevron with linearised kinematics: y = K_mech * theta, so y is a scaled RC response."""
-    m = greybox.with_camera(default_model(), exposure_s=exposure_s)
+    m = greybox.devices.with_camera(default_model(), exposure_s=exposure_s)
     return eqx.tree_at(lambda m: m.kinematics, m, ChevronLinear(m.kinematics.angle_rad))
 
 

@@ -223,7 +223,7 @@ def test_deterministic_fit_is_not_white(data):
         r = np.full(data.y.shape, np.nan)
         r[ok] = residuals(sol.x)
     assert sol.success
-    p_values = [greybox.ljung_box(r[:, j], 20).p_value for j in range(2)]
+    p_values = [greybox.metrics.ljung_box(r[:, j], 20).p_value for j in range(2)]
     lag1 = [
         np.corrcoef(r[np.isfinite(r[:, j]), j][1:], r[np.isfinite(r[:, j]), j][:-1])[0, 1]
         for j in range(2)
@@ -259,7 +259,7 @@ def test_ekf_zero_noise_equals_deterministic_likelihood():
     )
     settings = {"initial_T1_K": 297.0, "initial_T2_K": 296.5}
     z = greybox.simulate(
-        greybox.set_values(dev, list(settings), list(settings.values())),
+        greybox.parameters.set_values(dev, list(settings), list(settings.values())),
         u,
         t,
         rtol=1e-12,

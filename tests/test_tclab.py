@@ -113,7 +113,7 @@ def test_first_reading_ambient_and_initial_state_follow_the_sensor_offsets():
     offset) and the ambient (their mean) itself, so a changed offset moves both."""
     r1, r2, o1, o2 = 295.0, 296.2, 0.3, -0.5  # first readings and offsets [K]
     model = tclab.SPEC.model(radiation=False, ambient="first_reading")
-    model = greybox.set_values(
+    model = greybox.parameters.set_values(
         model,
         ["initial_T1_K", "initial_T2_K", "readout.offset[0]", "readout.offset[1]"],
         [r1, r2, o1, o2],
@@ -123,12 +123,12 @@ def test_first_reading_ambient_and_initial_state_follow_the_sensor_offsets():
     np.testing.assert_allclose(model.initial_state()[:2], [r1 - o1 - ambient, r2 - o2 - ambient])
     # heaters off: the readings start at the first readings and settle at ambient + offset
     t = np.array([0.0, 2e4])
-    off = greybox.from_samples(np.array([0.0]), np.zeros((1, 2)), end_s=2e4)
+    off = greybox.waveforms.from_samples(np.array([0.0]), np.zeros((1, 2)), end_s=2e4)
     z = np.asarray(greybox.simulate(model, off, t)).reshape(2, 2)
     np.testing.assert_allclose(z[0], [r1, r2], atol=1e-9)
     np.testing.assert_allclose(z[1], [ambient + o1, ambient + o2], atol=1e-6)
     # the fixed rule ignores the readings for the ambient (23 C)
-    fixed = greybox.set_values(
+    fixed = greybox.parameters.set_values(
         tclab.SPEC.model(radiation=False), ["initial_T1_K", "readout.offset[0]"], [r1, o1]
     )
     assert float(fixed.ambient_temperature_K()) == tclab.AMBIENT_K

@@ -51,7 +51,7 @@ def tracked_run(tmp_path_factory):
     )
     t = np.arange(n) / FPS
     # Instantaneous camera (exposure 0, offset 0): the true position at each instant.
-    truth_model = greybox.with_camera(
+    truth_model = greybox.devices.with_camera(
         chevron_laser.SPEC.model(absorptance=TRUE_ABSORPTANCE, thermal__tau_s=TRUE_TAU_S),
         exposure_s=0.0,
         m_per_px=UM_PER_PX * 1e-6,

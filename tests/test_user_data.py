@@ -46,7 +46,7 @@ def _record(h1, h2, seed):
         initial_T2_K=amb,
         **TRUE,
     )
-    y = np.asarray(greybox.simulate(model, greybox.from_samples(t, u), t)).reshape(N, 2)
+    y = np.asarray(greybox.simulate(model, greybox.waveforms.from_samples(t, u), t)).reshape(N, 2)
     y = y + np.random.default_rng(seed).normal(0.0, 0.05, y.shape)
     return t, y[:, 0] - 273.15, y[:, 1] - 273.15, u[:, 0], u[:, 1]
 
@@ -180,7 +180,9 @@ def test_predictions_reproduce_hand_computed_sae(fitted):
     v = next(e for e in outcome.fitset.validation if e.name == "late_clock")
     model = outcome.result.model
     measured = np.column_stack([col["T1_K"], col["T2_K"]])  # as written: 6 digits
-    model = greybox.set_values(model, ["initial_T1_K", "initial_T2_K"], list(measured[0]))
+    model = greybox.parameters.set_values(
+        model, ["initial_T1_K", "initial_T2_K"], list(measured[0])
+    )
     z = np.asarray(greybox.simulate(model, v.inputs, v.t_s)).reshape(-1, 2)
     independent = float(np.sum(np.abs(measured - z)))
     assert got["T1"] + got["T2"] == pytest.approx(independent, rel=1e-4)
@@ -338,7 +340,7 @@ def test_state_space_export_matches_the_fitted_model(fitted):
     # steady state of a constant 50 % on heater 1: python-control's DC gain vs a long
     # simulation of the fitted model
     t = np.array([0.0, 2e4, 4e4])
-    wave = greybox.from_samples(np.array([0.0]), np.array([[50.0, 0.0]]), end_s=4e4)
+    wave = greybox.waveforms.from_samples(np.array([0.0]), np.array([[50.0, 0.0]]), end_s=4e4)
     y = np.asarray(greybox.simulate(r.model, wave, t)).reshape(3, 2)
     dc = np.asarray(control.dcgain(ex.system)).reshape(2, 2)
     np.testing.assert_allclose(ex.y_op + dc[:, 0] * 50.0, y[-1], rtol=1e-6)
@@ -358,7 +360,9 @@ def test_simulate_figure_has_a_panel_per_output_and_input(tmp_path):
     t = np.linspace(0.0, 10.0, 11)
     y = np.column_stack([t, 2 * t, 3 * t])
     band = Band(t, y, y - 1.0, y + 1.0, np.ones_like(y), np.ones_like(y), 0.95, False)
-    wave = greybox.from_samples(np.array([0.0, 5.0]), np.array([[1.0, 0.0], [0.0, 2.0]]), end_s=10)
+    wave = greybox.waveforms.from_samples(
+        np.array([0.0, 5.0]), np.array([[1.0, 0.0], [0.0, 2.0]]), end_s=10
+    )
     outputs = (("sensor 1", "K"), ("sensor 2", "K"), ("position", "m"))
     inputs = (("heater 1", "%"), ("heater 2", "%"))
     fig = plots.band_figure(
@@ -403,7 +407,7 @@ def test_single_sensor_runs_only_fit_without_nan():
     for i, h1 in enumerate(([(10, 60)], [(20, 90), (140, 10)])):
         t, y1, _, u1, _ = _record(h1, [], seed=10 + i)
         y = np.column_stack([y1 + 273.15, np.full(N, np.nan)])
-        wave = greybox.from_samples(t, np.column_stack([u1, np.zeros(N)]))
+        wave = greybox.waveforms.from_samples(t, np.column_stack([u1, np.zeros(N)]))
         runs.append(greybox.Experiment(f"r{i}", t, y, wave))
     amb = 273.15 + AMBIENT_C
     model = tclab.SPEC.model(
@@ -413,7 +417,7 @@ def test_single_sensor_runs_only_fit_without_nan():
         greybox.FreeParameter(p, unit="", lower=lo, upper=hi)
         for p, lo, hi in (("U_W_per_m2K", 1.0, 20.0), ("alpha1_W_per_pct", 0.003, 0.03))
     ]
-    model = greybox.set_values(model, ["U_W_per_m2K", "alpha1_W_per_pct"], [5.0, 0.009])
+    model = greybox.parameters.set_values(model, ["U_W_per_m2K", "alpha1_W_per_pct"], [5.0, 0.009])
     res = greybox.fit(model, runs, free, loss="l2", n_starts=1)
     assert res.valid and np.all(np.isfinite(res.sigma))
     assert res.sigma[0] == pytest.approx(0.05, rel=0.3)  # the noise written by _record
@@ -434,12 +438,12 @@ def _offset_record(h1, h2, offsets, seed):
     amb = 273.15 + AMBIENT_C
     model = tclab.SPEC.model(radiation=False, ambient_K=amb, **TRUE)
     # the readings at the start are ambient + offset, so the board starts at ambient
-    model = greybox.set_values(
+    model = greybox.parameters.set_values(
         model,
         ["readout.offset[0]", "readout.offset[1]", "initial_T1_K", "initial_T2_K"],
         [offsets[0], offsets[1], amb + offsets[0], amb + offsets[1]],
     )
-    y = np.asarray(greybox.simulate(model, greybox.from_samples(t, u), t)).reshape(N, 2)
+    y = np.asarray(greybox.simulate(model, greybox.waveforms.from_samples(t, u), t)).reshape(N, 2)
     y = y + np.random.default_rng(seed).normal(0.0, 0.05, y.shape)
     return t, y[:, 0] - 273.15, y[:, 1] - 273.15, u[:, 0], u[:, 1]
 

@@ -27,19 +27,15 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from greybox import (  # noqa: E402  # noqa: E402
-    LASER_POWER,  # noqa: E402
-    CameraDefects,
-    get_value,
-    record,
-    set_values,
-)
+from greybox.devices import LASER_POWER  # noqa: E402
 from greybox.io import (  # noqa: E402
     pulse_train_description,
     run_csv,
     run_table,
     waveform_from_description,  # noqa: E402
 )
+from greybox.parameters import get_value, set_values  # noqa: E402
+from greybox.waveforms import CameraDefects, record  # noqa: E402
 
 chevron_laser = greybox.device_module("chevron_laser")  # noqa: E402
 
@@ -81,7 +77,7 @@ def main(argv=None) -> None:
     out.mkdir(parents=True, exist_ok=True)
 
     m_per_px = CAMERA["um_per_px"] * 1e-6
-    model = greybox.with_camera(
+    model = greybox.devices.with_camera(
         chevron_laser.SPEC.model(), exposure_s=CAMERA["exposure_ms"] * 1e-3, m_per_px=m_per_px
     )
     truth_model = set_values(model, list(TRUE), list(TRUE.values()))

@@ -24,8 +24,9 @@ sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
-from greybox import fit_table, rmse  # noqa: E402
+from greybox import fit_table  # noqa: E402
 from greybox.io import atomic_output_file  # noqa: E402
+from greybox.metrics import rmse  # noqa: E402
 
 ec = greybox.device_module("electrothermal_chevron")  # noqa: E402
 SURFACE = greybox.device_module("electrothermal_chevron").surface  # noqa: E402
@@ -63,7 +64,7 @@ def surface_study(truth_info, lines, figures):
     start = ec.SPEC.model(
         thermal__tau_s=0.015, thermal__resistance_K_per_W=150.0, joule__tcr_per_K=0.0
     )
-    respond = greybox.response_function(start, n_steps=N_STEPS)
+    respond = greybox.waveforms.response_function(start, n_steps=N_STEPS)
     predict = lambda m, xx: respond(m, xx[0], xx[1])[1]  # noqa: E731
     free = ec.default_free_parameters()
     gb = fit_table(start, predict, (a, f), y_um * 1e-6, free)

@@ -50,7 +50,7 @@ def main() -> None:
     rng = np.random.default_rng(SEED)
     truth = ec.SPEC.model()
     a, f = (g.ravel() for g in np.meshgrid(AMPLITUDES_V, FREQUENCIES_HZ, indexing="ij"))
-    _, pp = greybox.square_wave_response(truth, a, f, n_steps=N_STEPS)
+    _, pp = greybox.waveforms.square_wave_response(truth, a, f, n_steps=N_STEPS)
     y_um = pp * 1e6 + rng.normal(0.0, NOISE_UM, pp.shape)
     with atomic_output_file(HERE / "table.csv") as tmp:
         np.savetxt(

@@ -30,19 +30,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import numpy as np  # noqa: E402
 
-from greybox import (  # noqa: E402  # noqa: E402
-    LASER_POWER,  # noqa: E402
-    CameraDefects,
-    get_value,
-    record,
-    set_values,
-)
+from greybox.devices import LASER_POWER  # noqa: E402
 from greybox.io import (  # noqa: E402
     pulse_train_description,
     run_csv,
     run_table,
     waveform_from_description,  # noqa: E402
 )
+from greybox.parameters import get_value, set_values  # noqa: E402
+from greybox.waveforms import CameraDefects, record  # noqa: E402
 
 microrobot = greybox.device_module("microrobot")  # noqa: E402
 
@@ -92,9 +88,9 @@ def main(argv=None) -> None:
 
     m_per_px = CAMERA["um_per_px"] * 1e-6
     camera = dict(exposure_s=CAMERA["exposure_ms"] * 1e-3, m_per_px=m_per_px)
-    nominal = greybox.with_camera(microrobot.SPEC.model(), **camera)
+    nominal = greybox.devices.with_camera(microrobot.SPEC.model(), **camera)
     truth_model = set_values(
-        greybox.with_camera(microrobot.SPEC.model(substeps=TRUTH_SUBSTEPS), **camera),
+        greybox.devices.with_camera(microrobot.SPEC.model(substeps=TRUTH_SUBSTEPS), **camera),
         list(TRUE),
         list(TRUE.values()),
     )

@@ -51,7 +51,7 @@ SEED = 2020
 
 
 def synthetic_board(model, truth, exp, rng, name):
-    board = greybox.set_values(model, list(truth), list(truth.values()))
+    board = greybox.parameters.set_values(model, list(truth), list(truth.values()))
     run = exp.apply_settings(board)
     clean = np.asarray(greybox.simulate(run, exp.inputs, exp.t_s, t_start_s=exp.t_start_s))
     clean = clean.reshape(exp.n_frames, -1)
@@ -77,7 +77,7 @@ def main(argv=None):
     print(f"real board fitted ({time.perf_counter() - t0:.0f} s): {centre}", file=sys.stderr)
 
     rng = np.random.default_rng(SEED)
-    devices = [greybox.Device("park2020", model, [est])]
+    devices = [greybox.population.Device("park2020", model, [est])]
     truth = {"park2020": centre}
     for k in range(n_boards):
         name = f"board{k:02d}" if k != 3 else "weak_heater"
@@ -85,14 +85,16 @@ def main(argv=None):
         if name == "weak_heater":
             vals["alpha2_W_per_pct"] *= 0.35
         e, _ = synthetic_board(model, vals, est, rng, "estimation")
-        devices.append(greybox.Device(name, model, [e]))
+        devices.append(greybox.population.Device(name, model, [e]))
         truth[name] = vals
     t1 = time.perf_counter()
     batch = greybox.fit_batch(devices, free, **opts, progress=lambda m: print(m, file=sys.stderr))
     batch_s = time.perf_counter() - t1
     kinds = {p: "random" for p in (*THERMAL, *GAINS)}
-    pop = greybox.population_from_batch(batch.results, kinds)
-    shared_test = greybox.population_from_batch(batch.results, {p: "shared" for p in THERMAL})
+    pop = greybox.population.population_from_batch(batch.results, kinds)
+    shared_test = greybox.population.population_from_batch(
+        batch.results, {p: "shared" for p in THERMAL}
+    )
 
     # a new board: draws from the fitted population -> temperatures on the validation input
     draws = 400
@@ -102,7 +104,9 @@ def main(argv=None):
         for p, q in pop.parameters.items():
             mu = q.log_mu + q.log_mu_se * rng.normal()
             vals[p] = float(np.exp(mu + q.omega * rng.normal()))
-        board = val.apply_settings(greybox.set_values(model, list(vals), list(vals.values())))
+        board = val.apply_settings(
+            greybox.parameters.set_values(model, list(vals), list(vals.values()))
+        )
         z = greybox.simulate(board, val.inputs, val.t_s, t_start_s=val.t_start_s)
         sims.append(np.asarray(z).reshape(val.n_frames, -1))
     sims = np.array(sims) - 273.15
@@ -115,7 +119,9 @@ def main(argv=None):
     z_own = (
         np.asarray(
             greybox.simulate(
-                val.apply_settings(greybox.set_values(model, list(centre), list(centre.values()))),
+                val.apply_settings(
+                    greybox.parameters.set_values(model, list(centre), list(centre.values()))
+                ),
                 val.inputs,
                 val.t_s,
                 t_start_s=val.t_start_s,

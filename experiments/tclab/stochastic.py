@@ -191,7 +191,7 @@ def analyse(folder: str, say=print) -> dict:
 
 
 def greybox_ljung_box(x):
-    return greybox.ljung_box(x, 20)
+    return greybox.metrics.ljung_box(x, 20)
 
 
 def _f(x, digits=2) -> str:

@@ -12,8 +12,9 @@ import dataclasses
 import numpy as np
 
 import greybox
-from greybox import Experiment, FitResult, fit, sae, simulate
+from greybox import Experiment, FitResult, fit, simulate
 from greybox import blackbox as bb
+from greybox.metrics import sae
 
 tclab = greybox.device_module("tclab")
 

@@ -16,8 +16,8 @@ interest are marginalised the same way. Log-normal priors add their information.
 Criteria on the information M of the parameters of interest (p of them):
 "D" (default) det(M)^(1/p), "A" 1/trace(M^-1) and "E" min eig(M), all "larger is better";
 `n_draws > 0` gives the Bayesian version: the log-criterion averaged over draws from the
-posterior covariance (`greybox.raw_draws`), so the design is robust to not knowing the
-parameters it is meant to measure.
+posterior covariance (`greybox.uncertainty.raw_draws`), so the design is robust to not knowing
+the parameters it is meant to measure.
 
 Waveform families and how they are optimised (honest choices):
 
@@ -1068,7 +1068,7 @@ def track_target(
     power box and the average cap) on the squared tracking error in the settled window plus
     a penalty on overshoot during the transient, with gradients through the exact ZOH
     simulator. With `free`, `raw`, `covariance_raw` (a fit) the response comes with its
-    95 % confidence band (`greybox.prediction_band`).
+    95 % confidence band (`greybox.uncertainty.prediction_band`).
 
     **Raises:** ValueError naming the option when the target is out of reach: a stroke the
     laser cannot hold at `power_max_W`, a settling time shorter than full power can achieve,

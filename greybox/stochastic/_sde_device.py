@@ -790,9 +790,9 @@ def draw_paths(
     """One sample path of the readings per parameter draw: (n, N, q) [SI].
 
     `raw_draws` (n, len(free)): raw coordinates of the shared `free` parameters (e.g.
-    `greybox.raw_draws` from a fit's covariance); each path also draws its own process noise
-    (and with `measurement_noise` the measurement noise), as `sample_paths`. The spread of
-    the paths is the band of a simulation with process noise and parameter uncertainty.
+    `greybox.uncertainty.raw_draws` from a fit's covariance); each path also draws its own
+    process noise (and with `measurement_noise` the measurement noise), as `sample_paths`. The
+    spread of the paths is the band of a simulation with process noise and parameter uncertainty.
     """
     require_x64("draw_paths")
     free = tuple(free)

@@ -25,7 +25,7 @@
 #    length and power budget (`greybox.design.habitual_baseline`, `greybox.design.evaluate_design`,
 #    `greybox.design.comparison_table`).
 # 3. **"Run"** the designed experiment on synthetic data at the known truth
-#    (`greybox.record` with `greybox.CameraDefects`, as `experiments/chevron_laser/generate.py`
+#    (`greybox.waveforms.record` with `greybox.waveforms.CameraDefects`, as `experiments/chevron_laser/generate.py`
 #    made the embedded set), refit on old + new runs, and compare the **achieved** standard
 #    errors with the **predicted** ones.
 # 4. **Inverse design:** a laser waveform that steps the shuttle to a target stroke within a
@@ -166,16 +166,16 @@ print(greybox.design.format_design_table(rows_alone, design_label="designed", ba
 # ## 3. "Run" the designed experiment and refit
 #
 # The new runs are recorded by the same simulated camera that made the embedded set
-# (`greybox.record` at the truth of `truth.json`: absorptance 0.62, tau 45 ms; 2 ms
+# (`greybox.waveforms.record` at the truth of `truth.json`: absorptance 0.62, tau 45 ms; 2 ms
 # timestamp jitter, 50 nm tracking noise, 5 % dropped frames, a few pixels of rest-position
 # offset per run), then the model is refitted on the six old runs plus the new ones, with
 # the folder's fit options.
 
 # %%
-truth_model = greybox.set_values(fitset.model, list(TRUE), list(TRUE.values()))
+truth_model = greybox.parameters.set_values(fitset.model, list(TRUE), list(TRUE.values()))
 m_per_px = fitset.camera["m_per_px"]
 rng = np.random.default_rng(2026)
-defects = greybox.CameraDefects(
+defects = greybox.waveforms.CameraDefects(
     fps=constraints.fps,
     jitter_s=TRUTH["camera"]["jitter_ms"] * 1e-3,
     noise_m=TRUTH["camera"]["noise_um"] * 1e-6,
@@ -184,8 +184,8 @@ defects = greybox.CameraDefects(
 new_runs = []
 for r in design.runs:
     rest_px = 312.0 + rng.uniform(-4.0, 4.0)
-    run_model = greybox.set_values(truth_model, ["camera.offset_m"], [rest_px * m_per_px])
-    exp, _ = greybox.record(
+    run_model = greybox.parameters.set_values(truth_model, ["camera.offset_m"], [rest_px * m_per_px])
+    exp, _ = greybox.waveforms.record(
         run_model, r.waveform, name=r.name, defects=defects, seed=int(rng.integers(2**31))
     )
     new_runs.append(exp)
@@ -303,7 +303,7 @@ plt.show()
 
 # %%
 STROKE_M, STEP_S, SETTLE_S, END_S = 1.0e-6, 0.1, 0.06, 0.6
-fitted_model = greybox.set_values(
+fitted_model = greybox.parameters.set_values(
     fitset.model, [p.path for p in shared], [p.to_value(r) for p, r in zip(shared, refit.raw)]
 )
 t0 = time.perf_counter()
@@ -323,7 +323,7 @@ track = greybox.design.track_target(
 )
 t_track = time.perf_counter() - t0
 at_truth = np.asarray(
-    greybox.simulate(greybox.with_camera(truth_model, exposure_s=0.0), track.waveform, track.t_s)
+    greybox.simulate(greybox.devices.with_camera(truth_model, exposure_s=0.0), track.waveform, track.t_s)
 ).reshape(-1)
 err_truth = float(np.max(np.abs(at_truth - track.target)[track.settled]))
 gap = float(np.max(np.abs(at_truth - track.response)))

@@ -51,19 +51,11 @@ CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 ROOT = next(p for p in (Path.cwd(), *Path.cwd().parents) if (p / "experiments").is_dir())
 DATA = ROOT / "experiments" / "chevron_laser"
 
-from greybox import (  # noqa: E402  # noqa: E402  # noqa: E402
-    CameraDefects,
-    PulseTrain,
-    concatenate,
-    fit,
-    fit_percent,  # noqa: E402
-    multilevel_prbs,
-    parameter_table,  # noqa: E402
-    propagate,  # noqa: E402
-    record,
-    set_values,  # noqa: E402
-    validate,
-)
+from greybox import PulseTrain, fit, validate  # noqa: E402
+from greybox.metrics import fit_percent  # noqa: E402
+from greybox.parameters import parameter_table, set_values  # noqa: E402
+from greybox.uncertainty import propagate  # noqa: E402
+from greybox.waveforms import CameraDefects, concatenate, multilevel_prbs, record  # noqa: E402
 from greybox import blackbox as bb  # noqa: E402
 from greybox.io import load_experiment_set  # noqa: E402
 
@@ -430,7 +422,7 @@ plt.show()
 # **Grey-box**: the thermal time constant and the static gain (small-signal displacement per
 # watt, `static_gain_m_per_W`), each with a 95 % interval. The gain is a function of the
 # fitted absorptance; its interval comes from sampling the raw (transformed) parameter
-# covariance and pushing every draw through the model (`greybox.propagate`).
+# covariance and pushing every draw through the model (`greybox.uncertainty.propagate`).
 #
 # **Black-box**: the discrete poles converted to continuous time (`d2c`, Tustin as in the
 # thesis; ZOH where it exists) give time constants -1/Re(s); the DC gain is `dc_gain`.

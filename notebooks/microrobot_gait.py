@@ -53,13 +53,9 @@ CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 ROOT = next(p for p in (Path.cwd(), *Path.cwd().parents) if (p / "experiments").is_dir())
 DATA = ROOT / "experiments" / "microrobot"
 
-from greybox import (  # noqa: E402  # noqa: E402
-    delta_method,
-    fit,
-    propagate,
-    set_values,  # noqa: E402
-    validate,
-)
+from greybox import fit, validate  # noqa: E402
+from greybox.parameters import set_values  # noqa: E402
+from greybox.uncertainty import delta_method, propagate  # noqa: E402
 from greybox.io import load_experiment_set  # noqa: E402
 
 microrobot = greybox.device_module("microrobot")  # noqa: E402
@@ -379,7 +375,7 @@ plt.show()
 # - **delta method** (first order in the raw parameters): along the undetermined friction
 #   direction W does not change to first order, so only the identified quantities (gain,
 #   heat capacity, W) widen the band;
-# - **sampling** (`greybox.propagate`: Gaussian draws of the raw shared
+# - **sampling** (`greybox.uncertainty.propagate`: Gaussian draws of the raw shared
 #   parameters, each pushed through the gait), the usual tool for an optimum or a threshold.
 
 # %%

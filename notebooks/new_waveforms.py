@@ -18,16 +18,16 @@
 #
 # 1. Fit the embedded laser-chevron data and write `params.json` (what `greybox fit`
 #    writes), then load it back as a user would (`greybox.io.load_params`).
-# 2. Simulate new waveforms with **95 % bands** (`greybox.prediction_band`): the
+# 2. Simulate new waveforms with **95 % bands** (`greybox.uncertainty.prediction_band`): the
 #    confidence band of the model response (parameter uncertainty, delta method) and the
 #    prediction interval for new camera readings (plus the camera noise).
 # 3. A design question: **which pulse period gives the most peak-to-peak stroke at a fixed
-#    average laser power?** From the periodic steady state (`greybox.square_wave_response`),
+#    average laser power?** From the periodic steady state (`greybox.waveforms.square_wave_response`),
 #    on a grid
 #    of periods.
 # 4. How the answer's uncertainty follows from the parameter covariance: 500 parameter draws
 #    from the fit's covariance, the answer recomputed for each
-#    (`greybox.propagate`), against the delta method.
+#    (`greybox.uncertainty.propagate`), against the delta method.
 
 # %%
 import os
@@ -47,19 +47,10 @@ CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 ROOT = next(p for p in (Path.cwd(), *Path.cwd().parents) if (p / "experiments").is_dir())
 DATA = ROOT / "experiments" / "chevron_laser"
 
-from greybox import (  # noqa: E402  # noqa: E402  # noqa: E402
-    PulseTrain,
-    as_arrays,  # noqa: E402
-    concatenate,
-    fit,  # noqa: E402
-    from_samples,
-    multilevel_prbs,
-    prediction_band,
-    propagate,
-    response_function,
-    square_wave_response,
-    with_shared,
-)
+from greybox import PulseTrain, fit  # noqa: E402
+from greybox.parameters import as_arrays, with_shared  # noqa: E402
+from greybox.uncertainty import prediction_band, propagate  # noqa: E402
+from greybox.waveforms import concatenate, from_samples, multilevel_prbs, response_function, square_wave_response  # noqa: E402
 from greybox.io import (  # noqa: E402
     load_experiment_set,  # noqa: E402
     load_params,
@@ -192,7 +183,7 @@ plt.show()
 # Fixed average power P_avg = 15 mW. Choice made here (and the alternative shown): **duty
 # 50 %, so the on-power is fixed too (30 mW)**, and the period varies; dashed curves show the
 # other reading of "fixed average power", duty varying with on-power P_avg / duty.
-# The periodic steady-state peak-to-peak stroke comes from `greybox.square_wave_response`
+# The periodic steady-state peak-to-peak stroke comes from `greybox.waveforms.square_wave_response`
 # (the one-cycle
 # fixed point of the exact ZOH map; no transient to wait out).
 

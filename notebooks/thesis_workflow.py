@@ -52,14 +52,9 @@ ROOT = next(p for p in (Path.cwd(), *Path.cwd().parents) if (p / "experiments").
 DATA = ROOT / "experiments" / "chevron_laser"
 
 from greybox import blackbox as bb  # noqa: E402
-from greybox import (  # noqa: E402  # noqa: E402
-    fit,
-    fit_percent,
-    rmse,
-    set_values,  # noqa: E402
-    simulate,  # noqa: E402
-    validate,
-)
+from greybox import fit, simulate, validate  # noqa: E402
+from greybox.metrics import fit_percent, rmse  # noqa: E402
+from greybox.parameters import set_values  # noqa: E402
 from greybox.io import load_experiment_set  # noqa: E402
 
 T_START = time.perf_counter()

@@ -8,7 +8,7 @@ building the design's information matrix, loading and compiling the batch). Ever
 ``.partial-*`` leftover exists. (`tests/test_signals.py` covers `compare` at five moments.)
 
 A signal that lands while Python runs a garbage-collector callback (JAX's `_xla_gc_callback`
-runs at every collection) or a ``__del__`` -- where an exception is printed as "Exception
+runs at every collection), a ``__del__`` or a weakref callback -- where an exception is printed as "Exception
 ignored" and lost, and the command ran on for seconds -- stops the command just after.
 """
 
@@ -19,6 +19,7 @@ import signal
 import subprocess
 import sys
 import time
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -108,11 +109,12 @@ class _SignalsOnDelete:
         self.sig = sig
 
     def __del__(self):
-        signal.raise_signal(self.sig)
+        if self.sig is not None:
+            signal.raise_signal(self.sig)
 
 
 @pytest.mark.parametrize("sig, stop", [(signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, None)])
-@pytest.mark.parametrize("where", ["gc callback", "__del__"])
+@pytest.mark.parametrize("where", ["gc callback", "__del__", "weakref callback"])
 def test_a_signal_inside_a_callback_that_swallows_it_still_stops(where, sig, stop):
     from greybox.io._atomic import Terminated, received_signal, signal_handlers
 
@@ -132,7 +134,11 @@ def test_a_signal_inside_a_callback_that_swallows_it_still_stops(where, sig, sto
                 gc.collect()
             finally:
                 gc.callbacks.remove(callback)
-        else:
+        elif where == "__del__":
             _SignalsOnDelete(sig)  # deleted at once: __del__ raises the signal
+        else:  # a weakref callback (what the collector runs for a WeakKeyDictionary entry)
+            target = _SignalsOnDelete(None)
+            ref = weakref.ref(target, lambda _: signal.raise_signal(sig))  # noqa: F841
+            del target
         time.sleep(5)  # the command's work goes on: the signal must stop it here
     assert time.monotonic() - t0 < 2 and received_signal() == sig

@@ -37,6 +37,7 @@ import os
 import re
 import shutil
 import signal
+import sys
 import tempfile
 import threading
 from collections.abc import Iterator
@@ -66,6 +67,20 @@ def _on_signal(signum, frame):
         threading.Timer(0.01, _deliver_again, args=(signum,)).start()
         return
     raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+
+def _on_unraisable(unraisable) -> None:
+    """`sys.unraisablehook` under `signal_handlers`: our KeyboardInterrupt / `Terminated`
+    raised where Python ignores exceptions that `_swallowed_here` does not recognise (a
+    weakref callback run by the collector, ...) is delivered again instead of being lost;
+    anything else goes to the previous hook."""
+    if isinstance(unraisable.exc_value, (KeyboardInterrupt, Terminated)) and _RECEIVED:
+        threading.Timer(0.01, _deliver_again, args=(_RECEIVED[-1],)).start()
+        return
+    _PREVIOUS_HOOK[-1](unraisable)
+
+
+_PREVIOUS_HOOK: list = [sys.unraisablehook]
 
 
 def _deliver_again(signum: int) -> None:
@@ -113,9 +128,12 @@ def signal_handlers() -> Iterator[None]:
     _RECEIVED.clear()
     _COMMITTED.clear()
     previous = {s: signal.signal(s, _on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    _PREVIOUS_HOOK.append(sys.unraisablehook)
+    sys.unraisablehook = _on_unraisable
     try:
         yield
     finally:
+        sys.unraisablehook = _PREVIOUS_HOOK.pop()
         for s, handler in previous.items():
             signal.signal(s, handler)
 

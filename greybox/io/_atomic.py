@@ -16,8 +16,9 @@ The output contract of every command that writes a result folder (`greybox fit`,
 - SIGINT and SIGTERM (`signal_handlers`, installed by the CLI for every command) raise
   `KeyboardInterrupt` / `Terminated` in the main thread and are remembered: a result is
   never swapped in after a signal, even one that some code caught and swallowed. One that
-  lands where Python ignores exceptions (a gc callback such as JAX's, a ``__del__``) is
-  delivered again to the main thread just after, so the command stops there and then.
+  lands where Python ignores exceptions (a gc callback such as JAX's, a ``__del__``, a
+  weakref callback) reaches `sys.unraisablehook`, which delivers it again to the main thread
+  just after, so the command stops there and then.
 - Leftovers of killed runs (``.NAME.partial-PID-*``, ``.NAME.old-PID``) are removed by the
   next run once their process is gone. Writers of the same folder take an `fcntl.flock` on
   its parent folder while they clean up and swap, so concurrent runs never collide (the
@@ -31,7 +32,6 @@ import ctypes
 import ctypes.util
 import errno
 import fcntl
-import gc
 import json
 import os
 import re
@@ -61,19 +61,15 @@ _COMMITTED: list[Path] = []  # results swapped in under `signal_handlers` (what 
 
 def _on_signal(signum, frame):
     _RECEIVED.append(signum)
-    if _swallowed_here(frame):
-        # raised here, the exception would be printed as "Exception ignored" and lost, and the
-        # command would run on to its end; deliver the signal again once the callback is over
-        threading.Timer(0.01, _deliver_again, args=(signum,)).start()
-        return
     raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
 
 
 def _on_unraisable(unraisable) -> None:
-    """`sys.unraisablehook` under `signal_handlers`: our KeyboardInterrupt / `Terminated`
-    raised where Python ignores exceptions that `_swallowed_here` does not recognise (a
-    weakref callback run by the collector, ...) is delivered again instead of being lost;
-    anything else goes to the previous hook."""
+    """`sys.unraisablehook` under `signal_handlers`. Raised where Python ignores exceptions
+    (a garbage-collector callback such as JAX's `_xla_gc_callback`, a ``__del__``, a weakref
+    callback), our KeyboardInterrupt / `Terminated` would be printed as "Exception ignored"
+    and lost, and the command would run on to its end: the signal is delivered again once
+    the callback is over. Anything else goes to the previous hook."""
     if isinstance(unraisable.exc_value, (KeyboardInterrupt, Terminated)) and _RECEIVED:
         threading.Timer(0.01, _deliver_again, args=(_RECEIVED[-1],)).start()
         return
@@ -88,17 +84,6 @@ def _deliver_again(signum: int) -> None:
     the command has ended meanwhile (its handlers are gone; `received_signal` has it)."""
     if signal.getsignal(signum) is _on_signal:
         signal.pthread_kill(threading.main_thread().ident, signum)
-
-
-def _swallowed_here(frame) -> bool:
-    """Whether `frame` runs where Python ignores exceptions: a garbage-collector callback
-    (JAX's `_xla_gc_callback` runs at every collection) or a ``__del__``."""
-    callbacks = {getattr(cb, "__code__", None) for cb in gc.callbacks}
-    while frame is not None:
-        if frame.f_code in callbacks or frame.f_code.co_name == "__del__":
-            return True
-        frame = frame.f_back
-    return False
 
 
 def received_signal() -> int | None:

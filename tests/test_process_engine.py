@@ -36,12 +36,8 @@ from tests.rc_building_device import NOMINAL, RCBuilding
 from tests.rc_folder import write_folder
 
 PHYS = ("Ci", "Ce", "Ch", "Rie", "Rea", "Rih", "Aw")
-PHYSICAL = PHYS
 NOISE = {"q_i": "process.air", "q_e": "process.envelope", "q_h": "process.heater"}
 MEAS = {"sd_Ti": "measurement.Ti", "sd_Te": "measurement.Te"}
-# noise start values a factor 3-10 from the truth (the physical ones: the device file's
-# nominal values, tests/rc_building_device.NOMINAL, a factor 3-4 from it)
-NOISE_FACTORS = {"q_i": 10.0, "q_e": 0.1, "q_h": 8.0, "sd_Ti": 4.0, "sd_Te": 0.25}
 # start values: every parameter a factor 3-10 from the truth
 FACTORS = {
     "Ci": 4.0,
@@ -57,6 +53,11 @@ FACTORS = {
     "sd_Ti": 4.0,
     "sd_Te": 0.25,
 }
+
+
+# the command's folder: these noise starts; its physical starts are the device file's nominal
+# values (tests/rc_building_device.NOMINAL), a factor 3-4 from the truth
+NOISE_FACTORS = {k: FACTORS[k] for k in (*NOISE, *MEAS)}
 
 
 def RC3(**values):  # noqa: N802 (the reference's TiTeTh model, air and envelope read)
@@ -286,7 +287,7 @@ def test_process_noise_fit_recovers_the_truth(cli_fit, data):
     assert doc["convergence"]["status"] == "converged"
     by_path = {p["path"]: p for p in doc["parameters"]}
     truth = data["truth"]
-    for path in PHYSICAL:
+    for path in PHYS:
         p = by_path[path]
         assert abs(p["value"] - truth[path]) < 3 * p["se"], (path, p["value"], p["se"])
     for name, path in {**NOISE, **MEAS}.items():
@@ -294,7 +295,7 @@ def test_process_noise_fit_recovers_the_truth(cli_fit, data):
         if p["verdict"] == "identifiable":
             assert abs(p["value"] - truth[name]) < 3 * p["se"], (path, p["value"], p["se"])
     # the likelihood the CLI reports is the independent numpy Kalman filter's at the estimate
-    estimate = {k: by_path[k]["value"] for k in PHYSICAL}
+    estimate = {k: by_path[k]["value"] for k in PHYS}
     estimate.update({name: by_path[path]["value"] for name, path in {**NOISE, **MEAS}.items()})
     assert doc["log_likelihood"] == pytest.approx(ref.loglik(estimate, data), abs=1e-6)
 
@@ -374,7 +375,7 @@ def test_process_params_load_and_drive_simulate(cli_fit, data, tmp_path):
         [np.full(t.size, 280.0), np.where((t % 86400) < 43200, 1500.0, 0.0), np.zeros(t.size)]
     )
     by_path = {p["path"]: p["value"] for p in doc["parameters"]}
-    y = _numpy_response({k: by_path[k] for k in PHYSICAL}, data["x0"], t, levels)
+    y = _numpy_response({k: by_path[k] for k in PHYS}, data["x0"], t, levels)
     # simulation.csv holds 6 significant digits: 1e-3 K at 293 K
     np.testing.assert_allclose(table["Ti_K"], y[:, 0], atol=5.1e-4)
     np.testing.assert_allclose(table["Te_K"], y[:, 1], atol=5.1e-4)

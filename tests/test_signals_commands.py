@@ -104,13 +104,22 @@ def test_a_signal_during_the_work_exits_cleanly(inputs, tmp_path, command, delay
     assert not [p for p in tmp_path.iterdir() if ".partial-" in p.name or ".old-" in p.name]
 
 
+_RAISED_AT: list[float] = []  # when each test signal was raised (a loaded machine can take
+# seconds to reach that point: a full collection of a worker's heap)
+
+
+def _raise(sig):
+    _RAISED_AT.append(time.monotonic())
+    signal.raise_signal(sig)
+
+
 class _SignalsOnDelete:
     def __init__(self, sig):
         self.sig = sig
 
     def __del__(self):
         if self.sig is not None:
-            signal.raise_signal(self.sig)
+            _raise(self.sig)
 
 
 @pytest.mark.parametrize("sig, stop", [(signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, None)])
@@ -124,9 +133,8 @@ def test_a_signal_inside_a_callback_that_swallows_it_still_stops(where, sig, sto
     def callback(phase, info):  # what JAX's gc callback is to the interpreter
         if phase == "start" and not seen:
             seen.append(phase)
-            signal.raise_signal(sig)
+            _raise(sig)
 
-    t0 = time.monotonic()
     with pytest.raises(stop), signal_handlers():
         if where == "gc callback":
             gc.callbacks.append(callback)
@@ -138,7 +146,32 @@ def test_a_signal_inside_a_callback_that_swallows_it_still_stops(where, sig, sto
             _SignalsOnDelete(sig)  # deleted at once: __del__ raises the signal
         else:  # a weakref callback (what the collector runs for a WeakKeyDictionary entry)
             target = _SignalsOnDelete(None)
-            ref = weakref.ref(target, lambda _: signal.raise_signal(sig))  # noqa: F841
+            ref = weakref.ref(target, lambda _: _raise(sig))  # noqa: F841
             del target
         time.sleep(5)  # the command's work goes on: the signal must stop it here
-    assert time.monotonic() - t0 < 2 and received_signal() == sig
+    assert time.monotonic() - _RAISED_AT[-1] < 2 and received_signal() == sig
+
+
+@pytest.mark.parametrize("sig, stop", [(signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, None)])
+def test_a_signal_landing_inside_the_unraisable_hook_still_stops(sig, stop, monkeypatch):
+    """The hook that delivers a swallowed signal again starts a thread, and starting one waits:
+    on a loaded machine a signal (the user's second Ctrl-C, or the re-delivery itself) can
+    land in that wait. Raised there it would be lost for good ("Exception ignored in
+    sys.unraisablehook"); it must stop the command once the hook has returned."""
+    import threading
+
+    from greybox.io._atomic import Terminated, received_signal, signal_handlers
+
+    stop = stop or Terminated
+    start = threading.Thread.start
+
+    def start_with_a_signal(self):  # the signal arrives while the hook starts its thread
+        _raise(sig)
+        start(self)
+
+    with pytest.raises(stop), signal_handlers():
+        monkeypatch.setattr(threading.Thread, "start", start_with_a_signal)
+        _SignalsOnDelete(sig)  # __del__ raises the first signal; the hook gets the second
+        monkeypatch.setattr(threading.Thread, "start", start)
+        time.sleep(5)
+    assert time.monotonic() - _RAISED_AT[-1] < 2 and received_signal() == sig

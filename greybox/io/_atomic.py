@@ -40,6 +40,7 @@ import signal
 import sys
 import tempfile
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -59,8 +60,13 @@ _COMMITTED: list[Path] = []  # results swapped in under `signal_handlers` (what 
 # interrupts is then the report after the result, not the result)
 
 
+_IN_HOOK: list[bool] = [False]  # True while `_on_unraisable` runs (see `_on_signal`)
+
+
 def _on_signal(signum, frame):
     _RECEIVED.append(signum)
+    if _IN_HOOK[0]:  # raised inside our own unraisable hook it would be lost for good; the
+        return  # hook's delivery thread sends it again once the hook has returned
     raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
 
 
@@ -71,7 +77,11 @@ def _on_unraisable(unraisable) -> None:
     and lost, and the command would run on to its end: the signal is delivered again once
     the callback is over. Anything else goes to the previous hook."""
     if isinstance(unraisable.exc_value, (KeyboardInterrupt, Terminated)) and _RECEIVED:
-        threading.Timer(0.01, _deliver_again, args=(_RECEIVED[-1],)).start()
+        _IN_HOOK[0] = True  # starting a thread waits: a signal can land here (under load)
+        try:
+            threading.Thread(target=_deliver_again, args=(_RECEIVED[-1],), daemon=True).start()
+        finally:
+            _IN_HOOK[0] = False
         return
     _PREVIOUS_HOOK[-1](unraisable)
 
@@ -80,8 +90,12 @@ _PREVIOUS_HOOK: list = [sys.unraisablehook]
 
 
 def _deliver_again(signum: int) -> None:
-    """Send `signum` to the main thread itself (a sleep or a wait there is woken), unless
-    the command has ended meanwhile (its handlers are gone; `received_signal` has it)."""
+    """Send `signum` to the main thread itself (a sleep or a wait there is woken) once the
+    hook that started this thread has returned, unless the command has ended meanwhile (its
+    handlers are gone; `received_signal` has it)."""
+    time.sleep(0.01)
+    while _IN_HOOK[0]:
+        time.sleep(0.005)
     if signal.getsignal(signum) is _on_signal:
         signal.pthread_kill(threading.main_thread().ident, signum)
 

@@ -7,7 +7,8 @@ a stochastic device through the continuous-discrete (extended) Kalman filter.
   and per-run estimates; covariance diag(sd^2); with a known initial state (sd 0, the
   default) the first frame of each run is conditioned on, not scored, so reading the initial
   state off the first reading cannot make the likelihood unbounded.
-- Optimiser, compiled as one program of two `lax.while_loop`s (no host loop per step):
+- Optimiser, compiled as one program (one `lax.while_loop`, no host loop per step, the
+  filter and its gradient traced once: `_newton`):
   BFGS on the exact reverse-mode gradient with a backtracking line search, then Newton steps
   on the Hessian (central differences of that gradient, negative curvature mirrored so a
   saddle is left, not approached) until the Newton decrement g^T |H|^-1 g (twice the
@@ -163,42 +164,36 @@ def _eig_parts(H):
     return w, V, jnp.maximum(jnp.abs(w), 1e-12 * scale), scale
 
 
-_FD_STEP = 1e-4  # raw step of the central differences of the exact gradient (Hessian)
+# The Hessian is central differences of the exact (reverse-mode) gradient: 2 P gradient
+# evaluations, so no second derivative of the filter is compiled. A raw step of 1e-4 makes it
+# accurate to ~1e-8 relative (4.7e-9 against forward-over-forward AD on the TCLab case,
+# `benchmarks/kalman.py --coverage-device`), far below what standard errors need.
+_FD_STEP = 1e-4
 
 
-def _fd_hessian(grad, raw):
-    """Hessian by central differences of the exact (reverse-mode) gradient: 2 P gradient
-    calls through `lax.map`, so no second derivative of the filter is compiled. A raw step of
-    1e-4 makes it accurate to ~1e-8 relative (4.7e-9 against forward-over-forward AD on the
-    TCLab case, `benchmarks/kalman.py --coverage-device`), far below what standard errors
-    need."""
-    n = raw.shape[0]
-    steps = jnp.concatenate([jnp.eye(n), -jnp.eye(n)]) * _FD_STEP
-    g = jax.lax.map(lambda d: grad(raw + d), steps)
-    H = (g[:n] - g[n:]).T / (2 * _FD_STEP)
-    return 0.5 * (H + H.T)
-
-
-def _backtrack(f, raw, v, slope, p):
-    """Largest a in 1, 1/2, 1/4, ... (30 tries) with f(raw + a p) <= v + 1e-4 a slope."""
-
-    def cond(s):
-        a, v_new, k = s
-        ok = jnp.isfinite(v_new) & (v_new <= v + 1e-4 * a * slope)
-        return (~ok) & (k < 30)
-
-    def body(s):
-        a, _, k = s
-        a = a * 0.5
-        return a, f(raw + a * p), k + 1
-
-    a, v_new, k = jax.lax.while_loop(cond, body, (jnp.ones_like(v), f(raw + p), 0))
-    ok = jnp.isfinite(v_new) & (v_new <= v + 1e-4 * a * slope)
-    return a, v_new, ok
+_HALVINGS = 30  # backtracking line search: a = 1, 1/2, ..., 2^-30, then the search has failed
+# phases of the optimiser's state machine (int32, the type of its loop counters)
+_INIT, _BFGS, _NEWTON, _HESSIAN, _DONE = (np.int32(i) for i in range(5))
 
 
 def _cap(p):
     return p * jnp.minimum(1.0, MAX_RAW_STEP / jnp.maximum(jnp.max(jnp.abs(p)), 1e-300))
+
+
+def _select(pred, new: dict, old: dict) -> dict:
+    """`old` with the entries of `new` where `pred` holds (a branch-free state update)."""
+    return {k: jnp.where(pred, new[k], old[k]) if k in new else old[k] for k in old}
+
+
+def _decrement(g, H):
+    _, V, wabs, _ = _eig_parts(H)
+    gt = V.T @ g
+    return jnp.sum(gt**2 / wabs)
+
+
+def _newton_direction(g, H):
+    _, V, wabs, _ = _eig_parts(H)
+    return _cap(-V @ ((V.T @ g) / wabs))
 
 
 @eqx.filter_jit
@@ -210,76 +205,101 @@ def _newton(obj: _Objective, raw0, max_steps):
     Hessian (central differences of the exact gradient, negative curvature mirrored) until the
     Newton decrement g^T |H|^-1 g is below `DECREMENT_TOL`; the Hessian at the end point is
     returned for the covariance. `max_steps` bounds each phase. Returns a dict: raw, cost,
-    data_nll, gradient, hessian (total), prior_hessian, steps, converged, ran_out, stalled."""
-    f = obj.total
-    vg = jax.value_and_grad(f)
-    grad = jax.grad(f)
+    data_nll, gradient, hessian (total), prior_hessian, steps, converged, ran_out, stalled.
+
+    Written as a state machine of one `lax.while_loop` whose pass evaluates the value and
+    gradient of -log L at one point: the start, a line-search trial of either phase (an
+    accepted trial needs no second evaluation) or one of the 2 P probes of the Hessian. The
+    filter and its gradient are therefore traced and compiled once (compiling them was most
+    of a small fit's time), the points evaluated are those of the plain form (a BFGS loop,
+    then a Newton loop whose Hessians are `lax.map`s of the gradient), and in a vmapped batch every pass evaluates one
+    point for every member, whatever phase each is in.
+    """
+
+    def value_and_data(r):
+        d = obj.data_nll(r)
+        return d + obj.prior_nll(r), d
+
+    vg = jax.value_and_grad(value_and_data, has_aux=True)
     n = raw0.shape[0]
     dtype = raw0.dtype
-    v0, g0 = vg(raw0)
+    eye = jnp.eye(n, dtype=dtype)
+    probes = jnp.concatenate([eye, -eye]) * _FD_STEP  # the Hessian's central differences
+    zero = jnp.zeros((), dtype)
+    max_steps = jnp.asarray(max_steps)
 
-    # ---- phase 1: BFGS on gradients only
-    def bfgs_cond(s):
-        raw, v, g, Hi, it, done, stalled = s
-        return (~done) & (it < max_steps)
-
-    def bfgs_body(s):
-        raw, v, g, Hi, it, done, stalled = s
+    def bfgs_direction(g, Hi):
         p = -Hi @ g
         descent = g @ p < 0
-        Hi = jnp.where(descent, Hi, jnp.eye(n, dtype=dtype))
-        p = _cap(jnp.where(descent, p, -g))
-        a, v_new, ok = _backtrack(f, raw, v, g @ p, p)
-        step = a * p
-        raw2 = jnp.where(ok, raw + step, raw)
-        v2, g2 = jax.lax.cond(ok, lambda: vg(raw + step), lambda: (v, g))
-        yv = g2 - g
-        sy = step @ yv
-        # first update: scale the identity to the curvature seen (Nocedal & Wright 6.20)
-        Hi = jnp.where((it == 0) & (sy > 0), Hi * sy / jnp.maximum(yv @ yv, 1e-300), Hi)
-        rho = 1.0 / jnp.where(sy > 1e-300, sy, 1.0)
-        E = jnp.eye(n, dtype=dtype) - rho * jnp.outer(step, yv)
-        Hi_new = E @ Hi @ E.T + rho * jnp.outer(step, step)
-        Hi = jnp.where(ok & (sy > 1e-300), Hi_new, Hi)
-        dec = g2 @ Hi @ g2
-        stalled = ~ok
-        done = (ok & (dec < DECREMENT_TOL) & (dec >= 0)) | stalled
-        return raw2, v2, g2, Hi, it + 1, done, stalled
+        return jnp.where(descent, Hi, eye), _cap(jnp.where(descent, p, -g))
 
-    init = (raw0, v0, g0, jnp.eye(n, dtype=dtype), 0, jnp.asarray(False), jnp.asarray(False))
-    raw, v, g, _, it1, _, _ = jax.lax.while_loop(bfgs_cond, bfgs_body, init)
+    def new_search(s, p):  # a line search along `p` from the current point
+        return dict(s, p=p, slope=s["g"] @ p, a=jnp.ones((), dtype), k=np.int32(0))
 
-    # ---- phase 2: Newton on the finite-difference Hessian of the exact gradient
-    def decrement(g, H):
-        _, V, wabs, _ = _eig_parts(H)
-        gt = V.T @ g
-        return jnp.sum(gt**2 / wabs)
+    def to_hessian(s):  # probe the Hessian at the current point next
+        return dict(s, phase=_HESSIAN, j=np.int32(0))
 
-    def newton_cond(s):
-        raw, v, g, H, it, done = s
-        return (~done) & (it < max_steps)
+    def step(s):
+        hessian = s["phase"] == _HESSIAN
+        x = jnp.where(hessian, s["raw"] + probes[s["j"]], s["raw"] + s["a"] * s["p"])
+        (vt, dt), gt = vg(x)
+        armijo = jnp.isfinite(vt) & (vt <= s["v"] + 1e-4 * s["a"] * s["slope"])
+        ended = armijo | (s["k"] >= _HALVINGS)  # the line search is over (accepted or failed)
+        halved = dict(s, a=s["a"] * 0.5, k=s["k"] + 1)
+        moved = _select(armijo, dict(raw=x, v=vt, d=dt, g=gt), s)
 
-    def newton_body(s):
-        raw, v, g, H, it, done = s
-        _, V, wabs, _ = _eig_parts(H)
-        p = _cap(-V @ ((V.T @ g) / wabs))
-        a, v_new, ok = _backtrack(f, raw, v, g @ p, p)
-        raw2 = jnp.where(ok, raw + a * p, raw)
-        v2, g2 = jax.lax.cond(ok, lambda: vg(raw2), lambda: (v, g))
-        H2 = jax.lax.cond(ok, lambda: _fd_hessian(grad, raw2), lambda: H)
-        done = (decrement(g2, H2) < DECREMENT_TOL) | ~ok
-        return raw2, v2, g2, H2, it + 1, done
+        def start():  # the start: BFGS from the identity (or no BFGS step at all)
+            s0 = dict(s, raw=x, v=vt, d=dt, g=gt)
+            Hi, p = bfgs_direction(gt, eye)
+            s1 = new_search(dict(s0, Hi=Hi, phase=_BFGS), p)
+            return _select(max_steps <= 0, to_hessian(s0), s1)
 
-    H = _fd_hessian(grad, raw)
-    done0 = decrement(g, H) < DECREMENT_TOL
-    raw, v, g, H, it2, _ = jax.lax.while_loop(
-        newton_cond, newton_body, (raw, v, g, H, 0, done0)
-    )
-    converged = decrement(g, H) < DECREMENT_TOL
+        def bfgs():  # a BFGS line search has ended: update; the phase ends when it fails
+            step = s["a"] * s["p"]
+            yv = moved["g"] - s["g"]
+            sy = step @ yv
+            Hi = s["Hi"]
+            # first update: scale the identity to the curvature seen (Nocedal & Wright 6.20)
+            Hi = jnp.where((s["it1"] == 0) & (sy > 0), Hi * sy / jnp.maximum(yv @ yv, 1e-300), Hi)
+            rho = 1.0 / jnp.where(sy > 1e-300, sy, 1.0)
+            E = eye - rho * jnp.outer(step, yv)
+            Hi = jnp.where(armijo & (sy > 1e-300), E @ Hi @ E.T + rho * jnp.outer(step, step), Hi)
+            dec = moved["g"] @ Hi @ moved["g"]
+            it1 = s["it1"] + 1
+            over = (armijo & (dec < DECREMENT_TOL) & (dec >= 0)) | ~armijo | (it1 >= max_steps)
+            Hi_next, p = bfgs_direction(moved["g"], Hi)
+            searching = new_search(dict(moved, Hi=Hi_next, it1=it1), p)
+            return _select(ended, _select(over, to_hessian(dict(moved, it1=it1)), searching), halved)
+
+        def newton():  # a Newton line search has ended: the Hessian at the new point, or stop
+            after = dict(moved, it2=s["it2"] + 1)
+            return _select(ended, _select(armijo, to_hessian(after), dict(after, phase=_DONE)), halved)
+
+        def probe():  # one column of the Hessian; after the last, the next Newton search
+            G = s["G"].at[s["j"]].set(gt)
+            H = (G[:n] - G[n:]).T / (2 * _FD_STEP)
+            H = 0.5 * (H + H.T)
+            finish = (_decrement(s["g"], H) < DECREMENT_TOL) | (s["it2"] >= max_steps)
+            done = dict(s, G=G, H=H, phase=_DONE)
+            searching = new_search(dict(s, G=G, H=H, phase=_NEWTON), _newton_direction(s["g"], H))
+            last = s["j"] + 1 == 2 * n
+            return _select(last, _select(finish, done, searching), dict(s, G=G, j=s["j"] + 1))
+
+        return jax.lax.switch(s["phase"], [start, bfgs, newton, probe])
+
+    init = dict(
+        raw=raw0, v=zero, d=zero, g=jnp.zeros_like(raw0), Hi=eye, H=eye,
+        G=jnp.zeros((2 * n, n), dtype), p=jnp.zeros_like(raw0), slope=zero,
+        a=jnp.ones((), dtype), k=np.int32(0), j=np.int32(0),
+        it1=np.int32(0), it2=np.int32(0), phase=_INIT,
+    )  # fmt: skip
+    s = jax.lax.while_loop(lambda s: s["phase"] != _DONE, step, init)
+    raw, g, H, it1, it2 = s["raw"], s["g"], s["H"], s["it1"], s["it2"]
+    converged = _decrement(g, H) < DECREMENT_TOL
     return dict(
         raw=raw,
-        cost=v,
-        data_nll=obj.data_nll(raw),
+        cost=s["v"],
+        data_nll=s["d"],
         gradient=g,
         hessian=H,
         prior_hessian=jax.hessian(obj.prior_nll)(raw),

@@ -10,8 +10,9 @@ likelihood with the likelihood back end's one compiled optimiser, vmapped over d
   unchanged, which `FilterGrid` does not offer; runs of different lengths therefore form
   different groups rather than being padded.
 - Every start of every device of a group is an item; items run in chunks of one size through
-  `likelihood._newton` vmapped (its two `lax.while_loop`s run until the last item of a chunk
-  has converged; an item that is done keeps its state, so each item's result is the one the
+  `likelihood._newton` vmapped (its `lax.while_loop` runs until the last item of a chunk
+  has converged, each pass evaluating one point for every item whatever phase it is in; an
+  item that is done keeps its state, so each item's result is the one the
   unbatched solve gives, to rounding). The last chunk is padded with copies of its last item,
   so a group compiles once. Reviving vanished noise intensities (`likelihood.revive`) reuses
   the same compiled chunk.

@@ -53,8 +53,10 @@ Andrews-Monahan prewhitening, Newey-West; see its section).
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
+import threading
 from statistics import NormalDist
 
 import numpy as np
@@ -288,35 +290,120 @@ def _robust_keep(e: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return valid & (np.abs(e - med) <= OUTLIER_SCALES * scale)
 
 
-def _permuted_autocorrelation(g, occ, npairs, n, permutations, rng) -> np.ndarray:
-    """(B + 1, h) bias-corrected r(1..h): row 0 of the residuals `g` as placed on the grid
-    (`occ` occupied, zero elsewhere), rows 1.. of B shuffles of the values among the occupied
-    slots (the gaps stay where they are). Every lag of a block of rows is one product
-    (`lag_products`); the blocks bound memory, and the shuffles drawn block by block are one
-    stream from `rng` (one `rng.random` row per shuffle, ranked), so the p-values do not
-    depend on the blocking."""
-    h = npairs.size
-    slots = np.flatnonzero(occ)
-    vals = g[slots]
-    c0 = float(vals @ vals) / n
-    b = int(permutations)
-    out = np.empty((b + 1, h))
-    rows = max(1, LAG_BLOCK // max(g.size, 1))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        for start in range(0, b + 1, rows):
-            stop = min(start + rows, b + 1)
-            grid = np.zeros((stop - start, g.size))
-            first = 0
-            if start == 0:
-                grid[0] = g
-                first = 1
-            if stop - start > first:
-                order = rng.random((stop - start - first, vals.size)).argsort(axis=1)
-                grid[first:, slots] = vals[order]
-            sums = lag_products(grid, grid, np.arange(1, h + 1))
-            out[start:stop] = sums / np.maximum(npairs, 1) / c0 + 1.0 / (n - 1)
-    out[:, npairs == 0] = np.nan
-    return out
+ORDER_CACHE_BYTES = 64 << 20  # shuffle orders kept for reuse (a batch's devices share them)
+ORDER_CACHE_ELEMENTS = 1 << 22  # a stream's B x n orders above this are drawn block by block
+_orders: collections.OrderedDict = collections.OrderedDict()
+_orders_lock = threading.Lock()
+
+
+def _shuffle_orders(key: tuple, n: int, b: int) -> np.ndarray | None:
+    """(b, n) rank orders of the shuffles of stream `key` (`default_rng(list(key))`, one
+    `rng.random(n)` row per shuffle, ranked), cached: they depend only on the stream and the
+    number of values, so the devices of a batch (and a repeated fit) draw them once. None
+    above ORDER_CACHE_ELEMENTS (the caller then draws the same stream block by block)."""
+    if b * n > ORDER_CACHE_ELEMENTS:
+        return None
+    k = (key, n, b)
+    with _orders_lock:
+        hit = _orders.get(k)
+        if hit is not None:
+            _orders.move_to_end(k)
+            return hit
+    order = np.random.default_rng(list(key)).random((b, n)).argsort(axis=1).astype(np.int32)
+    order.setflags(write=False)
+    with _orders_lock:
+        _orders[k] = order
+        while len(_orders) > 1 and sum(v.nbytes for v in _orders.values()) > ORDER_CACHE_BYTES:
+            _orders.popitem(last=False)
+    return order
+
+
+@dataclasses.dataclass
+class _Shuffled:
+    """One run and output to test by shuffles: residuals `g` on the grid (`occ` occupied, zero
+    elsewhere), pair counts `npairs` at lags 1..h, readings `n`, variance `c0`, stream `key`;
+    `out` (B + 1, h) receives its r(1..h), observed (row 0) and shuffled."""
+
+    g: np.ndarray
+    occ: np.ndarray
+    npairs: np.ndarray
+    n: int
+    c0: float
+    key: tuple
+    out: np.ndarray
+
+
+def _pieces(jobs, b: int):
+    """(job, first row of `out`, None for the observed row or the order rows of shuffles)
+    in blocks of at most LAG_BLOCK / n_slots shuffles, lazily: slices of the cached orders
+    or, for long runs, the same stream drawn block by block."""
+    for job in jobs:
+        yield job, 0, None
+        if not b:
+            continue
+        slots_n = int(job.occ.sum())
+        rows = max(1, LAG_BLOCK // max(job.g.size, 1))
+        cached = _shuffle_orders(job.key, slots_n, b)
+        rng = None if cached is not None else np.random.default_rng(list(job.key))
+        for start in range(0, b, rows):
+            stop = min(start + rows, b)
+            if cached is not None:
+                yield job, 1 + start, cached[start:stop]
+            else:
+                yield job, 1 + start, rng.random((stop - start, slots_n)).argsort(axis=1)
+
+
+def _blocks(pieces):
+    """Consecutive pieces packed into blocks of at most LAG_BLOCK elements (rows x longest
+    grid; a single larger piece is a block of its own)."""
+    block, size, width = [], 0, 0
+    for piece in pieces:
+        rows = 1 if piece[2] is None else piece[2].shape[0]
+        w = max(width, piece[0].g.size)
+        if block and (size + rows) * w > LAG_BLOCK:
+            yield block, size, width
+            block, size, w = [], 0, piece[0].g.size
+        block.append(piece)
+        size, width = size + rows, w
+    if block:
+        yield block, size, width
+
+
+def _permuted_autocorrelation(jobs, permutations: int) -> None:
+    """Fill each job's `out` (B + 1, h) with the bias-corrected r(1..h): row 0 of its
+    residuals as placed on the grid, rows 1.. of B shuffles of the values among the occupied
+    slots (the gaps stay where they are). The rows of every job (all runs of a fit, all
+    devices of a batch) go through one product per lag and block (`lag_products`; a row is
+    zero-padded to its block's longest grid, and zeros add nothing); blocks bound memory,
+    and a job's shuffles are one stream whatever the blocking and the other jobs."""
+    if not jobs:
+        return
+    h = max(job.npairs.size for job in jobs)
+    for block, size, width in _blocks(_pieces(jobs, int(permutations))):
+        grid = np.zeros((size, width))
+        npairs = np.ones((size, h))
+        c0, bias = np.empty((size, 1)), np.empty((size, 1))
+        r = 0
+        for job, _, order in block:
+            if order is None:
+                grid[r, : job.g.size] = job.g
+                k = 1
+            else:
+                slots = np.flatnonzero(job.occ)
+                k = order.shape[0]
+                grid[r : r + k, slots] = job.g[slots][order]
+            npairs[r : r + k, : job.npairs.size] = np.maximum(job.npairs, 1)
+            c0[r : r + k], bias[r : r + k] = job.c0, 1.0 / (job.n - 1)
+            r += k
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rk = lag_products(grid, grid, np.arange(1, h + 1)) / npairs / c0 + bias
+        r = 0
+        for job, first, order in block:
+            k = 1 if order is None else order.shape[0]
+            job.out[first : first + k] = rk[r : r + k, : job.npairs.size]
+            r += k
+    for job in jobs:
+        job.out[:, job.npairs == 0] = np.nan
 
 
 def _p_values(perm_r: np.ndarray, null_var: np.ndarray, dof: int) -> np.ndarray:
@@ -358,6 +445,25 @@ def analyse_run(
     (correlations shown), `test_lag` the lags of the Ljung-Box test (default M),
     `permutations` the shuffles behind its p-value (0: chi-square only), `seed` their seed.
     """
+    run, jobs = _run_pending(name, t_s, residuals, valid, inputs, max_lag, test_lag,
+                             permutations, seed)
+    _permuted_autocorrelation(jobs, permutations)
+    return _finished(run)
+
+
+def _finished(run: RunResiduals) -> RunResiduals:
+    """`run` with the p-values of its (now filled) shuffled autocorrelations."""
+    h = run.test_lag
+    p = _p_values(run.permuted_autocorrelation, run.null_var[:, 1 : h + 1], h)
+    return dataclasses.replace(run, p_value=p)
+
+
+def _run_pending(
+    name, t_s, residuals, valid, inputs, max_lag, test_lag, permutations, seed
+) -> tuple[RunResiduals, list]:
+    """`analyse_run` without its shuffles: the run (p-values not yet set) and the
+    `_Shuffled` jobs that fill its `permuted_autocorrelation` (so that many runs, of one fit
+    or of a batch of devices, shuffle in one vectorised pass)."""
     e_all = np.asarray(residuals, dtype=float)
     e_all = e_all.reshape(e_all.shape[0], -1)
     valid = np.asarray(valid, dtype=bool).reshape(e_all.shape) & np.isfinite(e_all)
@@ -378,6 +484,7 @@ def analyse_run(
     n_used = np.zeros(n_y, dtype=int)
     n_excl = np.zeros(n_y, dtype=int)
     perm_r = np.full((n_y, int(permutations) + 1, h), np.nan)
+    jobs = []
     for j in range(n_y):
         keep = _robust_keep(e_all[:, j], valid[:, j])
         n_excl[j] = int(valid[:, j].sum() - keep.sum())
@@ -401,9 +508,8 @@ def analyse_run(
         auto[j, 0] = 1.0
         pairs[j] = npairs
         q[j] = float(portmanteau(auto[j, 1 : h + 1], null_var[j, 1 : h + 1]))
-        seeds = [int(x) for x in np.atleast_1d(seed)]
-        rng = np.random.default_rng([*seeds, j])
-        perm_r[j] = _permuted_autocorrelation(g, occ, npairs[1 : h + 1], n, permutations, rng)
+        key = (*(int(x) for x in np.atleast_1d(seed)), j)
+        jobs.append(_Shuffled(g, occ, npairs[1 : h + 1], n, c0, key, perm_r[j]))
         for l in range(n_u):
             ul = u[:, l]
             ok_u = np.isfinite(ul)
@@ -418,8 +524,7 @@ def analyse_run(
                     c0 * cu
                 )
             cross_pairs[j] = npair
-    p = _p_values(perm_r, null_var[:, 1 : h + 1], h)
-    return RunResiduals(
+    run = RunResiduals(
         str(name),
         lags,
         auto,
@@ -429,13 +534,14 @@ def analyse_run(
         cross,
         cross_pairs,
         q,
-        p,
+        np.full(n_y, np.nan),
         n_used,
         n_excl,
         grid,
         h,
         perm_r,
     )
+    return run, jobs
 
 
 # --------------------------------------------------------------------------- all runs
@@ -585,22 +691,55 @@ def analyse(
     `max_lag`): with many lags against few frames the chi-square reference is liberal.
     `permutations`, `seed`: the within-run shuffles behind the p-values (reproducible).
     """
-    runs = list(runs)
-    if not runs:
-        raise ValueError("runs: nothing to analyse")
-    n_y = np.asarray(runs[0][2]).reshape(len(np.asarray(runs[0][1]).reshape(-1)), -1).shape[1]
-    if max_lag is None:
-        shortest = min(int(np.asarray(r[3]).sum(axis=0).min()) for r in runs)
-        max_lag = int(max(1, min(MAX_LAG, shortest // 4)))
-    if test_lag is None:
-        shortest = min(int(np.asarray(r[3]).sum(axis=0).min()) for r in runs)
-        test_lag = int(max(1, min(TEST_LAG, shortest // 5)))
-    m = int(max_lag)
-    h = int(min(test_lag, m))
-    per_run = tuple(
-        analyse_run(*r, max_lag=m, test_lag=h, permutations=permutations, seed=(seed, i))
-        for i, r in enumerate(runs)
-    )
+    return analyse_many(
+        [runs],
+        output_names=output_names,
+        max_lag=max_lag,
+        test_lag=test_lag,
+        permutations=permutations,
+        seed=seed,
+    )[0]
+
+
+def analyse_many(
+    fits,
+    *,
+    output_names=None,
+    max_lag: int | None = None,
+    test_lag: int | None = None,
+    permutations: int = PERMUTATIONS,
+    seed: int = 0,
+) -> list[ResidualAnalysis]:
+    """`analyse` of each element of `fits` (each a sequence of runs as `analyse` takes them,
+    e.g. one per device of a batch), exactly as one call each would give, with the shuffles
+    of every run of every fit in one vectorised pass (`_permuted_autocorrelation`)."""
+    pending = []
+    for runs in fits:
+        runs = list(runs)
+        if not runs:
+            raise ValueError("runs: nothing to analyse")
+        m, h = max_lag, test_lag
+        if m is None or h is None:
+            shortest = min(int(np.asarray(r[3]).sum(axis=0).min()) for r in runs)
+            m = int(max(1, min(MAX_LAG, shortest // 4))) if m is None else m
+            h = int(max(1, min(TEST_LAG, shortest // 5))) if h is None else h
+        m, h = int(m), int(min(h, m))
+        parts = [
+            _run_pending(*r, m, h, permutations, (seed, i)) for i, r in enumerate(runs)
+        ]
+        pending.append(parts)
+    _permuted_autocorrelation([j for parts in pending for _, jobs in parts for j in jobs],
+                              permutations)
+    return [
+        _pooled(tuple(_finished(run) for run, _ in parts), output_names, permutations)
+        for parts in pending
+    ]
+
+
+def _pooled(per_run, output_names, permutations) -> ResidualAnalysis:
+    """The runs' correlations and tests pooled per output (see the module docstring)."""
+    n_y = per_run[0].autocorrelation.shape[0]
+    m, h = per_run[0].max_lag, per_run[0].test_lag
     lags, cross_lags = per_run[0].lags, per_run[0].cross_lags
     n_u = per_run[0].cross_correlation.shape[1]
     auto = np.full((n_y, m + 1), np.nan)

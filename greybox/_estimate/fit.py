@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from greybox._estimate import problem as _problem
+from greybox._estimate.blas import small_blas
 from greybox._model.data import Experiment
 from greybox._model.device import check_method
 from greybox._model.freeparams import FreeParameter, apply_raw, levenberg_marquardt
@@ -934,7 +935,13 @@ def _scores(
     return out, fitted
 
 
-def _assemble(
+def _assemble(problem, best, *args, **kwargs) -> FitResult:
+    """`_assembled` with BLAS held to one thread for a small Jacobian (`blas.small_blas`)."""
+    with small_blas(np.size(best["jacobian"])):
+        return _assembled(problem, best, *args, **kwargs)
+
+
+def _assembled(
     problem,
     best,
     sig,

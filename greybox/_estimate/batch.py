@@ -41,6 +41,7 @@ import numpy as np
 
 from greybox._estimate import fit as _fit
 from greybox._estimate.problem import best_start
+from greybox._estimate.residuals import analyse_many as analyse_residuals
 from greybox._model.data import Experiment
 from greybox._model.device import check_method
 from greybox._model.freeparams import FreeParameter
@@ -537,7 +538,17 @@ def fit_batch(
                 best_of[i] = (bi, out, sig, steps + int(out["steps"]))
         raws = {i: np.asarray(best_of[i][1]["raw"]) for i in members}
         models = _fitted_models(prepared, members, raws, chunk)
-        for i in members:
+        # every device's residual tests in one vectorised pass (their shuffles shared)
+        tests = analyse_residuals(
+            [
+                _fit._residual_runs(
+                    prepared[i].device.experiments,
+                    _fit._predictions(best_of[i][1], prepared[i].device.experiments),
+                )
+                for i in members
+            ]
+        )
+        for i, residuals in zip(members, tests):
             p = prepared[i]
             bi, best, sig, steps = best_of[i]
             results[p.device.name] = _fit._assemble(
@@ -553,6 +564,7 @@ def fit_batch(
                 p.source,
                 lambda _msg: None,
                 models=models[i],
+                residuals=residuals,
             )
         say(f"{label}: {len(members)} devices assembled")
     ordered = {d.name: results[d.name] for d in devices}

@@ -905,6 +905,12 @@ def _rms_sigma(experiments, n_y: int) -> np.ndarray:
     return np.sqrt(num / np.maximum(den, 1))
 
 
+def _predictions(best, experiments) -> list:
+    """Per run, the (N, n_y) simulated response of the solve `best` (padding cut off)."""
+    z = np.asarray(best["predictions"])
+    return [z[i, : e.n_frames] for i, e in enumerate(experiments)]
+
+
 def _residual_runs(experiments, predictions) -> list:
     """(name, t_s, residual, valid, inputs at the frames) per run, for `_residuals.analyse`."""
     out = []
@@ -955,10 +961,12 @@ def _assembled(
     say,
     max_steps: int | None = None,
     models=None,
+    residuals: ResidualAnalysis | None = None,
 ) -> FitResult:
     """The `FitResult` of the best solve `best` (covariance, identifiability, residual tests,
-    scores). `models`: (shared model, per-run models) at its raw vector when already
-    computed (`fit_batch` computes them for many devices in one call)."""
+    scores). `models`: (shared model, per-run models) at its raw vector, and `residuals`: the
+    residual analysis of its predictions (`_residual_runs`), when already computed
+    (`fit_batch` computes both for many devices in one call)."""
     raw, cost, ok = np.asarray(best["raw"]), float(best["cost"]), bool(best["ok"])
     raw_j = jnp.asarray(raw)
     finite = bool(np.all(np.isfinite(raw))) and np.isfinite(cost)
@@ -970,10 +978,11 @@ def _assembled(
     bounds = [p.bound_hit(raw[k], raw0[k]) if finite else None for k, p in enumerate(flat_free)]
     report = analyse(jac[:n_rows_data], jac[n_rows_data:], flat_free, raw, labels, bounds)
 
-    z, solved = np.asarray(best["predictions"]), np.asarray(best["solved"])
-    preds = [z[i, : e.n_frames] for i, e in enumerate(experiments)]
+    solved = np.asarray(best["solved"])
+    preds = _predictions(best, experiments)
     n_y = problem.y.shape[-1]
-    residuals = analyse_residuals(_residual_runs(experiments, preds))
+    if residuals is None:
+        residuals = analyse_residuals(_residual_runs(experiments, preds))
 
     # Gauss-Newton and HAC sandwich covariance (same determined subspace); the meat leaves
     # out what the inputs explain of the residuals (misfit, not noise: `_residuals`)

@@ -55,7 +55,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import functools
 import threading
 from statistics import NormalDist
 
@@ -77,6 +76,36 @@ def chi2_sf(q, dof):
     return chdtrc(np.asarray(dof, dtype=float), np.asarray(q, dtype=float))
 
 
+class _Cache:
+    """Least-recently-used results of pure functions, bounded in bytes (not in entries: a
+    batch of 512 devices x 6 runs must not evict its own grids between the residual pass and
+    the per-device assembly, and a long run's entries are large). Thread-safe."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes, self.bytes = int(max_bytes), 0
+        self.items: collections.OrderedDict = collections.OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, key, make, size):
+        """The value for `key`, made by `make()` on a miss; `size(value)` its bytes."""
+        with self.lock:
+            if key in self.items:
+                self.items.move_to_end(key)
+                return self.items[key][0]
+        value = make()
+        nbytes = int(size(value))
+        with self.lock:
+            if key not in self.items:
+                self.items[key] = (value, nbytes)
+                self.bytes += nbytes
+            while len(self.items) > 1 and self.bytes > self.max_bytes:
+                self.bytes -= self.items.popitem(last=False)[1][1]
+        return value
+
+
+_grids = _Cache(64 << 20)  # frame grids by frame times (`FrameGrid.build`)
+
+
 # ------------------------------------------------------------------------------- frame grid
 
 
@@ -95,7 +124,8 @@ class FrameGrid:
     @staticmethod
     def build(t_s) -> FrameGrid:
         t = np.asarray(t_s, dtype=float).reshape(-1)
-        return _frame_grid(t.tobytes())
+        key = t.tobytes()
+        return _grids.get(key, lambda: _frame_grid(key), lambda g: 2 * len(key) + 200)
 
     def place(self, values: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(grid values (n_slots, k) zero where empty, occupancy (n_slots, k))."""
@@ -109,10 +139,10 @@ class FrameGrid:
         return grid, occ
 
 
-@functools.lru_cache(maxsize=512)
 def _frame_grid(t_bytes: bytes) -> FrameGrid:
-    """`FrameGrid.build` of the frame times in `t_bytes` (float64), cached: a fit's residual
-    analysis, its model-error residuals and its HAC meat all place the same runs."""
+    """`FrameGrid.build` of the frame times in `t_bytes` (float64), cached (`_grids`): a
+    fit's residual analysis, its model-error residuals and its HAC meat all place the same
+    runs."""
     t = np.frombuffer(t_bytes, dtype=float)
     if t.size < 2:
         slots = np.zeros(t.size, dtype=int)
@@ -290,10 +320,8 @@ def _robust_keep(e: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return valid & (np.abs(e - med) <= OUTLIER_SCALES * scale)
 
 
-ORDER_CACHE_BYTES = 64 << 20  # shuffle orders kept for reuse (a batch's devices share them)
 ORDER_CACHE_ELEMENTS = 1 << 22  # a stream's B x n orders above this are drawn block by block
-_orders: collections.OrderedDict = collections.OrderedDict()
-_orders_lock = threading.Lock()
+_orders = _Cache(64 << 20)  # shuffle orders kept for reuse (a batch's devices share them)
 
 
 def _shuffle_orders(key: tuple, n: int, b: int) -> np.ndarray | None:
@@ -303,19 +331,14 @@ def _shuffle_orders(key: tuple, n: int, b: int) -> np.ndarray | None:
     above ORDER_CACHE_ELEMENTS (the caller then draws the same stream block by block)."""
     if b * n > ORDER_CACHE_ELEMENTS:
         return None
-    k = (key, n, b)
-    with _orders_lock:
-        hit = _orders.get(k)
-        if hit is not None:
-            _orders.move_to_end(k)
-            return hit
-    order = np.random.default_rng(list(key)).random((b, n)).argsort(axis=1).astype(np.int32)
-    order.setflags(write=False)
-    with _orders_lock:
-        _orders[k] = order
-        while len(_orders) > 1 and sum(v.nbytes for v in _orders.values()) > ORDER_CACHE_BYTES:
-            _orders.popitem(last=False)
-    return order
+
+    def make():
+        rng = np.random.default_rng(list(key))
+        order = rng.random((b, n)).argsort(axis=1).astype(np.int32)
+        order.setflags(write=False)
+        return order
+
+    return _orders.get((key, n, b), make, lambda o: o.nbytes)
 
 
 @dataclasses.dataclass

@@ -20,8 +20,11 @@ devices:
   frame-difference guess, the robust (MAD) scale of its residuals, then the re-fit from that
   estimate at that scale. Multi-start points are `fit`'s (same seed, same perturbations);
 - each device's result is assembled by `fit`'s own `_assemble` (covariance, verdicts,
-  residual tests, fit % per run and output), so a `FitResult` per device is what `fit` would
-  return, to rounding (the padding changes only the number of zero rows).
+  fit % per run and output), so a `FitResult` per device is what `fit` would return, to
+  rounding (the padding changes only the number of zero rows); the residual tests of every
+  device of a group run first in one vectorised pass (`_residuals.analyse_many`: the same
+  statistics and the same seeded shuffles as one `analyse` per device, the shuffle orders
+  drawn once for all devices).
 
 Pure: no printing, plotting or files; `progress` receives short text lines.
 """

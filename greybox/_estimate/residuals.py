@@ -397,8 +397,9 @@ def _permuted_autocorrelation(jobs, permutations: int) -> None:
     """Fill each job's `out` (B + 1, h) with the bias-corrected r(1..h): row 0 of its
     residuals as placed on the grid, rows 1.. of B shuffles of the values among the occupied
     slots (the gaps stay where they are). The rows of every job (all runs of a fit, all
-    devices of a batch) go through one product per lag and block (`lag_products`; a row is
-    zero-padded to its block's longest grid, and zeros add nothing); blocks bound memory,
+    devices of a batch) go through one product per lag and block (a stacked matmul of each
+    row with its lagged self; a row is zero-padded to its block's longest grid, and zeros
+    add nothing); blocks bound memory,
     and a job's shuffles are one stream whatever the blocking and the other jobs."""
     if not jobs:
         return
@@ -423,8 +424,14 @@ def _permuted_autocorrelation(jobs, permutations: int) -> None:
             npairs[r : r + k, : job.npairs.size] = np.maximum(job.npairs, 1)
             c0[r : r + k], bias[r : r + k] = job.c0, 1.0 / (job.n - 1)
             r += k
+        sums = np.empty((size, h))
+        for k in range(1, h + 1):  # row by row dot products (BLAS): 2x einsum's speed here
+            if k < width:
+                sums[:, k - 1] = np.matmul(grid[:, None, k:], grid[:, : width - k, None])[:, 0, 0]
+            else:
+                sums[:, k - 1] = 0.0
         with np.errstate(invalid="ignore", divide="ignore"):
-            rk = lag_products(grid, grid, np.arange(1, h + 1)) / npairs / c0 + bias
+            rk = sums / npairs / c0 + bias
         r = 0
         for job, first, order in block:
             k = 1 if order is None else order.shape[0]

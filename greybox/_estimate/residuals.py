@@ -462,16 +462,21 @@ def _p_values(perm_r: np.ndarray, null_var: np.ndarray, dof: int) -> np.ndarray:
 
 
 def _p_values_of(items) -> list:
-    """`_p_values` of each (perm_r, null_var, dof) of `items`, those of one shape in one
-    stacked call (all the runs of a batch of devices)."""
+    """`_p_values` of each (perm_r, null_var, dof) of `items`, those of one shape stacked (all
+    the runs of a batch of devices) in chunks of about LAG_BLOCK elements (one stack of 3,072
+    runs was 150 MB per temporary)."""
     out: list = [None] * len(items)
     groups: dict = {}
     for i, (r, v, dof) in enumerate(items):
         groups.setdefault((r.shape, v.shape, dof), []).append(i)
-    for (_, _, dof), idx in groups.items():
-        p = _p_values(np.stack([items[i][0] for i in idx]), np.stack([items[i][1] for i in idx]), dof)
-        for k, i in enumerate(idx):
-            out[i] = p[k]
+    for (shape, _, dof), idx in groups.items():
+        step = max(1, LAG_BLOCK // max(int(np.prod(shape)), 1))  # stacks that stay in cache
+        for c in range(0, len(idx), step):
+            part = idx[c : c + step]
+            r = np.stack([items[i][0] for i in part])
+            p = _p_values(r, np.stack([items[i][1] for i in part]), dof)
+            for k, i in enumerate(part):
+                out[i] = p[k]
     return out
 
 

@@ -43,6 +43,7 @@ import jax.tree_util as jtu
 import numpy as np
 
 from greybox._estimate import fit as _fit
+from greybox._estimate.blas import small_blas
 from greybox._estimate.problem import best_start
 from greybox._estimate.residuals import analyse_many as analyse_residuals
 from greybox._model.data import Experiment
@@ -492,8 +493,24 @@ def fit_batch(
             f"noise: {noise!r} is not a noise model; use greybox.OutputError(...) or "
             "greybox.ProcessNoise(...)"
         )
+    # one BLAS thread while a device's problem is small (`blas.small_blas`, as `fit` does)
+    readings = max(sum(int(np.size(e.y)) for e in d.experiments) * len(d.experiments)
+                   for d in devices)  # x free parameters >= a device's Jacobian elements
+    with small_blas(readings * max(len(d.free or free) for d in devices)):
+        return _fit_output_error(
+            devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, max_steps,
+            rtol, atol, (solver_rtol, solver_atol, solver_max_steps), chunk_size,
+            memory_budget_bytes, say,
+        )
+
+
+def _fit_output_error(
+    devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, max_steps, rtol,
+    atol, solver, chunk_size, memory_budget_bytes, say,
+) -> BatchResult:
+    """`fit_batch` of output-error (least-squares) problems: every group's solves in chunks,
+    the re-fits at the re-estimated noise, then the results."""
     max_steps = 200 if max_steps is None else int(max_steps)
-    solver = (solver_rtol, solver_atol, solver_max_steps)
     prepared, groups = _prepare(
         devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver
     )

@@ -710,23 +710,28 @@ def fit(
         )
     )
     free = apply_start_values(start_values, model, free, experiments)
-    result = _fit_least_squares(
-        model,
-        experiments,
-        free,
-        method=None if simulation is None else simulation.name,
-        loss=noise.loss.name,
-        huber_c=getattr(noise.loss, "c", 1.5),
-        student_nu=getattr(noise.loss, "nu", 4.0),
-        sigma=noise.sigma,
-        n_starts=n_starts,
-        seed=seed,
-        max_steps=200 if max_steps is None else max_steps,
-        rtol=rtol,
-        atol=atol,
-        progress=progress,
-        **solver,
-    )
+    # one BLAS thread for a small problem (`blas.small_blas`): on busy cores the LAPACK calls
+    # of the solver and of the host on a 3,072 x 8 Jacobian waited for OpenBLAS threads
+    # (a warm chevron fit 450 -> 57 ms)
+    readings = sum(int(np.size(e.y)) for e in experiments)
+    with small_blas(readings * len(free) * len(experiments)):  # >= the Jacobian's elements
+        result = _fit_least_squares(
+            model,
+            experiments,
+            free,
+            method=None if simulation is None else simulation.name,
+            loss=noise.loss.name,
+            huber_c=getattr(noise.loss, "c", 1.5),
+            student_nu=getattr(noise.loss, "nu", 4.0),
+            sigma=noise.sigma,
+            n_starts=n_starts,
+            seed=seed,
+            max_steps=200 if max_steps is None else max_steps,
+            rtol=rtol,
+            atol=atol,
+            progress=progress,
+            **solver,
+        )
     return dataclasses.replace(result, noise=noise)
 
 

@@ -801,7 +801,9 @@ def _pooled(per_run, permutations) -> tuple:
     pooled_perm = np.full((n_y, int(permutations) + 1, h), np.nan)
     null_var = np.full((n_y, h), np.nan)
     for j in range(n_y):
-        w = np.stack([np.where(np.isfinite(r.autocorrelation[j]), r.pairs[j], 0.0) for r in per_run])
+        w = np.stack(
+            [np.where(np.isfinite(r.autocorrelation[j]), r.pairs[j], 0.0) for r in per_run]
+        )
         vv = np.stack([np.nan_to_num(r.null_var[j]) for r in per_run])
         wk = w[:, 1 : h + 1]  # (R, h): the same pair weights for every shuffle
         rk = np.stack([np.nan_to_num(r.permuted_autocorrelation[j]) for r in per_run])

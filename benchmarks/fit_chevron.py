@@ -8,6 +8,15 @@ laser edge so it never integrates across a discontinuity) inside `least_squares`
 finite-difference Jacobians. `ratio_vs_scipy` compares like with like: two adaptive solvers.
 Our timings include the noise re-estimation refit and the covariance/identifiability step;
 scipy's includes one least-squares pass only, so the ratio is conservative.
+
+Measured (issue 24, `--skip-scipy`, 2 cores shared with other jobs, 1-min load 4.5-5.6):
+warm ZOH fit 0.376 s before the assembly work (main at 771b2ab; 0.587 s in an earlier pair of
+runs at load ~3.5) and 0.069 s after (0.056 s in that earlier pair). A warm fit is now ~57 ms
+of CPU on one thread: the compiled solves ~30 ms and the assembly ~25 ms (residual analysis
+with 999 shuffles per run ~13.5 ms, the rest covariance, identifiability, HAC, fit %). Most
+of the gain is BLAS on one thread for small problems (`greybox/_estimate/blas.py`: OpenBLAS
+threads on busy cores stalled the solver's and the host's LAPACK calls); the rest is the
+vectorised, cached shuffles of the residual tests. The adaptive fits are unchanged (~3 s).
 """
 
 from __future__ import annotations

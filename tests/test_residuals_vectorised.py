@@ -69,7 +69,12 @@ def naive_p_value(t, e, valid, seed, h, b):
     return q0, (1 + beyond) / (b + 1)
 
 
-def test_permutation_p_value_matches_the_loop_with_the_documented_stream(monkeypatch):
+@pytest.mark.parametrize("cached", [True, False])
+def test_permutation_p_value_matches_the_loop_with_the_documented_stream(monkeypatch, cached):
+    """Both ways of drawing the shuffles (cached orders, or drawn block by block for a long
+    run) are the documented stream."""
+    if not cached:
+        monkeypatch.setattr(_residuals, "ORDER_CACHE_ELEMENTS", 0)
     rng = np.random.default_rng(4)
     n = 90
     t = np.cumsum(rng.uniform(0.9, 1.1, n) * np.where(rng.random(n) < 0.05, 3, 1))
@@ -82,6 +87,35 @@ def test_permutation_p_value_matches_the_loop_with_the_documented_stream(monkeyp
     assert 0.01 < p0 < 0.99
     np.testing.assert_allclose(r.q[0], q0, rtol=1e-12)
     assert r.p_value[0] == p0
+
+
+def test_analyse_many_is_one_analyse_per_fit():
+    """Fits of different run lengths (so different lags) and gaps, analysed together, give
+    what one `analyse` each gives: the same shuffles (a row padded to a longer one's length
+    sums in another order: rounding), the same statistics and p-values."""
+    rng = np.random.default_rng(9)
+    fits = []
+    for n_runs, n in [(2, 60), (3, 140), (1, 45)]:
+        runs = []
+        for i in range(n_runs):
+            t = np.cumsum(np.where(rng.random(n) < 0.05, 2.0, 1.0)) / 30.0
+            e = rng.normal(size=(n, 1))
+            e[1:] += 0.3 * e[:-1]
+            valid = rng.random((n, 1)) > 0.05
+            runs.append((f"r{i}", t, e, valid, rng.normal(size=(n, 1))))
+        fits.append(runs)
+    together = _residuals.analyse_many(fits, permutations=99)
+    for runs, got in zip(fits, together):
+        alone = analyse(runs, permutations=99)
+        assert got.test_lag == alone.test_lag
+        np.testing.assert_array_equal(got.q, alone.q)
+        np.testing.assert_array_equal(got.p_value, alone.p_value)
+        for a, b in zip(got.runs, alone.runs):
+            np.testing.assert_array_equal(a.p_value, b.p_value)
+            np.testing.assert_allclose(
+                a.permuted_autocorrelation, b.permuted_autocorrelation, rtol=0, atol=1e-14
+            )
+    assert len({a.test_lag for a in together}) > 1  # the fits really had different lags
 
 
 def test_pooled_analysis_is_reproducible_for_a_seed():

@@ -20,8 +20,11 @@ devices:
   frame-difference guess, the robust (MAD) scale of its residuals, then the re-fit from that
   estimate at that scale. Multi-start points are `fit`'s (same seed, same perturbations);
 - each device's result is assembled by `fit`'s own `_assemble` (covariance, verdicts,
-  residual tests, fit % per run and output), so a `FitResult` per device is what `fit` would
-  return, to rounding (the padding changes only the number of zero rows).
+  fit % per run and output), so a `FitResult` per device is what `fit` would return, to
+  rounding (the padding changes only the number of zero rows); the residual tests of every
+  device of a group run first in one vectorised pass (`_residuals.analyse_many`: the same
+  statistics and the same seeded shuffles as one `analyse` per device, the shuffle orders
+  drawn once for all devices).
 
 Pure: no printing, plotting or files; `progress` receives short text lines.
 """
@@ -40,7 +43,9 @@ import jax.tree_util as jtu
 import numpy as np
 
 from greybox._estimate import fit as _fit
+from greybox._estimate.blas import small_blas
 from greybox._estimate.problem import best_start
+from greybox._estimate.residuals import analyse_many as analyse_residuals
 from greybox._model.data import Experiment
 from greybox._model.device import check_method
 from greybox._model.freeparams import FreeParameter
@@ -488,8 +493,24 @@ def fit_batch(
             f"noise: {noise!r} is not a noise model; use greybox.OutputError(...) or "
             "greybox.ProcessNoise(...)"
         )
+    # one BLAS thread while a device's problem is small (`blas.small_blas`, as `fit` does)
+    readings = max(sum(int(np.size(e.y)) for e in d.experiments) * len(d.experiments)
+                   for d in devices)  # x free parameters >= a device's Jacobian elements
+    with small_blas(readings * max(len(d.free or free) for d in devices)):
+        return _fit_output_error(
+            devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, max_steps,
+            rtol, atol, (solver_rtol, solver_atol, solver_max_steps), chunk_size,
+            memory_budget_bytes, say,
+        )
+
+
+def _fit_output_error(
+    devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, max_steps, rtol,
+    atol, solver, chunk_size, memory_budget_bytes, say,
+) -> BatchResult:
+    """`fit_batch` of output-error (least-squares) problems: every group's solves in chunks,
+    the re-fits at the re-estimated noise, then the results."""
     max_steps = 200 if max_steps is None else int(max_steps)
-    solver = (solver_rtol, solver_atol, solver_max_steps)
     prepared, groups = _prepare(
         devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver
     )
@@ -537,7 +558,17 @@ def fit_batch(
                 best_of[i] = (bi, out, sig, steps + int(out["steps"]))
         raws = {i: np.asarray(best_of[i][1]["raw"]) for i in members}
         models = _fitted_models(prepared, members, raws, chunk)
-        for i in members:
+        # every device's residual tests in one vectorised pass (their shuffles shared)
+        tests = analyse_residuals(
+            [
+                _fit._residual_runs(
+                    prepared[i].device.experiments,
+                    _fit._predictions(best_of[i][1], prepared[i].device.experiments),
+                )
+                for i in members
+            ]
+        )
+        for i, residuals in zip(members, tests):
             p = prepared[i]
             bi, best, sig, steps = best_of[i]
             results[p.device.name] = _fit._assemble(
@@ -553,6 +584,7 @@ def fit_batch(
                 p.source,
                 lambda _msg: None,
                 models=models[i],
+                residuals=residuals,
             )
         say(f"{label}: {len(members)} devices assembled")
     ordered = {d.name: results[d.name] for d in devices}

@@ -53,8 +53,9 @@ Andrews-Monahan prewhitening, Newey-West; see its section).
 
 from __future__ import annotations
 
+import collections
 import dataclasses
-import functools
+import threading
 from statistics import NormalDist
 
 import numpy as np
@@ -75,6 +76,36 @@ def chi2_sf(q, dof):
     return chdtrc(np.asarray(dof, dtype=float), np.asarray(q, dtype=float))
 
 
+class _Cache:
+    """Least-recently-used results of pure functions, bounded in bytes (not in entries: a
+    batch of 512 devices x 6 runs must not evict its own grids between the residual pass and
+    the per-device assembly, and a long run's entries are large). Thread-safe."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes, self.bytes = int(max_bytes), 0
+        self.items: collections.OrderedDict = collections.OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, key, make, size):
+        """The value for `key`, made by `make()` on a miss; `size(value)` its bytes."""
+        with self.lock:
+            if key in self.items:
+                self.items.move_to_end(key)
+                return self.items[key][0]
+        value = make()
+        nbytes = int(size(value))
+        with self.lock:
+            if key not in self.items:
+                self.items[key] = (value, nbytes)
+                self.bytes += nbytes
+            while len(self.items) > 1 and self.bytes > self.max_bytes:
+                self.bytes -= self.items.popitem(last=False)[1][1]
+        return value
+
+
+_grids = _Cache(64 << 20)  # frame grids by frame times (`FrameGrid.build`)
+
+
 # ------------------------------------------------------------------------------- frame grid
 
 
@@ -93,7 +124,8 @@ class FrameGrid:
     @staticmethod
     def build(t_s) -> FrameGrid:
         t = np.asarray(t_s, dtype=float).reshape(-1)
-        return _frame_grid(t.tobytes())
+        key = t.tobytes()
+        return _grids.get(key, lambda: _frame_grid(key), lambda g: 2 * len(key) + 200)
 
     def place(self, values: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(grid values (n_slots, k) zero where empty, occupancy (n_slots, k))."""
@@ -107,10 +139,10 @@ class FrameGrid:
         return grid, occ
 
 
-@functools.lru_cache(maxsize=512)
 def _frame_grid(t_bytes: bytes) -> FrameGrid:
-    """`FrameGrid.build` of the frame times in `t_bytes` (float64), cached: a fit's residual
-    analysis, its model-error residuals and its HAC meat all place the same runs."""
+    """`FrameGrid.build` of the frame times in `t_bytes` (float64), cached (`_grids`): a
+    fit's residual analysis, its model-error residuals and its HAC meat all place the same
+    runs."""
     t = np.frombuffer(t_bytes, dtype=float)
     if t.size < 2:
         slots = np.zeros(t.size, dtype=int)
@@ -126,7 +158,8 @@ def _frame_grid(t_bytes: bytes) -> FrameGrid:
     return FrameGrid(slots, int(slots[-1]) + 1, dt, spread)
 
 
-LAG_BLOCK = 1 << 22  # elements of one block of rows of `_permuted_autocorrelation` (32 MB)
+LAG_BLOCK = 1 << 18  # elements of one block of rows of `_permuted_autocorrelation` (2 MB:
+# it stays in cache; 32 MB blocks were 25 % slower on a batch of 128 devices x 6 runs)
 CORRELATE_MAX = 4096  # 1-D series up to this length: all lags from one np.correlate call
 
 
@@ -288,54 +321,162 @@ def _robust_keep(e: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return valid & (np.abs(e - med) <= OUTLIER_SCALES * scale)
 
 
-def _permuted_autocorrelation(g, occ, npairs, n, permutations, rng) -> np.ndarray:
-    """(B + 1, h) bias-corrected r(1..h): row 0 of the residuals `g` as placed on the grid
-    (`occ` occupied, zero elsewhere), rows 1.. of B shuffles of the values among the occupied
-    slots (the gaps stay where they are). Every lag of a block of rows is one product
-    (`lag_products`); the blocks bound memory, and the shuffles drawn block by block are one
-    stream from `rng` (one `rng.random` row per shuffle, ranked), so the p-values do not
-    depend on the blocking."""
-    h = npairs.size
-    slots = np.flatnonzero(occ)
-    vals = g[slots]
-    c0 = float(vals @ vals) / n
-    b = int(permutations)
-    out = np.empty((b + 1, h))
-    rows = max(1, LAG_BLOCK // max(g.size, 1))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        for start in range(0, b + 1, rows):
-            stop = min(start + rows, b + 1)
-            grid = np.zeros((stop - start, g.size))
-            first = 0
-            if start == 0:
-                grid[0] = g
-                first = 1
-            if stop - start > first:
-                order = rng.random((stop - start - first, vals.size)).argsort(axis=1)
-                grid[first:, slots] = vals[order]
-            sums = lag_products(grid, grid, np.arange(1, h + 1))
-            out[start:stop] = sums / np.maximum(npairs, 1) / c0 + 1.0 / (n - 1)
-    out[:, npairs == 0] = np.nan
-    return out
+ORDER_CACHE_ELEMENTS = 1 << 22  # a stream's B x n orders above this are drawn block by block
+_orders = _Cache(64 << 20)  # shuffle orders kept for reuse (a batch's devices share them)
+
+
+def _shuffle_orders(key: tuple, n: int, b: int) -> np.ndarray | None:
+    """(b, n) rank orders of the shuffles of stream `key` (`default_rng(list(key))`, one
+    `rng.random(n)` row per shuffle, ranked), cached: they depend only on the stream and the
+    number of values, so the devices of a batch (and a repeated fit) draw them once. None
+    above ORDER_CACHE_ELEMENTS (the caller then draws the same stream block by block)."""
+    if b * n > ORDER_CACHE_ELEMENTS:
+        return None
+
+    def make():
+        rng = np.random.default_rng(list(key))
+        order = rng.random((b, n)).argsort(axis=1).astype(np.int32)
+        order.setflags(write=False)
+        return order
+
+    return _orders.get((key, n, b), make, lambda o: o.nbytes)
+
+
+@dataclasses.dataclass
+class _Shuffled:
+    """One run and output to test by shuffles: residuals `g` on the grid (`occ` occupied, zero
+    elsewhere), pair counts `npairs` at lags 1..h, readings `n`, variance `c0`, stream `key`;
+    `out` (B + 1, h) receives its r(1..h), observed (row 0) and shuffled."""
+
+    g: np.ndarray
+    occ: np.ndarray
+    npairs: np.ndarray
+    n: int
+    c0: float
+    key: tuple
+    out: np.ndarray
+
+
+def _pieces(jobs, b: int):
+    """(job, first row of `out`, None for the observed row or the order rows of shuffles)
+    in blocks of at most LAG_BLOCK / n_slots shuffles, lazily: slices of the cached orders
+    or, for long runs, the same stream drawn block by block."""
+    for job in jobs:
+        yield job, 0, None
+        if not b:
+            continue
+        slots_n = int(job.occ.sum())
+        rows = max(1, LAG_BLOCK // max(job.g.size, 1))
+        cached = _shuffle_orders(job.key, slots_n, b)
+        rng = None if cached is not None else np.random.default_rng(list(job.key))
+        for start in range(0, b, rows):
+            stop = min(start + rows, b)
+            if cached is not None:
+                yield job, 1 + start, cached[start:stop]
+            else:
+                yield job, 1 + start, rng.random((stop - start, slots_n)).argsort(axis=1)
+
+
+def _blocks(pieces):
+    """Consecutive pieces packed into blocks of at most LAG_BLOCK elements (rows x longest
+    grid; a single larger piece is a block of its own)."""
+    block, size, width = [], 0, 0
+    for piece in pieces:
+        rows = 1 if piece[2] is None else piece[2].shape[0]
+        w = max(width, piece[0].g.size)
+        if block and (size + rows) * w > LAG_BLOCK:
+            yield block, size, width
+            block, size, w = [], 0, piece[0].g.size
+        block.append(piece)
+        size, width = size + rows, w
+    if block:
+        yield block, size, width
+
+
+def _permuted_autocorrelation(jobs, permutations: int) -> None:
+    """Fill each job's `out` (B + 1, h) with the bias-corrected r(1..h): row 0 of its
+    residuals as placed on the grid, rows 1.. of B shuffles of the values among the occupied
+    slots (the gaps stay where they are). The rows of every job (all runs of a fit, all
+    devices of a batch) go through one product per lag and block (a stacked matmul of each
+    row with its lagged self; a row is zero-padded to its block's longest grid, and zeros
+    add nothing); blocks bound memory,
+    and a job's shuffles are one stream whatever the blocking and the other jobs."""
+    if not jobs:
+        return
+    h = max(job.npairs.size for job in jobs)
+    buffer = np.empty(0)
+    for block, size, width in _blocks(_pieces(jobs, int(permutations))):
+        if buffer.size < size * width:  # one buffer for every block (no fresh pages each)
+            buffer = np.empty(size * width)
+        grid = buffer[: size * width].reshape(size, width)
+        grid.fill(0.0)
+        npairs = np.ones((size, h))
+        c0, bias = np.empty((size, 1)), np.empty((size, 1))
+        r = 0
+        for job, _, order in block:
+            if order is None:
+                grid[r, : job.g.size] = job.g
+                k = 1
+            else:
+                slots = np.flatnonzero(job.occ)
+                k = order.shape[0]
+                grid[r : r + k, slots] = job.g[slots][order]
+            npairs[r : r + k, : job.npairs.size] = np.maximum(job.npairs, 1)
+            c0[r : r + k], bias[r : r + k] = job.c0, 1.0 / (job.n - 1)
+            r += k
+        sums = np.empty((size, h))
+        for k in range(1, h + 1):  # row by row dot products (BLAS): 2x einsum's speed here
+            if k < width:
+                sums[:, k - 1] = np.matmul(grid[:, None, k:], grid[:, : width - k, None])[:, 0, 0]
+            else:
+                sums[:, k - 1] = 0.0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rk = sums / npairs / c0 + bias
+        r = 0
+        for job, first, order in block:
+            k = 1 if order is None else order.shape[0]
+            job.out[first : first + k] = rk[r : r + k, : job.npairs.size]
+            r += k
+    for job in jobs:
+        job.out[:, job.npairs == 0] = np.nan
 
 
 def _p_values(perm_r: np.ndarray, null_var: np.ndarray, dof: int) -> np.ndarray:
-    """(n_y,) p-values of Q = sum_k r(k)^2 / null_var(k) from `perm_r` (n_y, B + 1, h), row
-    0 observed: the share of shuffles with Q at least as large; when none is, the observed Q
-    is beyond what B shuffles resolve and its chi-square tail (dof degrees) is given."""
-    out = np.full(perm_r.shape[0], np.nan)
-    for j in range(perm_r.shape[0]):
-        r, v = perm_r[j], null_var[j]
-        use = np.isfinite(r[0]) & (v > 0)
-        if not use.any():
-            continue
-        q = portmanteau(r[:, use], v[use])
-        b = q.size - 1
-        if b == 0:
-            out[j] = float(chi2_sf(q[0], dof))
-            continue
-        beyond = int(np.sum(q[1:] >= q[0]))
-        out[j] = (1 + beyond) / (b + 1) if beyond else min(float(chi2_sf(q[0], dof)), 1 / (b + 1))
+    """(...) p-values of Q = sum_k r(k)^2 / null_var(k) from `perm_r` (..., B + 1, h), row 0
+    observed, and `null_var` (..., h): the share of shuffles with Q at least as large; when
+    none is, the observed Q is beyond what B shuffles resolve and its chi-square tail (dof
+    degrees) is given. Lags where r(k) is undefined (no pairs) or null_var is not positive
+    are left out of Q; NaN where none is left."""
+    r, v = np.asarray(perm_r, dtype=float), np.asarray(null_var, dtype=float)[..., None, :]
+    use = np.isfinite(r[..., :1, :]) & (v > 0)
+    ok = use & np.isfinite(r)
+    q = np.sum(np.where(ok, r**2 / np.where(ok, v, 1.0), 0.0), axis=-1)
+    b = q.shape[-1] - 1
+    tail = chi2_sf(q[..., 0], dof)
+    if b == 0:
+        p = tail
+    else:
+        beyond = np.sum(q[..., 1:] >= q[..., :1], axis=-1)
+        p = np.where(beyond > 0, (1 + beyond) / (b + 1), np.minimum(tail, 1 / (b + 1)))
+    return np.where(use.any(axis=(-2, -1)), p, np.nan)
+
+
+def _p_values_of(items) -> list:
+    """`_p_values` of each (perm_r, null_var, dof) of `items`, those of one shape stacked (all
+    the runs of a batch of devices) in chunks of about LAG_BLOCK elements (one stack of 3,072
+    runs was 150 MB per temporary)."""
+    out: list = [None] * len(items)
+    groups: dict = {}
+    for i, (r, v, dof) in enumerate(items):
+        groups.setdefault((r.shape, v.shape, dof), []).append(i)
+    for (shape, _, dof), idx in groups.items():
+        step = max(1, LAG_BLOCK // max(int(np.prod(shape)), 1))  # stacks that stay in cache
+        for c in range(0, len(idx), step):
+            part = idx[c : c + step]
+            r = np.stack([items[i][0] for i in part])
+            p = _p_values(r, np.stack([items[i][1] for i in part]), dof)
+            for k, i in enumerate(part):
+                out[i] = p[k]
     return out
 
 
@@ -358,6 +499,26 @@ def analyse_run(
     (correlations shown), `test_lag` the lags of the Ljung-Box test (default M),
     `permutations` the shuffles behind its p-value (0: chi-square only), `seed` their seed.
     """
+    run, jobs = _run_pending(name, t_s, residuals, valid, inputs, max_lag, test_lag,
+                             permutations, seed)
+    _permuted_autocorrelation(jobs, permutations)
+    return _finished([run])[0]
+
+
+def _finished(runs) -> list:
+    """`runs` with the p-values of their (now filled) shuffled autocorrelations."""
+    p = _p_values_of(
+        [(r.permuted_autocorrelation, r.null_var[:, 1 : r.test_lag + 1], r.test_lag) for r in runs]
+    )
+    return [dataclasses.replace(r, p_value=pr) for r, pr in zip(runs, p)]
+
+
+def _run_pending(
+    name, t_s, residuals, valid, inputs, max_lag, test_lag, permutations, seed
+) -> tuple[RunResiduals, list]:
+    """`analyse_run` without its shuffles: the run (p-values not yet set) and the
+    `_Shuffled` jobs that fill its `permuted_autocorrelation` (so that many runs, of one fit
+    or of a batch of devices, shuffle in one vectorised pass)."""
     e_all = np.asarray(residuals, dtype=float)
     e_all = e_all.reshape(e_all.shape[0], -1)
     valid = np.asarray(valid, dtype=bool).reshape(e_all.shape) & np.isfinite(e_all)
@@ -378,6 +539,7 @@ def analyse_run(
     n_used = np.zeros(n_y, dtype=int)
     n_excl = np.zeros(n_y, dtype=int)
     perm_r = np.full((n_y, int(permutations) + 1, h), np.nan)
+    jobs = []
     for j in range(n_y):
         keep = _robust_keep(e_all[:, j], valid[:, j])
         n_excl[j] = int(valid[:, j].sum() - keep.sum())
@@ -401,9 +563,8 @@ def analyse_run(
         auto[j, 0] = 1.0
         pairs[j] = npairs
         q[j] = float(portmanteau(auto[j, 1 : h + 1], null_var[j, 1 : h + 1]))
-        seeds = [int(x) for x in np.atleast_1d(seed)]
-        rng = np.random.default_rng([*seeds, j])
-        perm_r[j] = _permuted_autocorrelation(g, occ, npairs[1 : h + 1], n, permutations, rng)
+        key = (*(int(x) for x in np.atleast_1d(seed)), j)
+        jobs.append(_Shuffled(g, occ, npairs[1 : h + 1], n, c0, key, perm_r[j]))
         for l in range(n_u):
             ul = u[:, l]
             ok_u = np.isfinite(ul)
@@ -418,8 +579,7 @@ def analyse_run(
                     c0 * cu
                 )
             cross_pairs[j] = npair
-    p = _p_values(perm_r, null_var[:, 1 : h + 1], h)
-    return RunResiduals(
+    run = RunResiduals(
         str(name),
         lags,
         auto,
@@ -429,13 +589,14 @@ def analyse_run(
         cross,
         cross_pairs,
         q,
-        p,
+        np.full(n_y, np.nan),
         n_used,
         n_excl,
         grid,
         h,
         perm_r,
     )
+    return run, jobs
 
 
 # --------------------------------------------------------------------------- all runs
@@ -585,22 +746,79 @@ def analyse(
     `max_lag`): with many lags against few frames the chi-square reference is liberal.
     `permutations`, `seed`: the within-run shuffles behind the p-values (reproducible).
     """
-    runs = list(runs)
-    if not runs:
-        raise ValueError("runs: nothing to analyse")
-    n_y = np.asarray(runs[0][2]).reshape(len(np.asarray(runs[0][1]).reshape(-1)), -1).shape[1]
-    if max_lag is None:
-        shortest = min(int(np.asarray(r[3]).sum(axis=0).min()) for r in runs)
-        max_lag = int(max(1, min(MAX_LAG, shortest // 4)))
-    if test_lag is None:
-        shortest = min(int(np.asarray(r[3]).sum(axis=0).min()) for r in runs)
-        test_lag = int(max(1, min(TEST_LAG, shortest // 5)))
-    m = int(max_lag)
-    h = int(min(test_lag, m))
-    per_run = tuple(
-        analyse_run(*r, max_lag=m, test_lag=h, permutations=permutations, seed=(seed, i))
-        for i, r in enumerate(runs)
+    return analyse_many(
+        [runs],
+        output_names=output_names,
+        max_lag=max_lag,
+        test_lag=test_lag,
+        permutations=permutations,
+        seed=seed,
+    )[0]
+
+
+def analyse_many(
+    fits,
+    *,
+    output_names=None,
+    max_lag: int | None = None,
+    test_lag: int | None = None,
+    permutations: int = PERMUTATIONS,
+    seed: int = 0,
+) -> list[ResidualAnalysis]:
+    """`analyse` of each element of `fits` (each a sequence of runs as `analyse` takes them,
+    e.g. one per device of a batch), exactly as one call each would give, with the shuffles
+    of every run of every fit in one vectorised pass (`_permuted_autocorrelation`)."""
+    pending = []
+    for runs in fits:
+        runs = list(runs)
+        if not runs:
+            raise ValueError("runs: nothing to analyse")
+        m, h = max_lag, test_lag
+        if m is None or h is None:
+            shortest = min(int(np.asarray(r[3]).sum(axis=0).min()) for r in runs)
+            m = int(max(1, min(MAX_LAG, shortest // 4))) if m is None else m
+            h = int(max(1, min(TEST_LAG, shortest // 5))) if h is None else h
+        m, h = int(m), int(min(h, m))
+        parts = [
+            _run_pending(*r, m, h, permutations, (seed, i)) for i, r in enumerate(runs)
+        ]
+        pending.append(parts)
+    _permuted_autocorrelation(
+        [j for parts in pending for _, jobs in parts for j in jobs], permutations
     )
+    done = iter(_finished([run for parts in pending for run, _ in parts]))
+    pooled = [_pooled(tuple(next(done) for _ in parts), permutations) for parts in pending]
+    p = _p_values_of([(perm, v, h) for _, perm, v, h in pooled])
+    return [
+        _analysis(per_run, output_names, pj) for (per_run, *_), pj in zip(pooled, p)
+    ]
+
+
+def _pooled(per_run, permutations) -> tuple:
+    """(runs, pooled shuffled r(1..h) (n_y, B + 1, h), pooled null variances (n_y, h), h):
+    the shuffles pooled per output the same way as the observed autocorrelation."""
+    n_y, h = per_run[0].autocorrelation.shape[0], per_run[0].test_lag
+    pooled_perm = np.full((n_y, int(permutations) + 1, h), np.nan)
+    null_var = np.full((n_y, h), np.nan)
+    for j in range(n_y):
+        w = np.stack(
+            [np.where(np.isfinite(r.autocorrelation[j]), r.pairs[j], 0.0) for r in per_run]
+        )
+        vv = np.stack([np.nan_to_num(r.null_var[j]) for r in per_run])
+        wk = w[:, 1 : h + 1]  # (R, h): the same pair weights for every shuffle
+        rk = np.stack([np.nan_to_num(r.permuted_autocorrelation[j]) for r in per_run])
+        tot = wk.sum(axis=0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            pooled_perm[j] = np.einsum("rk,rbk->bk", wk, rk) / tot
+            null_var[j] = np.where(tot > 0, (wk**2 * vv[:, 1 : h + 1]).sum(axis=0) / tot**2, np.nan)
+    return per_run, pooled_perm, null_var, h
+
+
+def _analysis(per_run, output_names, p) -> ResidualAnalysis:
+    """The runs' correlations and tests pooled per output (see the module docstring), with
+    the pooled p-values `p` (n_y,)."""
+    n_y = per_run[0].autocorrelation.shape[0]
+    m, h = per_run[0].max_lag, per_run[0].test_lag
     lags, cross_lags = per_run[0].lags, per_run[0].cross_lags
     n_u = per_run[0].cross_correlation.shape[1]
     auto = np.full((n_y, m + 1), np.nan)
@@ -608,7 +826,6 @@ def analyse(
     cross = np.full((n_y, n_u, 2 * m + 1), np.nan)
     cross_pairs = np.zeros((n_y, 2 * m + 1))
     q = np.full(n_y, np.nan)
-    pooled_perm = np.full((n_y, int(permutations) + 1, h), np.nan)
     for j in range(n_y):
         w = np.stack(
             [np.where(np.isfinite(r.autocorrelation[j]), r.pairs[j], 0.0) for r in per_run]
@@ -622,10 +839,6 @@ def analyse(
         a_h, v_h = auto[j, 1 : h + 1], null_var[j, 1 : h + 1]
         if np.any(np.isfinite(a_h) & (v_h > 0)):
             q[j] = float(portmanteau(a_h, v_h))
-        wk = w[:, 1 : h + 1]  # (R, h): the same pair weights for every shuffle
-        rk = np.stack([np.nan_to_num(r.permuted_autocorrelation[j]) for r in per_run])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            pooled_perm[j] = np.einsum("rk,rbk->bk", wk, rk) / wk.sum(axis=0)
         cw = np.stack([r.cross_pairs[j] for r in per_run])  # (R, 2M+1)
         ctot = cw.sum(axis=0)
         cross_pairs[j] = ctot
@@ -635,7 +848,6 @@ def analyse(
             tl = wl.sum(axis=0)
             with np.errstate(invalid="ignore", divide="ignore"):
                 cross[j, l] = np.where(tl > 0, (wl * np.nan_to_num(cr)).sum(axis=0) / tl, np.nan)
-    p = _p_values(pooled_perm, null_var[:, 1 : h + 1], h)
     white = ~(p < ALPHA / n_y)
     z = NormalDist().inv_cdf(0.5 + CONFIDENCE / 2)
     band = z * np.sqrt(null_var)

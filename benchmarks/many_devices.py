@@ -6,8 +6,9 @@ constant are drawn from a known log-normal population. It measures
 
 (a) `loop_fits_per_s`: a Python loop of `greybox.fit` over NEW devices of one structure
     (`--loop-sample` of them, default 3), after a first fit whose time (compile included)
-    is reported apart (`loop_first_fit_s`). While a device's starting values are static
-    fields of its problem, every new device compiles again, and this rate shows it;
+    is reported apart (`loop_first_fit_s`). Start values, scales and bounds are inputs of
+    the compiled solver, not part of it, so a new device of a known structure costs its solve
+    (issue 24, item 1; this rate was 0.21 fits/s when each new device compiled again);
 (b) `batch_fits_per_min`: `fit_batch` of `--devices` devices (default 512), warm: a first
     call of the same batch compiles (`batch_first_s`, reported apart), the second is timed;
 (c) `solve_share`: the fraction of the warm batch's wall time spent inside the compiled,

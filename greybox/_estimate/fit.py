@@ -423,20 +423,24 @@ class _Problem(eqx.Module):
     def experiment_model(self, base, per_raw_row, settings_row):
         return _problem.run_model(base, self.setting_paths, settings_row, self.per_exp, per_raw_row)
 
+    def run_prediction(self, shared_raw, per_row, settings_row, sched):
+        """Camera readings (N, n_y) and success flag of one run, from the shared raw values
+        and that run's own raw row."""
+        base = apply_raw(self.model, self.shared, shared_raw)
+        return observe_schedule(
+            self.experiment_model(base, per_row, settings_row),
+            sched,
+            method=self.method,
+            **dict(self.solver_opts),
+        )
+
     def predictions(self, raw):
-        """Camera readings (E, N, n_y) and per-experiment success flags."""
-        base, per = self.models(raw)
-        opts = dict(self.solver_opts)
+        """Camera readings (E, N, n_y) and per-experiment success flags.
 
-        def one(per_row, settings_row, sched):
-            return observe_schedule(
-                self.experiment_model(base, per_row, settings_row),
-                sched,
-                method=self.method,
-                **opts,
-            )
-
-        return jax.vmap(one)(per, self.settings, self.sched)
+        Differentiated by blocks (`_block_predictions`): a run's readings depend on the shared
+        raw values and on its own row only, so each run's simulation carries the tangents of
+        those (shared + per-run) and not of every other run's row as well."""
+        return _block_predictions(self, raw)
 
     def data_residuals(self, raw, sigma):
         return self.scaled_errors(*self.predictions(raw), sigma)
@@ -456,6 +460,53 @@ class _Problem(eqx.Module):
         if self.priors:
             parts.append(jnp.stack([p.prior_residual(p.to_value(raw[k])) for k, p in self.priors]))
         return jnp.concatenate(parts)
+
+
+def _block_predictions(problem: _Problem, raw):
+    """`problem`'s predictions at `raw` with a block-structured forward derivative: per run,
+    the Jacobian with respect to (shared, that run's row) by `jax.jacfwd` (ns + P tangents
+    through its simulation), assembled into the product with the tangent. The Jacobian
+    depends on the primal only, so under `jax.jacfwd` over all ns + E P raw values (the
+    optimiser's) it is computed once, not once per raw direction: every simulation carries
+    ns + P tangents instead of ns + E P."""
+    ns, n_per, n_exp = len(problem.shared), len(problem.per_exp), problem.n_exp
+
+    def split(r):
+        return r[:ns], r[ns:].reshape(n_exp, n_per)
+
+    def plain(r):
+        shared, per = split(r)
+
+        def run(p, st, sc):
+            return problem.run_prediction(shared, p, st, sc)
+
+        return jax.vmap(run)(per, problem.settings, problem.sched)
+
+    @jax.custom_jvp
+    def predict(r):
+        return plain(r)
+
+    @predict.defjvp
+    def predict_jvp(primals, tangents):
+        (r,), (t,) = primals, tangents
+        shared, per = split(r)
+
+        def one(p, st, sc):
+            def readings(sh, pr):
+                z, ok = problem.run_prediction(sh, pr, st, sc)
+                return z, (z, ok)
+
+            (j_sh, j_pr), (z, ok) = jax.jacfwd(readings, argnums=(0, 1), has_aux=True)(
+                shared, p
+            )
+            return z, ok, j_sh, j_pr
+
+        z, ok, j_sh, j_pr = jax.vmap(one)(per, problem.settings, problem.sched)
+        t_sh, t_pr = split(t)
+        dz = jnp.einsum("enys,s->eny", j_sh, t_sh) + jnp.einsum("enyp,ep->eny", j_pr, t_pr)
+        return (z, ok), (dz, np.zeros(ok.shape, dtype=jax.dtypes.float0))
+
+    return predict(raw)
 
 
 @eqx.filter_jit

@@ -125,7 +125,8 @@ class FreeParameter:
             # judged where the parameter lives: the fraction of the log range from a bound
             lo, hi = np.log(self.lower), np.log(self.upper)
             frac = (jnp.log(jnp.maximum(self.to_value(raw), self.lower)) - lo) / (hi - lo)
-            return jnp.where(frac < AT_BOUND_FRACTION, -1, jnp.where(frac > 1.0 - AT_BOUND_FRACTION, 1, 0))
+            upper = jnp.where(frac > 1.0 - AT_BOUND_FRACTION, 1, 0)
+            return jnp.where(frac < AT_BOUND_FRACTION, -1, upper)
         if self.transform == "logit":
             edge = float(np.log(AT_BOUND_FRACTION / (1.0 - AT_BOUND_FRACTION)))  # -6.9
             return jnp.where(raw < edge, -1, jnp.where(raw > -edge, 1, 0))

@@ -188,9 +188,11 @@ def expm_taylor(x):
     unlike the branchy Pade implementation. After scaling |x / 2^s|_1 <= 1/4, so the
     truncation error is below 1e-15 relative. The series is evaluated in Paterson-Stockmeyer
     form (x^2, x^3, x^4, then Horner in x^4: 5 products instead of 12), and the squarings
-    stop at the largest `s` of the batch (a `lax.cond` per possible squaring, so reverse mode
-    still works): most steps of a simulation need none, and each product costs as much again
-    in every forward-mode tangent.
+    stop at the largest `s` of the batch (also under `vmap`: a while loop, not a fixed 24
+    masked squarings): most steps of a simulation need none or few, and each product costs
+    as much again in every forward-mode tangent. A while loop has no reverse-mode rule:
+    reverse mode (`jax.grad`) reaches the simulation only through its inputs (design's
+    levels), never through the matrices of the dynamics.
     """
     n = x.shape[-1]
     norm = jnp.max(jnp.sum(jnp.abs(x), axis=-2), axis=-1)
@@ -210,13 +212,11 @@ def expm_taylor(x):
     t = block(0) + y4 @ t
     s_max = jnp.max(s)
 
-    def square(i, t):
-        def sq(t):
-            return jnp.where((i < s)[..., None, None], t @ t, t)
+    def square(carry):
+        i, t = carry
+        return i + 1, jnp.where((i < s)[..., None, None], t @ t, t)
 
-        return jax.lax.cond(i < s_max, sq, lambda t: t, t)
-
-    return jax.lax.fori_loop(0, _EXPM_MAX_SQUARINGS, square, t)
+    return jax.lax.while_loop(lambda c: c[0] < s_max, square, (jnp.zeros((), s.dtype), t))[1]
 
 
 def zoh_matrices(a, b, dt):

@@ -18,6 +18,22 @@ of processor time; per candidate 6 s (1 node, valid, preferred), 82 s (2 nodes),
 + lag: the lag runs to its lower bound, every start uses its 200 steps) and 255 s (3 nodes):
 over the 240 s target, almost all of it in structures the one-node data do not support.
 
+After issue 25's fixes (same machine and day): 197 s wall, 145 s of processor time, with the
+load average at 7.1 when it started (other jobs shared the two cores); per candidate 12 s
+(1 node), 30 s (2 nodes), 79 s (2 nodes + lag) and 74 s (3 nodes); preferred: 1 node
+(valid); 2 nodes physically implausible, 2 nodes + lag and 3 nodes not valid; the AICs equal
+those of the run with the stall stop alone to 1e-12. What changed:
+- a Levenberg-Marquardt start stops when its cost has stalled (less than 1e-6 relative over
+  20 steps, 1e-4 while a parameter sits on a bound): the four starts of 2 nodes + lag, which
+  crept toward the bound for all 200 steps, stop after 58-85 (the fit says "at bound", the
+  first series resistance on its lower bound); with only that, 424 s wall, 395 s processor
+  time (load 2.6);
+- each run's simulation carries the tangents of the shared and its own per-run raw values,
+  not every run's (block-structured forward derivative of the predictions);
+- the ZOH matrix exponential: Paterson-Stockmeyer series (5 products, not 12) and only as
+  many squarings as the batch needs (not a fixed 24 masked ones);
+- the scores reuse the fit's own end-point simulations instead of simulating each run again.
+
 Run: .venv/bin/python benchmarks/compare.py [--smoke]
 --smoke: two candidates, one start of 5 steps each, on the first 1.6 s of one estimation run
 (checks that the script runs).

@@ -232,7 +232,7 @@ def score(name: str, options: dict, result, validation=None, nests=()) -> Candid
             noise_model="process noise",
             **common,
         )
-    preds = [result.predict(i) for i in range(len(result.experiments))]
+    preds = _simulations(result)
     ll, n, n_out = gaussian_loglik(result.experiments, preds)
     k = int(result.raw.size) + n_out
     return CandidateScore(
@@ -244,6 +244,17 @@ def score(name: str, options: dict, result, validation=None, nests=()) -> Candid
         residual_verdict=result.residuals.verdict,
         **common,
     )
+
+
+def _simulations(result) -> list:
+    """Per estimation run, the free-run simulation at the estimate: the one the fit computed
+    at its end point when it kept it (no second compile and run of the simulator per run
+    shape), else simulated again."""
+    stored = getattr(result, "predictions", None) or {}
+    sims = [stored.get(e.name, {}).get("simulation") for e in result.experiments]
+    if all(s is not None for s in sims):
+        return [np.asarray(s).reshape(e.n_frames, -1) for s, e in zip(sims, result.experiments)]
+    return [result.predict(i) for i in range(len(result.experiments))]
 
 
 @dataclasses.dataclass(frozen=True)

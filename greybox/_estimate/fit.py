@@ -38,7 +38,14 @@ from greybox._estimate import problem as _problem
 from greybox._estimate.blas import small_blas
 from greybox._model.data import Experiment
 from greybox._model.device import check_method
-from greybox._model.freeparams import FreeParameter, apply_raw, levenberg_marquardt
+from greybox._model.freeparams import (
+    STALL_RTOL,
+    STALL_WINDOW,
+    FreeParameter,
+    apply_raw,
+    levenberg_marquardt,
+    pinned_fn,
+)
 from greybox._estimate.identifiability import IdentifiabilityReport, analyse
 from greybox._estimate.metrics import fit_percent_per_output, noise_ceiling
 from greybox._estimate.posterior import Posterior
@@ -417,20 +424,24 @@ class _Problem(eqx.Module):
     def experiment_model(self, base, per_raw_row, settings_row):
         return _problem.run_model(base, self.setting_paths, settings_row, self.per_exp, per_raw_row)
 
+    def run_prediction(self, shared_raw, per_row, settings_row, sched):
+        """Camera readings (N, n_y) and success flag of one run, from the shared raw values
+        and that run's own raw row."""
+        base = apply_raw(self.model, self.shared, shared_raw)
+        return observe_schedule(
+            self.experiment_model(base, per_row, settings_row),
+            sched,
+            method=self.method,
+            **dict(self.solver_opts),
+        )
+
     def predictions(self, raw):
-        """Camera readings (E, N, n_y) and per-experiment success flags."""
-        base, per = self.models(raw)
-        opts = dict(self.solver_opts)
+        """Camera readings (E, N, n_y) and per-experiment success flags.
 
-        def one(per_row, settings_row, sched):
-            return observe_schedule(
-                self.experiment_model(base, per_row, settings_row),
-                sched,
-                method=self.method,
-                **opts,
-            )
-
-        return jax.vmap(one)(per, self.settings, self.sched)
+        Differentiated by blocks (`_block_predictions`): a run's readings depend on the shared
+        raw values and on its own row only, so each run's simulation carries the tangents of
+        those (shared + per-run) and not of every other run's row as well."""
+        return _block_predictions(self, raw)
 
     def data_residuals(self, raw, sigma):
         return self.scaled_errors(*self.predictions(raw), sigma)
@@ -452,16 +463,75 @@ class _Problem(eqx.Module):
         return jnp.concatenate(parts)
 
 
+def _block_predictions(problem: _Problem, raw):
+    """`problem`'s predictions at `raw` with a block-structured forward derivative: per run,
+    the Jacobian with respect to (shared, that run's row) by `jax.jacfwd` (ns + P tangents
+    through its simulation), assembled into the product with the tangent. The Jacobian
+    depends on the primal only, so under `jax.jacfwd` over all ns + E P raw values (the
+    optimiser's) it is computed once, not once per raw direction: every simulation carries
+    ns + P tangents instead of ns + E P."""
+    ns, n_per, n_exp = len(problem.shared), len(problem.per_exp), problem.n_exp
+
+    def split(r):
+        return r[:ns], r[ns:].reshape(n_exp, n_per)
+
+    def plain(r):
+        shared, per = split(r)
+
+        def run(p, st, sc):
+            return problem.run_prediction(shared, p, st, sc)
+
+        return jax.vmap(run)(per, problem.settings, problem.sched)
+
+    @jax.custom_jvp
+    def predict(r):
+        return plain(r)
+
+    @predict.defjvp
+    def predict_jvp(primals, tangents):
+        (r,), (t,) = primals, tangents
+        shared, per = split(r)
+
+        def one(p, st, sc):
+            def readings(sh, pr):
+                z, ok = problem.run_prediction(sh, pr, st, sc)
+                return z, (z, ok)
+
+            (j_sh, j_pr), (z, ok) = jax.jacfwd(readings, argnums=(0, 1), has_aux=True)(
+                shared, p
+            )
+            return z, ok, j_sh, j_pr
+
+        z, ok, j_sh, j_pr = jax.vmap(one)(per, problem.settings, problem.sched)
+        t_sh, t_pr = split(t)
+        dz = jnp.einsum("enys,s->eny", j_sh, t_sh) + jnp.einsum("enyp,ep->eny", j_pr, t_pr)
+        return (z, ok), (dz, np.zeros(ok.shape, dtype=jax.dtypes.float0))
+
+    return predict(raw)
+
+
 @eqx.filter_jit
-def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_steps: int):
+def _solve(
+    problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_steps: int, raw_ref=None
+):
     """One Levenberg-Marquardt run plus everything the result needs at its end point.
+
+    The run stops early when its cost stalls (`levenberg_marquardt`); "on a bound" is
+    judged from `raw_ref` (the fit's starting values; None: `raw_start`), as the result is.
 
     A single compiled function (the solve, the residuals, the Jacobian and the predictions)
     keeps compile time to one trace of the model. Never throws: the result code says how the
     solve ended.
     """
-    raw, ok, steps = levenberg_marquardt(
-        problem.residuals, raw_start, sigma, rtol=rtol, atol=atol, max_steps=max_steps
+    ref = raw_start if raw_ref is None else raw_ref
+    raw, ok, steps, stalled = levenberg_marquardt(
+        problem.residuals,
+        raw_start,
+        sigma,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        pinned=pinned_fn(problem.flat_free, ref),
     )
 
     def at_end(r):  # one simulation at the end point gives every output below
@@ -475,6 +545,7 @@ def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_st
         raw=raw,
         ok=ok,
         steps=steps,
+        stalled=stalled,
         cost=0.5 * jnp.sum(res**2),
         residuals=res,
         data_residuals=d,
@@ -483,6 +554,25 @@ def _solve(problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_st
         # d predictions / d raw (E, N, n_y, n_raw): the 95 % bands the result folder draws
         prediction_jacobian=jac_z,
         solved=solved,
+    )
+
+
+def _ending(out) -> str:
+    """How one start ended, for its progress line."""
+    if bool(out["ok"]):
+        return "converged"
+    return "stalled (cost no longer falling)" if bool(out.get("stalled")) else "not converged"
+
+
+def _stall_reason(best) -> str | None:
+    """The words for a best start that stopped because its cost stalled (else None)."""
+    if not bool(best.get("stalled", False)):
+        return None
+    return (
+        f"the cost fell by less than {STALL_RTOL:g} (relative) over the last {STALL_WINDOW} "
+        f"Levenberg-Marquardt steps (stopped after {int(best['steps'])}): the optimiser stalled, "
+        "typically a parameter drifting along a direction the data barely constrain or "
+        "toward a bound; fix or bound that parameter, or revise the model"
     )
 
 
@@ -829,7 +919,9 @@ def _fit_least_squares(
         )
 
     def solve(raw_start, sig):
-        return _solve(problem, raw_start, sig, float(rtol), float(atol), int(max_steps))
+        return _solve(
+            problem, raw_start, sig, float(rtol), float(atol), int(max_steps), jnp.asarray(raw0)
+        )
 
     if source == "estimated":
         sig = np.full(n_y, _initial_sigma_guess(experiments))
@@ -853,7 +945,7 @@ def _fit_least_squares(
         runs.append(out)
         say(
             f"start {i + 1}/{len(starts)}: cost {float(out['cost']):.6g}, "
-            f"{'converged' if out['ok'] else 'not converged'} after {int(out['steps'])} steps"
+            f"{_ending(out)} after {int(out['steps'])} steps"
         )
     best_index = _problem.best_start(runs)
     best = runs[best_index]
@@ -1037,6 +1129,7 @@ def _assembled(
         best_index=best_index,
         unidentified=unidentified,
         ran_out=max_steps is not None and int(best["steps"]) >= max_steps,
+        reason=_stall_reason(best),
         start_converged=[bool(r["ok"]) for r in runs],
     )
     converged = bool(ok and finite and np.all(solved))

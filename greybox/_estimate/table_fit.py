@@ -59,8 +59,9 @@ class _TableProblem(eqx.Module):
 
 @eqx.filter_jit
 def _solve(problem: _TableProblem, raw0, sigma, rtol: float, atol: float, max_steps: int):
-    raw, ok, steps = levenberg_marquardt(
-        problem.residuals, raw0, sigma, rtol=rtol, atol=atol, max_steps=max_steps
+    raw, ok, steps, _ = levenberg_marquardt(  # no stall stop: a table fit is cheap
+        problem.residuals, raw0, sigma, rtol=rtol, atol=atol, max_steps=max_steps,
+        stall_window=None,
     )
     return dict(
         raw=raw,

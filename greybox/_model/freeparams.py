@@ -27,6 +27,7 @@ optional Gaussian prior on log(value) (median, log-sd) encodes what the data can
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -114,24 +115,30 @@ class FreeParameter:
         v = abs(float(start))
         return dataclasses.replace(self, scale=v if np.isfinite(v) and v > 0 else 1.0)
 
-    def bound_hit(self, raw: float, raw_start: float) -> str | None:
-        """ "lower" or "upper" when the value at `raw` sits on that bound (see the module
-        docstring), else None. `raw_start` is where the fit started (for a lower bound only)."""
-        raw = float(raw)
+    def bound_side(self, raw, raw_start):
+        """-1 (on the lower bound), +1 (on the upper) or 0 at `raw` (see the module docstring;
+        `raw_start`: where the fit started, for a lower bound only). jit-safe: the one
+        definition of "at bound", read on the host by `bound_hit` and inside the optimiser's
+        stall test (`levenberg_marquardt`)."""
+        raw = jnp.asarray(raw, dtype=float)
         if self.log_scaled:
             # judged where the parameter lives: the fraction of the log range from a bound
-            value = float(self.to_value(raw))
             lo, hi = np.log(self.lower), np.log(self.upper)
-            frac = (np.log(max(value, self.lower)) - lo) / (hi - lo)
-            return "lower" if frac < AT_BOUND_FRACTION else (
-                "upper" if frac > 1.0 - AT_BOUND_FRACTION else None
-            )
+            frac = (jnp.log(jnp.maximum(self.to_value(raw), self.lower)) - lo) / (hi - lo)
+            upper = jnp.where(frac > 1.0 - AT_BOUND_FRACTION, 1, 0)
+            return jnp.where(frac < AT_BOUND_FRACTION, -1, upper)
         if self.transform == "logit":
             edge = float(np.log(AT_BOUND_FRACTION / (1.0 - AT_BOUND_FRACTION)))  # -6.9
-            return "lower" if raw < edge else "upper" if raw > -edge else None
+            return jnp.where(raw < edge, -1, jnp.where(raw > -edge, 1, 0))
         if self.transform == "log":
-            return "lower" if raw - float(raw_start) < np.log(AT_BOUND_FRACTION) else None
-        return None
+            return jnp.where(raw - raw_start < np.log(AT_BOUND_FRACTION), -1, 0)
+        return jnp.zeros((), dtype=int)
+
+    def bound_hit(self, raw: float, raw_start: float) -> str | None:
+        """ "lower" or "upper" when the value at `raw` sits on that bound (`bound_side`), else
+        None. `raw_start` is where the fit started (for a lower bound only)."""
+        side = int(self.bound_side(float(raw), float(raw_start)))
+        return {-1: "lower", 1: "upper", 0: None}[side]
 
     def check_value(self, value: float) -> None:
         """Raise a ValueError naming the parameter if `value` is outside its bounds."""
@@ -185,6 +192,19 @@ class FreeParameter:
         return (jnp.log(value) - np.log(self.prior_median)) / self.prior_log_sd
 
 
+def pinned_fn(params, raw_start):
+    """raw -> whether any of `params` is on a bound (`FreeParameter.bound_side`), judged
+    from `raw_start` (jit-safe; the optimiser's stall test)."""
+    if not params:
+        return None
+
+    def pinned(raw):
+        sides = [p.bound_side(raw[k], raw_start[k]) for k, p in enumerate(params)]
+        return jnp.any(jnp.stack(sides) != 0)
+
+    return pinned
+
+
 def apply_raw(model, params, raw):
     """`model` with each of `params` set from its raw coordinate `raw[k]` (jit/vmap-safe).
 
@@ -197,17 +217,101 @@ def apply_raw(model, params, raw):
     )
 
 
-def levenberg_marquardt(residuals, raw0, args, *, rtol: float, atol: float, max_steps: int):
-    """The one least-squares engine: optimistix Levenberg-Marquardt on `residuals(raw, args)`
-    from `raw0`, never throwing. Returns (raw, solved flag, steps taken)."""
+STALL_WINDOW = 20  # steps over which a start must still lower its cost ...
+STALL_RTOL = 1e-6  # ... by more than this fraction, or it has stalled;
+STALL_RTOL_AT_BOUND = 1e-4  # ... by more than this while a parameter is on a bound
+
+
+@functools.cache
+def _stall_solver():
+    """`optx.LevenbergMarquardt` that also stops when the cost has stalled: the cost at the
+    last accepted point fell by no more than `stall_rtol` (relative) over the last `window`
+    steps, or by no more than `bound_rtol` while `pinned(raw)` (a parameter on a bound).
+    That is what a start does while a parameter chases a bound in its transformed
+    coordinate (raw -> +-inf, each step a smaller gain, the tolerances on raw never met):
+    its step budget would go on a cost that no longer moves and a verdict ("at bound")
+    that no longer changes. The step sequence is optimistix's own (the inner solver's
+    state is carried unchanged), so a start that converges before it stalls ends exactly
+    where plain Levenberg-Marquardt ends."""
+    import equinox as eqx
     import optimistix as optx
 
-    sol = optx.least_squares(
-        residuals,
-        optx.LevenbergMarquardt(rtol=rtol, atol=atol),
-        raw0,
-        args=args,
-        max_steps=max_steps,
-        throw=False,
+    class StallStop(optx.AbstractLeastSquaresSolver):
+        inner: optx.LevenbergMarquardt
+        window: int = eqx.field(static=True)
+        stall_rtol: float
+        bound_rtol: float
+        pinned: object  # raw -> bool: a parameter on its bound (None: never)
+
+        @property
+        def rtol(self):
+            return self.inner.rtol
+
+        @property
+        def atol(self):
+            return self.inner.atol
+
+        @property
+        def norm(self):
+            return self.inner.norm
+
+        def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+            inner = self.inner.init(fn, y, args, options, f_struct, aux_struct, tags)
+            ring = jnp.full(self.window + 1, jnp.inf)
+            return inner, ring, jnp.array(0), jnp.array(False)
+
+        def step(self, fn, y, args, options, state, tags):
+            inner, ring, k, _ = state
+            y, inner, aux = self.inner.step(fn, y, args, options, inner, tags)
+            # the cost at the last accepted point (a rejected step leaves it unchanged)
+            loss = 0.5 * jnp.sum(inner.f_info.residual**2)
+            ring = ring.at[k % (self.window + 1)].set(loss)
+            old = ring[(k + 1) % (self.window + 1)]  # the cost `window` steps ago
+            tol = self.stall_rtol
+            if self.pinned is not None:
+                tol = jnp.where(self.pinned(y), self.bound_rtol, tol)
+            stalled = (k >= self.window) & (old - loss <= tol * jnp.abs(loss))
+            return y, (inner, ring, k + 1, stalled), aux
+
+        def terminate(self, fn, y, args, options, state, tags):
+            done, result = self.inner.terminate(fn, y, args, options, state[0], tags)
+            return done | state[3], result
+
+        def postprocess(self, fn, y, aux, args, options, state, tags, result):
+            return self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
+
+    return StallStop
+
+
+def levenberg_marquardt(
+    residuals,
+    raw0,
+    args,
+    *,
+    rtol: float,
+    atol: float,
+    max_steps: int,
+    stall_window: int | None = STALL_WINDOW,
+    stall_rtol: float = STALL_RTOL,
+    pinned=None,
+):
+    """The one least-squares engine: optimistix Levenberg-Marquardt on `residuals(raw, args)`
+    from `raw0`, never throwing. Returns (raw, solved flag, steps taken, stalled flag).
+
+    `stall_window`, `stall_rtol`, `pinned`: a start whose cost fell by no more than
+    `stall_rtol` (relative; `STALL_RTOL_AT_BOUND` while `pinned(raw)` is true) over
+    `stall_window` steps stops there, not solved and flagged stalled (`_stall_solver`);
+    None runs to the tolerances or `max_steps` only."""
+    import optimistix as optx
+
+    lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    solver = lm if stall_window is None else _stall_solver()(
+        lm, int(stall_window), float(stall_rtol), STALL_RTOL_AT_BOUND, pinned
     )
-    return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+    sol = optx.least_squares(
+        residuals, solver, raw0, args=args, max_steps=max_steps, throw=False
+    )
+    ok = sol.result == optx.RESULTS.successful
+    inner_done = sol.state.terminate if stall_window is None else sol.state[0].terminate
+    stalled = jnp.array(False) if stall_window is None else sol.state[3] & ~inner_done
+    return sol.value, ok & ~stalled, sol.stats["num_steps"], stalled

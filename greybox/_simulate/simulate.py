@@ -188,11 +188,10 @@ def expm_taylor(x):
     unlike the branchy Pade implementation. After scaling |x / 2^s|_1 <= 1/4, so the
     truncation error is below 1e-15 relative. The series is evaluated in Paterson-Stockmeyer
     form (x^2, x^3, x^4, then Horner in x^4: 5 products instead of 12), and the squarings
-    stop at the largest `s` of the batch (also under `vmap`: a while loop, not a fixed 24
-    masked squarings): most steps of a simulation need none or few, and each product costs
-    as much again in every forward-mode tangent. A while loop has no reverse-mode rule:
-    reverse mode (`jax.grad`) reaches the simulation only through its inputs (design's
-    levels), never through the matrices of the dynamics.
+    beyond the largest `s` of the batch are skipped (`lax.cond` in a loop of fixed length, so
+    that reverse mode works as well as forward mode): most steps of a simulation need none or
+    few, and each product costs as much again in every forward-mode tangent. (Under `vmap`,
+    where `s` differs per member, the cond becomes a select and all squarings run, masked.)
     """
     n = x.shape[-1]
     norm = jnp.max(jnp.sum(jnp.abs(x), axis=-2), axis=-1)
@@ -212,11 +211,13 @@ def expm_taylor(x):
     t = block(0) + y4 @ t
     s_max = jnp.max(s)
 
-    def square(carry):
-        i, t = carry
-        return i + 1, jnp.where((i < s)[..., None, None], t @ t, t)
+    def square(i, t):
+        def on(t):
+            return jnp.where((i < s)[..., None, None], t @ t, t)
 
-    return jax.lax.while_loop(lambda c: c[0] < s_max, square, (jnp.zeros((), s.dtype), t))[1]
+        return jax.lax.cond(i < s_max, on, lambda t: t, t)
+
+    return jax.lax.fori_loop(0, _EXPM_MAX_SQUARINGS, square, t)
 
 
 def zoh_matrices(a, b, dt):

@@ -33,6 +33,10 @@ after: 512 devices, main-thread CPU 10.3 -> 6.6 s, of which assembly with the re
 wall for 512 devices at these loads, so 5,000 fits/min is out of reach on this machine
 whatever the host does; solve_share 0.60-0.76 here. Results are unchanged (same estimates,
 statistics and p-values; population z-scores identical).
+Quiet machine (load 1.0), after the block-structured Jacobian and the batched expm of issue
+25: loop 32.1 fits/s (first fit 4.4 s), batch of 512 2,674 fits/min (11.5 s warm), of which
+the vmapped solve 4.1 s (7,400 fits/min alone) and the host 7.0 s (prepare 1.7, residual tests
+2.0, models 0.3, assembly 3.0): solve_share 0.36. The host is the bottleneck now.
 """
 
 from __future__ import annotations

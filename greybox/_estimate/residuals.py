@@ -788,41 +788,42 @@ def analyse_many(
     )
     done = iter(_finished([run for parts in pending for run, _ in parts]))
     pooled = [_pooled(tuple(next(done) for _ in parts), permutations) for parts in pending]
-    p = _p_values_of([(perm, v, h) for _, perm, v, h in pooled])
+    p = _p_values_of([(perm, v[:, 1 : h + 1], h) for _, perm, v, h in pooled])
     return [
-        _analysis(per_run, output_names, pj) for (per_run, *_), pj in zip(pooled, p)
+        _analysis(per_run, null_var, output_names, pj)
+        for (per_run, _, null_var, _), pj in zip(pooled, p)
     ]
 
 
 def _pooled(per_run, permutations) -> tuple:
-    """(runs, pooled shuffled r(1..h) (n_y, B + 1, h), pooled null variances (n_y, h), h):
-    the shuffles pooled per output the same way as the observed autocorrelation."""
-    n_y, h = per_run[0].autocorrelation.shape[0], per_run[0].test_lag
+    """(runs, pooled shuffled r(1..h) (n_y, B + 1, h), pooled null variances (n_y, M + 1), h):
+    each output's runs pooled with their pair counts as weights, the shuffles the same way
+    as the observed autocorrelation."""
+    n_y, m, h = per_run[0].autocorrelation.shape[0], per_run[0].max_lag, per_run[0].test_lag
     pooled_perm = np.full((n_y, int(permutations) + 1, h), np.nan)
-    null_var = np.full((n_y, h), np.nan)
+    null_var = np.full((n_y, m + 1), np.nan)
     for j in range(n_y):
         w = np.stack(
             [np.where(np.isfinite(r.autocorrelation[j]), r.pairs[j], 0.0) for r in per_run]
         )
         vv = np.stack([np.nan_to_num(r.null_var[j]) for r in per_run])
+        tot = w.sum(axis=0)
         wk = w[:, 1 : h + 1]  # (R, h): the same pair weights for every shuffle
         rk = np.stack([np.nan_to_num(r.permuted_autocorrelation[j]) for r in per_run])
-        tot = wk.sum(axis=0)
         with np.errstate(invalid="ignore", divide="ignore"):
-            pooled_perm[j] = np.einsum("rk,rbk->bk", wk, rk) / tot
-            null_var[j] = np.where(tot > 0, (wk**2 * vv[:, 1 : h + 1]).sum(axis=0) / tot**2, np.nan)
+            null_var[j] = np.where(tot > 0, (w**2 * vv).sum(axis=0) / tot**2, np.nan)
+            pooled_perm[j] = np.einsum("rk,rbk->bk", wk, rk) / tot[1 : h + 1]
     return per_run, pooled_perm, null_var, h
 
 
-def _analysis(per_run, output_names, p) -> ResidualAnalysis:
+def _analysis(per_run, null_var, output_names, p) -> ResidualAnalysis:
     """The runs' correlations and tests pooled per output (see the module docstring), with
-    the pooled p-values `p` (n_y,)."""
+    the pooled null variances `null_var` (n_y, M + 1) and p-values `p` (n_y,) (`_pooled`)."""
     n_y = per_run[0].autocorrelation.shape[0]
     m, h = per_run[0].max_lag, per_run[0].test_lag
     lags, cross_lags = per_run[0].lags, per_run[0].cross_lags
     n_u = per_run[0].cross_correlation.shape[1]
     auto = np.full((n_y, m + 1), np.nan)
-    null_var = np.full((n_y, m + 1), np.nan)
     cross = np.full((n_y, n_u, 2 * m + 1), np.nan)
     cross_pairs = np.zeros((n_y, 2 * m + 1))
     q = np.full(n_y, np.nan)
@@ -831,11 +832,9 @@ def _analysis(per_run, output_names, p) -> ResidualAnalysis:
             [np.where(np.isfinite(r.autocorrelation[j]), r.pairs[j], 0.0) for r in per_run]
         )
         rr = np.stack([np.nan_to_num(r.autocorrelation[j]) for r in per_run])
-        vv = np.stack([np.nan_to_num(r.null_var[j]) for r in per_run])
         tot = w.sum(axis=0)
         with np.errstate(invalid="ignore", divide="ignore"):
             auto[j] = np.where(tot > 0, (w * rr).sum(axis=0) / tot, np.nan)
-            null_var[j] = np.where(tot > 0, (w**2 * vv).sum(axis=0) / tot**2, np.nan)
         a_h, v_h = auto[j, 1 : h + 1], null_var[j, 1 : h + 1]
         if np.any(np.isfinite(a_h) & (v_h > 0)):
             q[j] = float(portmanteau(a_h, v_h))

@@ -7,8 +7,9 @@ threads once rows x columns passes about 9,000 elements, and on a machine whose 
 (XLA's own threads, other processes) each split call waits for its threads: on 2 shared cores
 a 3,072 x 8 QR took 24 ms instead of 0.3 ms, and a warm ZOH fit of the chevron set (six runs,
 2,004 frames) 450 ms instead of 57 ms. Up to `SMALL` elements the work is too little to gain
-from threads, so `fit`, `fit_batch` and the assembly run under `small_blas(size)`, which holds
-BLAS to one thread there (threadpoolctl, restored on exit); above it, it changes nothing.
+from threads, so `fit` and `fit_batch` (their solves and assembly) run under
+`small_blas(size)`, which holds BLAS to one thread there (threadpoolctl, restored on exit);
+above it, it changes nothing.
 Results are the same LAPACK routines' (to rounding).
 """
 

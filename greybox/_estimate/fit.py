@@ -40,6 +40,7 @@ from greybox._model.data import Experiment
 from greybox._model.device import check_method
 from greybox._model.freeparams import (
     STALL_RTOL,
+    STALL_RTOL_AT_BOUND,
     STALL_WINDOW,
     FreeParameter,
     apply_raw,
@@ -569,7 +570,8 @@ def _stall_reason(best) -> str | None:
     if not bool(best.get("stalled", False)):
         return None
     return (
-        f"the cost fell by less than {STALL_RTOL:g} (relative) over the last {STALL_WINDOW} "
+        f"the cost fell by less than {STALL_RTOL:g} (relative; {STALL_RTOL_AT_BOUND:g} while a "
+        f"parameter sat on a bound) over the last {STALL_WINDOW} "
         f"Levenberg-Marquardt steps (stopped after {int(best['steps'])}): the optimiser stalled, "
         "typically a parameter drifting along a direction the data barely constrain or "
         "toward a bound; fix or bound that parameter, or revise the model"
@@ -1038,13 +1040,7 @@ def _scores(
     return out, fitted
 
 
-def _assemble(problem, best, *args, **kwargs) -> FitResult:
-    """`_assembled` with BLAS held to one thread for a small Jacobian (`blas.small_blas`)."""
-    with small_blas(np.size(best["jacobian"])):
-        return _assembled(problem, best, *args, **kwargs)
-
-
-def _assembled(
+def _assemble(
     problem,
     best,
     sig,

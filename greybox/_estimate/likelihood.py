@@ -212,8 +212,8 @@ def _newton(obj: _Objective, raw0, max_steps):
     accepted trial needs no second evaluation) or one of the 2 P probes of the Hessian. The
     filter and its gradient are therefore traced and compiled once (compiling them was most
     of a small fit's time), the points evaluated are those of the plain form (a BFGS loop,
-    then a Newton loop whose Hessians are `lax.map`s of the gradient), and in a vmapped batch every pass evaluates one
-    point for every member, whatever phase each is in.
+    then a Newton loop whose Hessians are `lax.map`s of the gradient), and in a vmapped
+    batch every pass evaluates one point for every member, whatever phase each is in.
     """
 
     def value_and_data(r):
@@ -255,25 +255,27 @@ def _newton(obj: _Objective, raw0, max_steps):
             return _select(max_steps <= 0, to_hessian(s0), s1)
 
         def bfgs():  # a BFGS line search has ended: update; the phase ends when it fails
-            step = s["a"] * s["p"]
+            dx = s["a"] * s["p"]
             yv = moved["g"] - s["g"]
-            sy = step @ yv
+            sy = dx @ yv
             Hi = s["Hi"]
             # first update: scale the identity to the curvature seen (Nocedal & Wright 6.20)
             Hi = jnp.where((s["it1"] == 0) & (sy > 0), Hi * sy / jnp.maximum(yv @ yv, 1e-300), Hi)
             rho = 1.0 / jnp.where(sy > 1e-300, sy, 1.0)
-            E = eye - rho * jnp.outer(step, yv)
-            Hi = jnp.where(armijo & (sy > 1e-300), E @ Hi @ E.T + rho * jnp.outer(step, step), Hi)
+            E = eye - rho * jnp.outer(dx, yv)
+            Hi = jnp.where(armijo & (sy > 1e-300), E @ Hi @ E.T + rho * jnp.outer(dx, dx), Hi)
             dec = moved["g"] @ Hi @ moved["g"]
             it1 = s["it1"] + 1
             over = (armijo & (dec < DECREMENT_TOL) & (dec >= 0)) | ~armijo | (it1 >= max_steps)
             Hi_next, p = bfgs_direction(moved["g"], Hi)
             searching = new_search(dict(moved, Hi=Hi_next, it1=it1), p)
-            return _select(ended, _select(over, to_hessian(dict(moved, it1=it1)), searching), halved)
+            after = _select(over, to_hessian(dict(moved, it1=it1)), searching)
+            return _select(ended, after, halved)
 
         def newton():  # a Newton line search has ended: the Hessian at the new point, or stop
-            after = dict(moved, it2=s["it2"] + 1)
-            return _select(ended, _select(armijo, to_hessian(after), dict(after, phase=_DONE)), halved)
+            moved2 = dict(moved, it2=s["it2"] + 1)
+            after = _select(armijo, to_hessian(moved2), dict(moved2, phase=_DONE))
+            return _select(ended, after, halved)
 
         def probe():  # one column of the Hessian; after the last, the next Newton search
             G = s["G"].at[s["j"]].set(gt)

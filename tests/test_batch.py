@@ -104,7 +104,7 @@ def test_chunk_size_respects_memory_budget(batch):
     assert chunk_size_for(b, b / 2, 1000) == 1
     # evened out: two chunks of 16,384 rather than 29,000 and a padded 3,768
     assert chunk_size_for(b, 29000 * b, 32768, 65536) == 16384
-    assert chunk_size_for(b, 256 * b, 1000) == 250
+    assert chunk_size_for(b, 256 * b, 1000, 256) == 250
 
 
 def test_population_recovers_median_spread_and_flags_outlier(batch):

@@ -21,10 +21,12 @@ devices:
   estimate at that scale. Multi-start points are `fit`'s (same seed, same perturbations);
 - each device's result is assembled by `fit`'s own `_assemble` (covariance, verdicts,
   fit % per run and output), so a `FitResult` per device is what `fit` would return, to
-  rounding (the padding changes only the number of zero rows); the residual tests of every
-  device of a group run first in one vectorised pass (`_residuals.analyse_many`: the same
-  statistics and the same seeded shuffles as one `analyse` per device, the shuffle orders
-  drawn once for all devices).
+  rounding (the padding changes only the number of zero rows); the residual tests of the
+  devices of a wave (those whose solves fill one chunk) run in one vectorised pass
+  (`_residuals.analyse_many`: the same statistics and the same seeded shuffles as one
+  `analyse` per device, the shuffle orders drawn once and cached);
+- the host work (residual tests, assembly) of a solved wave runs in one host thread while
+  the compiled solves of the next wave run (`_fit_output_error`).
 
 Pure: no printing, plotting or files; `progress` receives short text lines.
 """
@@ -32,9 +34,11 @@ Pure: no printing, plotting or files; `progress` receives short text lines.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import os
 from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -52,7 +56,8 @@ from greybox._model.freeparams import FreeParameter
 from greybox._model.parameters import get_value
 from greybox._simulate.simulate import pad_schedules, require_x64, schedules_for, zoh_scan_kind
 
-MAX_CHUNK = 256  # solves per compiled call on a CPU: beyond this vmap gains little there
+MAX_CHUNK = 64  # solves per compiled call on a CPU: beyond this vmap gains nothing there (a
+# vmapped solve runs as long as its slowest member), and smaller waves overlap the host better
 MAX_CHUNK_ACCELERATOR = 65536  # on a GPU/TPU the memory budget is what limits a chunk
 ACCELERATOR_MEMORY_SHARE = 0.5  # of the accelerator memory not in use, for one chunk
 CPU_MEMORY_SHARE = 0.25  # of the physical memory, for one chunk
@@ -241,7 +246,7 @@ class _Prepared:
     starts: list
     sigma0: np.ndarray
 
-    @property
+    @functools.cached_property
     def problem(self):
         """This device's `_fit._Problem` (padded to its group's shapes; numpy views)."""
         return eqx.combine(
@@ -261,7 +266,7 @@ def _check(device: Device, free, method):
 
 
 def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver):
-    """Per-device problems (padded per group), start points and first noise scales."""
+    """Per-device problems (padded jointly), start points and first noise scales."""
     if loss not in _fit.LOSSES:
         raise ValueError(f"loss: {loss!r} is unknown; use one of {_fit.LOSSES}")
     paths = [p.path for p in free]
@@ -270,14 +275,31 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
     names = [d.name for d in devices]
     if len(set(names)) != len(names):
         raise ValueError("devices: two devices share a name; names must be unique")
-    built = []
+    # the runs of all devices whose schedules stack (same input channels and readout
+    # quadrature) padded once, jointly (`pad_schedules` buckets the lengths: one compiled
+    # solver per structure); padding is inert, so a structure whose runs are shorter than
+    # another's only carries more zero-weight frames
+    checked, families = [], {}
     for d in devices:
         f = tuple(d.free) if d.free is not None else free
         m = _check(d, f, method)
         f = tuple(p.with_scale_from(v) for p, v in zip(f, _fit._start_values(f, d.model)))
+        scheds = schedules_for(d.model, d.experiments)
+        family = families.setdefault((scheds[0].levels.shape[1], scheds[0].n_quad), [])
+        family.append(len(checked))
+        checked.append((d, f, m, scheds))
+    padded = [None] * len(checked)
+    for members in families.values():
+        joint = pad_schedules([s for i in members for s in checked[i][3]], on_device=False)
+        start = 0
+        for i in members:
+            n_e = len(checked[i][0].experiments)
+            padded[i] = {k: v[start : start + n_e] for k, v in joint.items()}
+            start += n_e
+    built = []
+    for (d, f, m, _), sched in zip(checked, padded):
         sig_d = d.sigma if d.sigma is not None else _device_sigma(sigma, d.name)
         source = _fit._noise_source(d.experiments, sig_d)
-        scheds = schedules_for(d.model, d.experiments)  # built once: the group pads them jointly
         prob = _fit._Problem.build(
             d.model,
             d.experiments,
@@ -287,7 +309,7 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
             huber_c,
             student_nu,
             *solver,
-            schedules=scheds,
+            padded=sched,
             on_device=False,
         )
         if prob.n_data <= prob.n_raw:
@@ -297,9 +319,9 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
         raw0 = _fit._initial_raw(prob, d.model)
         # the starting values live in raw0; `FreeParameter.initial` takes no part in the static
         # part's equality, so every device of the same structure shares one compiled solver
-        built.append((d, prob, f, source, sig_d, raw0, scheds))
+        built.append((d, prob, f, source, sig_d, raw0))
 
-    # group by structure (static fields) and pad every run of a group jointly
+    # group by structure (static fields), each group's array leaves stacked once
     groups: dict = {}
     for i, (d, prob, *_rest) in enumerate(built):
         _, static = eqx.partition(prob, eqx.is_array)
@@ -308,29 +330,13 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
     prepared: list = [None] * len(built)
     out_groups = []
     for members in groups.values():
-        # one joint padding of every run of the group, kept in numpy until a chunk needs it
-        joint = pad_schedules([s for i in members for s in built[i][6]], on_device=False)
-        n_f = joint["t_s"].shape[1]
-        dyns, start = [], 0
-        for i in members:
-            prob = built[i][1]
-            n_e = prob.n_exp
-            widths = ((0, 0), (0, n_f - prob.y.shape[1]), (0, 0))
-            prob = dataclasses.replace(
-                prob,
-                sched={k: v[start : start + n_e] for k, v in joint.items()},
-                y=np.pad(np.asarray(prob.y), widths),
-                w=np.pad(np.asarray(prob.w), widths),
-                noise=np.pad(np.asarray(prob.noise), widths, constant_values=1.0),
-            )
-            start += n_e
-            dyns.append(eqx.filter(prob, eqx.is_array))
+        dyns = [eqx.filter(built[i][1], eqx.is_array) for i in members]
         _, static = eqx.partition(built[members[0]][1], eqx.is_array)
         stacked = jtu.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *dyns)
         group = _Group(list(members), static, stacked)
         out_groups.append(group)
         for row, i in enumerate(members):
-            d, prob, f, source, sig_d, raw0, _ = built[i]
+            d, prob, f, source, sig_d, raw0 = built[i]
             k = n_starts
             if k is None:
                 k = _fit.AUTO_STARTS if len(prob.shared) > 2 else 1
@@ -508,8 +514,13 @@ def _fit_output_error(
     devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, max_steps, rtol,
     atol, solver, chunk_size, memory_budget_bytes, say,
 ) -> BatchResult:
-    """`fit_batch` of output-error (least-squares) problems: every group's solves in chunks,
-    the re-fits at the re-estimated noise, then the results."""
+    """`fit_batch` of output-error (least-squares) problems, group by group and, within a
+    group, wave by wave (a wave: the devices whose solves fill one chunk). This thread runs
+    the compiled calls of each wave (its starts, its re-fits at the re-estimated noise, its
+    fitted models) back to back, while one host thread assembles the waves already solved
+    (residual tests and `_fit._assemble`): a compiled call releases the interpreter, so on
+    two or more cores the host work of wave k overlaps the solves of wave k + 1 instead of
+    following all of them."""
     max_steps = 200 if max_steps is None else int(max_steps)
     prepared, groups = _prepare(
         devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver
@@ -520,72 +531,110 @@ def _fit_output_error(
         budget = float(memory_budget_bytes)
     counter = [0]
     results, item_bytes, chunk_used = {}, 0, 0
-    for g, group in enumerate(groups):
-        members = group.members
-        n_items = sum(len(prepared[i].starts) for i in members)
-        b = bytes_per_item(prepared[members[0]].problem)
-        chunk = (
-            int(chunk_size) if chunk_size else chunk_size_for(b, budget, n_items, max_chunk)
-        )
-        item_bytes, chunk_used = max(item_bytes, b), max(chunk_used, chunk)
-        label = f"group {g + 1}/{len(groups)}"
-        say(
-            f"{label}: {len(members)} devices, {n_items} solves, chunks of {chunk} "
-            f"(~{b * chunk / 1e6:.0f} MB each)"
-        )
-        items = [(i, s, prepared[i].sigma0) for i in members for s in prepared[i].starts]
-        outs = _run_items(prepared, items, chunk, *opts, say, f"{label} starts", counter)
-        runs_of, k = {}, 0
-        for i in members:
-            n = len(prepared[i].starts)
-            runs_of[i] = outs[k : k + n]
-            k += n
-        best_of, refit = {}, []
-        for i in members:
-            runs = runs_of[i]
-            bi = best_start(runs)
-            best_of[i] = (bi, runs[bi], prepared[i].sigma0, int(runs[bi]["steps"]))
-            p = prepared[i]
-            if p.source == "estimated" and np.all(np.isfinite(runs[bi]["raw"])):
-                sig = _fit._robust_sigma(
-                    np.asarray(runs[bi]["data_residuals"]), np.asarray(p.problem.w), p.sigma0
-                )
-                refit.append((i, np.asarray(runs[bi]["raw"]), sig))
-        if refit:
-            outs = _run_items(prepared, refit, chunk, *opts, say, f"{label} refit", counter)
-            for (i, _, sig), out in zip(refit, outs):
-                bi, _, _, steps = best_of[i]
-                best_of[i] = (bi, out, sig, steps + int(out["steps"]))
-        raws = {i: np.asarray(best_of[i][1]["raw"]) for i in members}
-        models = _fitted_models(prepared, members, raws, chunk)
-        # every device's residual tests in one vectorised pass (their shuffles shared)
-        tests = analyse_residuals(
-            [
-                _fit._residual_runs(
-                    prepared[i].device.experiments,
-                    _fit._predictions(best_of[i][1], prepared[i].device.experiments),
-                )
-                for i in members
-            ]
-        )
-        for i, residuals in zip(members, tests):
-            p = prepared[i]
-            bi, best, sig, steps = best_of[i]
-            results[p.device.name] = _fit._assemble(
-                p.problem,
-                best,
-                sig,
-                steps,
-                runs_of[i],
-                bi,
-                p.raw0,
-                p.device.experiments,
-                p.free,
-                p.source,
-                lambda _msg: None,
-                models=models[i],
-                residuals=residuals,
+    host = ThreadPoolExecutor(max_workers=1, thread_name_prefix="greybox-assemble")
+    try:
+        assembled = []
+        for g, group in enumerate(groups):
+            members = group.members
+            n_items = sum(len(prepared[i].starts) for i in members)
+            b = bytes_per_item(prepared[members[0]].problem)
+            chunk = (
+                int(chunk_size) if chunk_size else chunk_size_for(b, budget, n_items, max_chunk)
             )
-        say(f"{label}: {len(members)} devices assembled")
+            item_bytes, chunk_used = max(item_bytes, b), max(chunk_used, chunk)
+            label = f"group {g + 1}/{len(groups)}"
+            say(
+                f"{label}: {len(members)} devices, {n_items} solves, chunks of {chunk} "
+                f"(~{b * chunk / 1e6:.0f} MB each)"
+            )
+            waves = _waves(members, [len(prepared[i].starts) for i in members], chunk)
+            for w, wave in enumerate(waves):
+                wave_label = f"{label} wave {w + 1}/{len(waves)}"
+                solved = _solve_wave(prepared, wave, chunk, opts, say, wave_label, counter)
+                assembled.append(host.submit(_assemble_wave, prepared, wave, *solved))
+            say(f"{label}: {len(members)} devices solved")
+        for future in assembled:
+            results.update(future.result())
+    finally:  # an error or an interrupt: drop the waves not yet assembled, do not wait on them
+        host.shutdown(wait=True, cancel_futures=True)
+    say(f"{len(results)} devices assembled")
     ordered = {d.name: results[d.name] for d in devices}
     return BatchResult(ordered, len(groups), chunk_used, counter[0], item_bytes)
+
+
+def _waves(members, n_starts, chunk) -> list:
+    """`members` in consecutive waves of at most `chunk` solves (at least one device each)."""
+    waves, wave, size = [], [], 0
+    for i, k in zip(members, n_starts):
+        if wave and size + k > chunk:
+            waves.append(wave)
+            wave, size = [], 0
+        wave.append(i)
+        size += k
+    return waves + [wave] if wave else waves
+
+
+def _solve_wave(prepared, wave, chunk, opts, say, label, counter) -> tuple:
+    """The compiled work of one wave: every start, the best start's re-fit at the robust
+    noise estimate where the noise is estimated, the fitted models. Returns (runs per device,
+    (best index, best solve, sigma, steps) per device, fitted models per device)."""
+    items = [(i, s, prepared[i].sigma0) for i in wave for s in prepared[i].starts]
+    outs = _run_items(prepared, items, chunk, *opts, say, f"{label} starts", counter)
+    runs_of, k = {}, 0
+    for i in wave:
+        n = len(prepared[i].starts)
+        runs_of[i] = outs[k : k + n]
+        k += n
+    best_of, refit = {}, []
+    for i in wave:
+        runs = runs_of[i]
+        bi = best_start(runs)
+        best_of[i] = (bi, runs[bi], prepared[i].sigma0, int(runs[bi]["steps"]))
+        p = prepared[i]
+        if p.source == "estimated" and np.all(np.isfinite(runs[bi]["raw"])):
+            sig = _fit._robust_sigma(
+                np.asarray(runs[bi]["data_residuals"]), p.problem.w, p.sigma0
+            )
+            refit.append((i, np.asarray(runs[bi]["raw"]), sig))
+    if refit:
+        outs = _run_items(prepared, refit, chunk, *opts, say, f"{label} refit", counter)
+        for (i, _, sig), out in zip(refit, outs):
+            bi, _, _, steps = best_of[i]
+            best_of[i] = (bi, out, sig, steps + int(out["steps"]))
+    raws = {i: np.asarray(best_of[i][1]["raw"]) for i in wave}
+    models = _fitted_models(prepared, wave, raws, chunk)
+    return runs_of, best_of, models
+
+
+def _assemble_wave(prepared, wave, runs_of, best_of, models) -> dict:
+    """{device name: FitResult} of one solved wave: the residual tests of all its devices in
+    one vectorised pass (their shuffles shared), then `_fit._assemble` per device."""
+    tests = analyse_residuals(
+        [
+            _fit._residual_runs(
+                prepared[i].device.experiments,
+                _fit._predictions(best_of[i][1], prepared[i].device.experiments),
+            )
+            for i in wave
+        ]
+    )
+    out = {}
+    for i, residuals in zip(wave, tests):
+        p = prepared[i]
+        bi, best, sig, steps = best_of[i]
+        out[p.device.name] = _fit._assemble(
+            p.problem,
+            best,
+            sig,
+            steps,
+            runs_of[i],
+            bi,
+            p.raw0,
+            p.device.experiments,
+            p.free,
+            p.source,
+            lambda _msg: None,
+            models=models[i],
+            residuals=residuals,
+        )
+    return out

@@ -96,7 +96,7 @@ def initial_raw(flat, model) -> np.ndarray:
     raw = []
     for p, v in zip(flat, start_values(flat, model)):
         p.check_value(v)
-        raw.append(float(p.to_raw(v)))
+        raw.append(float(p.to_raw(float(v))))
     return np.asarray(raw)
 
 

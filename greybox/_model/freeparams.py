@@ -32,9 +32,17 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.special import expit
 
 AT_BOUND_FRACTION = 1e-3  # distance to a bound, as a fraction of the range, that counts as "at"
 LOG_SCALED_RATIO = 100.0  # bounds spanning this ratio or more: "at bound" judged in log space
+
+
+def _xp(x):
+    """jax.numpy for JAX arrays and tracers, numpy for host numbers: the transforms below run
+    inside compiled solvers and, per device and parameter, on the host (reports of a batch),
+    where an eager JAX call costs ~0.1 ms of dispatch for a scalar."""
+    return jnp if isinstance(x, jax.Array) else np
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,19 +128,20 @@ class FreeParameter:
         `raw_start`: where the fit started, for a lower bound only). jit-safe: the one
         definition of "at bound", read on the host by `bound_hit` and inside the optimiser's
         stall test (`levenberg_marquardt`)."""
-        raw = jnp.asarray(raw, dtype=float)
+        xp = _xp(raw)
+        raw = xp.asarray(raw, dtype=float)
         if self.log_scaled:
             # judged where the parameter lives: the fraction of the log range from a bound
             lo, hi = np.log(self.lower), np.log(self.upper)
-            frac = (jnp.log(jnp.maximum(self.to_value(raw), self.lower)) - lo) / (hi - lo)
-            upper = jnp.where(frac > 1.0 - AT_BOUND_FRACTION, 1, 0)
-            return jnp.where(frac < AT_BOUND_FRACTION, -1, upper)
+            frac = (xp.log(xp.maximum(self.to_value(raw), self.lower)) - lo) / (hi - lo)
+            upper = xp.where(frac > 1.0 - AT_BOUND_FRACTION, 1, 0)
+            return xp.where(frac < AT_BOUND_FRACTION, -1, upper)
         if self.transform == "logit":
             edge = float(np.log(AT_BOUND_FRACTION / (1.0 - AT_BOUND_FRACTION)))  # -6.9
-            return jnp.where(raw < edge, -1, jnp.where(raw > -edge, 1, 0))
+            return xp.where(raw < edge, -1, xp.where(raw > -edge, 1, 0))
         if self.transform == "log":
-            return jnp.where(raw - raw_start < np.log(AT_BOUND_FRACTION), -1, 0)
-        return jnp.zeros((), dtype=int)
+            return xp.where(raw - raw_start < np.log(AT_BOUND_FRACTION), -1, 0)
+        return xp.zeros((), dtype=int)
 
     def bound_hit(self, raw: float, raw_start: float) -> str | None:
         """ "lower" or "upper" when the value at `raw` sits on that bound (`bound_side`), else
@@ -155,19 +164,24 @@ class FreeParameter:
             )
 
     def to_raw(self, value):
-        v = jnp.asarray(value, dtype=float)
-        if self.transform == "logit":
-            p = (v - self.lower) / (self.upper - self.lower)
-            return jnp.log(p) - jnp.log1p(-p)
-        if self.transform == "log":
-            return jnp.log(v - self.lower)
-        return v / self.step
+        xp = _xp(value)
+        v = xp.asarray(value, dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):  # NaN/inf as JAX gives them
+            if self.transform == "logit":
+                p = (v - self.lower) / (self.upper - self.lower)
+                return xp.log(p) - xp.log1p(-p)
+            if self.transform == "log":
+                return xp.log(v - self.lower)
+            return v / self.step
 
     def to_value(self, raw):
+        xp = _xp(raw)
         if self.transform == "logit":
-            return self.lower + (self.upper - self.lower) * jax.nn.sigmoid(raw)
+            sigmoid = jax.nn.sigmoid if xp is jnp else expit
+            return self.lower + (self.upper - self.lower) * sigmoid(raw)
         if self.transform == "log":
-            return self.lower + jnp.exp(raw)
+            with np.errstate(over="ignore"):
+                return self.lower + xp.exp(raw)
         return self.step * raw
 
     def value_derivative(self, raw) -> float:

@@ -404,14 +404,8 @@ class _Problem(eqx.Module):
 
     @property
     def priors(self) -> list:
-        out = [(k, p) for k, p in enumerate(self.shared) if p.has_prior]
-        out += [
-            (len(self.shared) + i * len(self.per_exp) + j, p)
-            for i in range(self.n_exp)
-            for j, p in enumerate(self.per_exp)
-            if p.has_prior
-        ]
-        return out
+        """(raw index, FreeParameter) of every parameter with a prior."""
+        return _problem.prior_index(self.flat_free)
 
     @property
     def n_raw(self) -> int:

@@ -323,15 +323,15 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
 
     # group by structure (static fields), each group's array leaves stacked once
     groups: dict = {}
-    for i, (d, prob, *_rest) in enumerate(built):
-        _, static = eqx.partition(prob, eqx.is_array)
-        key = (jtu.tree_structure(static), jtu.tree_structure(eqx.filter(prob, eqx.is_array)))
+    parts = [eqx.partition(prob, eqx.is_array) for _, prob, *_rest in built]
+    for i, (dyn, static) in enumerate(parts):
+        key = (jtu.tree_structure(static), jtu.tree_structure(dyn))
         groups.setdefault(key, []).append(i)
     prepared: list = [None] * len(built)
     out_groups = []
     for members in groups.values():
-        dyns = [eqx.filter(built[i][1], eqx.is_array) for i in members]
-        _, static = eqx.partition(built[members[0]][1], eqx.is_array)
+        dyns = [parts[i][0] for i in members]
+        static = parts[members[0]][1]
         stacked = jtu.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *dyns)
         group = _Group(list(members), static, stacked)
         out_groups.append(group)

@@ -69,18 +69,23 @@ def r_squared(y, y_hat) -> float:
 
 def fit_percent_per_output(y, y_hat) -> np.ndarray:
     """(n_y,) fit % of each output column of `y`, `y_hat` ((N,) or (N, n_y)), each over its
-    own finite samples; NaN for a column with fewer than two of them or no spread."""
+    own finite samples; NaN for a column with fewer than two of them or no spread.
+
+    `fit_percent` of each column, computed for all columns at once (a batch of devices asks
+    for it per run and output)."""
     y = np.asarray(y, dtype=float)
     y_hat = np.asarray(y_hat, dtype=float)
     if y.shape != y_hat.shape:
         raise ValueError(f"y and y_hat: shapes differ ({y.shape} vs {y_hat.shape})")
     y2, h2 = y.reshape(y.shape[0], -1), y_hat.reshape(y.shape[0], -1)
-    out = np.full(y2.shape[1], np.nan)
-    for j in range(y2.shape[1]):
-        ok = np.isfinite(y2[:, j]) & np.isfinite(h2[:, j])
-        if ok.sum() > 1:
-            out[j] = fit_percent(y2[ok, j], h2[ok, j])
-    return out
+    ok = np.isfinite(y2) & np.isfinite(h2)
+    n = ok.sum(axis=0)
+    mean = np.where(ok, y2, 0.0).sum(axis=0) / np.maximum(n, 1)
+    spread = np.sqrt(np.sum(np.where(ok, y2 - mean, 0.0) ** 2, axis=0))
+    error = np.sqrt(np.sum(np.where(ok, y2 - h2, 0.0) ** 2, axis=0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = 100.0 * (1.0 - error / spread)
+    return np.where((n > 1) & (spread > 0), out, np.nan)
 
 
 def noise_ceiling(y, sigma) -> float:

@@ -12,11 +12,22 @@ simulation paths evaluate the state at the same instants.
 from __future__ import annotations
 
 import abc
+import functools
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+
+
+@functools.lru_cache(maxsize=16)
+def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Legendre nodes and weights on [-1, 1], computed once per order (a batch asks
+    for them once per device); read-only, as the cache shares them."""
+    x, w = np.polynomial.legendre.leggauss(n)
+    x.setflags(write=False)
+    w.setflags(write=False)
+    return x, w
 
 class AbstractReadout(eqx.Module):
     """Outputs y(t) at each frame's quadrature instants -> one reading per frame."""
@@ -83,7 +94,7 @@ class Camera(AbstractReadout):
         """(offsets [s] <= 0 relative to the frame time, weights summing to 1)."""
         if self.exposure_s == 0.0:
             return np.zeros(1), np.ones(1)
-        x, w = np.polynomial.legendre.leggauss(self.n_quadrature)
+        x, w = _gauss_legendre(self.n_quadrature)
         return -self.exposure_s * (1.0 - x) / 2.0, w / 2.0
 
     def observe(self, y_quad_m, t_s, t_ref_s=0.0):

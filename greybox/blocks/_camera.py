@@ -19,7 +19,6 @@ import jax.numpy as jnp
 import numpy as np
 
 
-
 @functools.lru_cache(maxsize=16)
 def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
     """Gauss-Legendre nodes and weights on [-1, 1], computed once per order (a batch asks
@@ -28,6 +27,7 @@ def _gauss_legendre(n: int) -> tuple[np.ndarray, np.ndarray]:
     x.setflags(write=False)
     w.setflags(write=False)
     return x, w
+
 
 class AbstractReadout(eqx.Module):
     """Outputs y(t) at each frame's quadrature instants -> one reading per frame."""

@@ -198,6 +198,8 @@ def main(argv=None):
             + ("—" if not np.isfinite(qp) else f"{qp:.2g}")
             + " |"
         )
+    weak = batch["weak_heater"].estimate("alpha2_W_per_pct")
+    weak_bound = next(p.lower for p in free if p.path == "alpha2_W_per_pct")
     lines += [
         "",
         "Boards that do not belong: "
@@ -205,11 +207,18 @@ def main(argv=None):
         + ".",
         "",
         "Why: "
-        + "; ".join(
-            f"`{d}`: status {batch[d].status} ({batch[d].message})"
-            for d in pop.flags
-            if not batch[d].valid
+        + (
+            "; ".join(
+                f"`{d}`: status {batch[d].status} ({batch[d].message})"
+                for d in pop.flags
+                if not batch[d].valid
+            )
+            or "every flagged board's own fit is valid, the flag comes from the comparison "
+            "with the class"
         )
+        + f". `weak_heater`: alpha2 fitted {weak.value:.4g} (SE {weak.se:.2g}, "
+        f"{weak.verdict}) against its true {truth['weak_heater']['alpha2_W_per_pct']:.4g} "
+        f"(lower bound {weak_bound:g})"
         + ". A flag on the residual noise scale means that board's free-run residuals are "
         "larger than the class's: for `park2020` that is the real board's model error (the "
         "synthetic boards are simulated by the model itself, with white noise only), so the "

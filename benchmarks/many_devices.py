@@ -32,14 +32,20 @@ Measured (issue 24, CPU, 2 cores shared with other jobs; wall times swing with t
 host phases are also given as main-thread CPU). Before the assembly work (main at 771b2ab) vs
 after: 512 devices, main-thread CPU 10.3 -> 6.6 s, of which assembly with the residual tests
 7.2 -> 4.0 s (14 -> 7.8 ms per device; load 6.0 and 4.9); 128 devices at load ~3.5:
-1416 -> 2033 fits/min, host phases 2.1 -> 1.6 s wall. The warm solve itself is 15-24 s of
-wall for 512 devices at these loads, so 5,000 fits/min is out of reach on this machine
-whatever the host does; solve_share 0.60-0.76 here. Results are unchanged (same estimates,
+1416 -> 2033 fits/min, host phases 2.1 -> 1.6 s wall (the warm solve was 15-24 s of wall
+for 512 devices at those loads). Results are unchanged (same estimates,
 statistics and p-values; population z-scores identical).
 Quiet machine (load 1.0), after the block-structured Jacobian and the batched expm of issue
 25: loop 32.1 fits/s (first fit 4.4 s), batch of 512 2,674 fits/min (11.5 s warm), of which
 the vmapped solve 4.1 s (7,400 fits/min alone) and the host 7.0 s (prepare 1.7, residual tests
 2.0, models 0.3, assembly 3.0): solve_share 0.36. The host is the bottleneck now.
+Then (load 0.9): the host work of each wave overlapping the next wave's solves, chunks of 64,
+no eager JAX on the host: loop 47.7 fits/s (first fit 2.1 s), batch of 512 **5,881 fits/min**
+(5.22 s warm), solve 3.03 s + models 0.35 s: solve_share 0.65. The host phases (prepare 0.66
+s, then residual tests and assembly in the host thread) are ~5 s of interpreter time that
+one lock serialises, so the wall time is now about the host's, and compiled code fills 65 %
+of it; 0.8 would need the residual tests and the assembly compiled as well. Same estimates
+(batch_vs_fit_max_rel 9.6e-14) and population z-scores as before.
 """
 
 from __future__ import annotations

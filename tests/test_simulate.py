@@ -121,16 +121,15 @@ def _output_of(params, method, adjoint):
 @pytest.mark.parametrize("method", ["zoh", "adaptive"])
 def test_forward_and_reverse_mode_derivatives_agree(method):
     p = jnp.array([0.04, 0.6])
-    fwd = jax.jacfwd(lambda q: _output_of(q, method, "forward"))(p)
-    rev = jax.jacrev(lambda q: _output_of(q, method, "reverse"))(p)
+    # each under one jit: one compile instead of an op-by-op trace (the adaptive case: 16 -> 9 s)
+    forward = jax.jit(lambda q: _output_of(q, method, "forward"))
+    fwd = jax.jit(jax.jacfwd(forward))(p)
+    rev = jax.jit(jax.jacrev(lambda q: _output_of(q, method, "reverse")))(p)
     assert float(jnp.max(jnp.abs(fwd))) > 0
     np.testing.assert_allclose(fwd, rev, rtol=1e-7, atol=1e-7 * float(jnp.max(jnp.abs(fwd))))
     # and a central finite difference with tight solver tolerances (STYLE G.3)
     eps = 1e-6
-    fd = (
-        _output_of(p.at[0].add(eps), method, "forward")
-        - _output_of(p.at[0].add(-eps), method, "forward")
-    ) / (2 * eps)
+    fd = (forward(p.at[0].add(eps)) - forward(p.at[0].add(-eps))) / (2 * eps)
     np.testing.assert_allclose(fwd[:, 0], fd, rtol=1e-4, atol=1e-5 * float(jnp.max(jnp.abs(fd))))
 
 

@@ -500,9 +500,8 @@ def fit_batch(
             "greybox.ProcessNoise(...)"
         )
     # one BLAS thread while a device's problem is small (`blas.small_blas`, as `fit` does)
-    readings = max(sum(int(np.size(e.y)) for e in d.experiments) * len(d.experiments)
-                   for d in devices)  # x free parameters >= a device's Jacobian elements
-    with small_blas(readings * max(len(d.free or free) for d in devices)):
+    largest = max(_fit.jacobian_size_bound(d.experiments, len(d.free or free)) for d in devices)
+    with small_blas(largest):
         return _fit_output_error(
             devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, max_steps,
             rtol, atol, (solver_rtol, solver_atol, solver_max_steps), chunk_size,

@@ -805,8 +805,7 @@ def fit(
     # one BLAS thread for a small problem (`blas.small_blas`): on busy cores the LAPACK calls
     # of the solver and of the host on a 3,072 x 8 Jacobian waited for OpenBLAS threads
     # (a warm chevron fit 450 -> 57 ms)
-    readings = sum(int(np.size(e.y)) for e in experiments)
-    with small_blas(readings * len(free) * len(experiments)):  # >= the Jacobian's elements
+    with small_blas(jacobian_size_bound(experiments, len(free))):
         result = _fit_least_squares(
             model,
             experiments,
@@ -825,6 +824,12 @@ def fit(
             **solver,
         )
     return dataclasses.replace(result, noise=noise)
+
+
+def jacobian_size_bound(experiments, n_free: int) -> int:
+    """An upper bound on the elements of a fit's Jacobian (readings x raw parameters, with
+    every free parameter counted once per run): what `small_blas` is sized by."""
+    return sum(int(np.size(e.y)) for e in experiments) * int(n_free) * len(experiments)
 
 
 def apply_start_values(start_values, model, free, experiments) -> tuple:

@@ -408,10 +408,10 @@ def _permuted_autocorrelation(jobs, permutations: int) -> None:
     """Fill each job's `out` (B + 1, h) with the bias-corrected r(1..h): row 0 of its
     residuals as placed on the grid, rows 1.. of B shuffles of the values among the occupied
     slots (the gaps stay where they are). The rows of every job (all runs of a fit, all
-    devices of a batch) go through one product per lag and block (a stacked matmul of each
-    row with its lagged self; a row is zero-padded to its block's longest grid, and zeros
-    add nothing); blocks bound memory,
-    and a job's shuffles are one stream whatever the blocking and the other jobs."""
+    devices of a batch) go through one product per lag and block (row-wise dot products of
+    each row with its lagged self; a row is zero-padded to its block's longest grid, and
+    zeros add nothing); blocks bound memory, and a job's shuffles are one stream whatever
+    the blocking and the other jobs."""
     if not jobs:
         return
     h = max(job.npairs.size for job in jobs)

@@ -103,3 +103,43 @@ def test_a_parameter_chasing_its_bound_stops_no_later():
     assert stalled and not ok and steps < MAX_STEPS
     assert THETA.bound_hit(raw[0], raw0[0]) == "lower"
     assert raw[1] == pytest.approx(A_STAR, rel=1e-9)
+
+
+def test_gauss_newton_decrement_is_twice_the_cost_left_to_gain():
+    """For linear residuals r = A x - b the decrement g^T H^+ g at any x is exactly
+    2 (cost(x) - min cost) (the Gauss-Newton step is exact), also when A is rank deficient
+    (the undetermined direction is left out; the minimum from numpy's lstsq)."""
+    from greybox._estimate.fit import _gauss_newton_decrement
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(40, 3)) * [1.0, 1e3, 1e-2]  # badly scaled columns
+    a = np.column_stack([a, a[:, 0] + a[:, 2]])  # a fourth column the others determine
+    b = rng.normal(size=40)
+    x_star = np.linalg.lstsq(a, b, rcond=None)[0]
+    min_cost = 0.5 * np.sum((a @ x_star - b) ** 2)
+    for x in (rng.normal(size=4), x_star + 1e-4 * rng.normal(size=4)):
+        left = 0.5 * np.sum((a @ x - b) ** 2) - min_cost
+        got = float(_gauss_newton_decrement(jnp.asarray(a), jnp.asarray(a @ x - b)))
+        assert got == pytest.approx(2.0 * left, rel=1e-8)
+
+
+def test_a_stalled_start_with_nothing_left_to_gain_has_converged():
+    """Raw tolerances that cannot be met (rtol = atol = 0): the start stops on the stall test
+    in the interior, where the Gauss-Newton decrement is far below DECREMENT_TOL, so the fit
+    has converged (the likelihood back end's test), at the estimates of a fit with the usual
+    tolerances to 1e-6 relative (a fraction of their standard errors)."""
+    chevron = greybox.get_device("chevron_laser")
+    truth = set_values(chevron.model(), ["absorptance", "thermal.tau_s"], [0.62, 0.045])
+    start = set_values(truth, ["absorptance", "thermal.tau_s"], [0.5, 0.06])
+    exps, _ = chevron_runs(truth, runs=((10, 0.3), (30, 0.6)), duration_s=2.0, seed=5)
+    free = list(chevron.free_parameters())
+    lines = []
+    strict = fit(start, exps, free, rtol=0.0, atol=0.0, n_starts=1, progress=lines.append)
+    usual = fit(start, exps, free, n_starts=1)
+    assert strict.status == "converged" and strict.converged and strict.valid
+    assert not any("stalled (cost no longer falling)" in ln for ln in lines)
+    assert strict.n_steps >= STALL_WINDOW  # it did run into the stall test
+    np.testing.assert_allclose(strict.raw, usual.raw, rtol=1e-6)
+    ses = np.array([p.se for p in strict.parameters])
+    vals = np.array([p.value for p in strict.parameters])
+    assert np.all(np.abs(vals - [p.value for p in usual.parameters]) < 1e-3 * ses)

@@ -58,7 +58,7 @@ from greybox.stochastic._sde_device import (
 from greybox._simulate.simulate import as_arrays, require_x64
 
 MAX_STEPS = 500  # damped Newton steps per start
-DECREMENT_TOL = 1e-9  # Newton decrement (log-likelihood units x 2) at which a start has converged
+DECREMENT_TOL = _problem.DECREMENT_TOL  # Newton decrement at which a start has converged
 MAX_RAW_STEP = 2.0  # largest raw step per iteration (a factor e^2 on a log parameter)
 NOT_NEEDED_DROP = 1e-2  # a noise intensity below this fraction of its start has vanished
 NOT_NEEDED_LR = 2.71  # 2 x log L lost at zero below which zero is not rejected (5 %, boundary)

@@ -17,6 +17,9 @@ import numpy as np
 from greybox._model.freeparams import apply_raw
 from greybox._model.parameters import get_value, set_values
 
+DECREMENT_TOL = 1e-9  # Newton decrement (twice the -log L, or cost, still to gain) at which a
+# start has converged: both objectives judge their end points by it
+
 
 def check_free(model, free) -> tuple:
     """`free` as a tuple after the checks every fit makes (nonempty, no repeats, paths exist)."""

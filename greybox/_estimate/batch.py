@@ -25,10 +25,8 @@ devices:
   devices of a wave (those whose solves fill one chunk) run in one vectorised pass
   (`_residuals.analyse_many`: the same statistics and the same seeded shuffles as one
   `analyse` per device, the shuffle orders drawn once and cached);
-- the interpreter work runs in one host thread while compiled solves run
-  (`_fit_output_error`): the problems of every device after the first chunk's worth are
-  built while that chunk solves, and each solved wave is assembled (residual tests,
-  `_fit._assemble`) while the next wave solves.
+- the host work (residual tests, assembly) of a solved wave runs in one host thread while
+  the compiled solves of the next wave run (`_fit_output_error`).
 
 Pure: no printing, plotting or files; `progress` receives short text lines.
 """
@@ -214,7 +212,7 @@ def _fitted_models(prepared, members, raws, chunk) -> dict:
         part = members[c : c + chunk]
         padded = part + [part[-1]] * (chunk - len(part))
         stacked = group.rows([prepared[i].row for i in padded])
-        raw = np.stack([raws[i] for i in padded])
+        raw = jnp.asarray(np.stack([raws[i] for i in padded]))
         models = jax.device_get(_models_many(stacked, group.static, raw))
         leaves, tree = jtu.tree_flatten(models)
         for k, i in enumerate(part):
@@ -230,14 +228,11 @@ class _Group:
     members: list
     static: object
     stacked: object
-    key: tuple = ()  # the structure: groups of one key share one compiled solver
 
     def rows(self, positions) -> object:
-        """The stacked leaves of members at `positions` (numpy: the compiled call transfers
-        them all at once, without a Python-level transfer per leaf, each of which would wait
-        for the interpreter while the host thread holds it)."""
+        """The stacked leaves of members at `positions`, on the device (one transfer)."""
         idx = np.asarray(positions)
-        return jtu.tree_map(lambda x: np.take(x, idx, axis=0), self.stacked)
+        return jtu.tree_map(lambda x: jnp.asarray(np.take(x, idx, axis=0)), self.stacked)
 
 
 @dataclasses.dataclass
@@ -270,24 +265,8 @@ def _check(device: Device, free, method):
     return method
 
 
-@dataclasses.dataclass(frozen=True)
-class _Plan:
-    """What `_build` needs for any slice of the devices: per device its free list (scales
-    from its starting values), method and schedules padded jointly with every run of the
-    batch whose schedules stack, and the fit settings."""
-
-    devices: list
-    free: list
-    methods: list
-    padded: list
-    settings: tuple  # (loss, huber_c, student_nu, solver)
-    sigma: object
-    n_starts: int | None
-    seed: int
-
-
-def _plan(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver) -> _Plan:
-    """The checks every device passes, and the joint padding of all their runs."""
+def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver):
+    """Per-device problems (padded jointly), start points and first noise scales."""
     if loss not in _fit.LOSSES:
         raise ValueError(f"loss: {loss!r} is unknown; use one of {_fit.LOSSES}")
     paths = [p.path for p in free]
@@ -300,81 +279,70 @@ def _plan(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, see
     # quadrature) padded once, jointly (`pad_schedules` buckets the lengths: one compiled
     # solver per structure); padding is inert, so a structure whose runs are shorter than
     # another's only carries more zero-weight frames
-    frees, methods, scheds_of, families = [], [], [], {}
-    for i, d in enumerate(devices):
+    checked, families = [], {}
+    for d in devices:
         f = tuple(d.free) if d.free is not None else free
-        methods.append(_check(d, f, method))
-        frees.append(tuple(p.with_scale_from(v) for p, v in zip(f, _fit._start_values(f, d.model))))
+        m = _check(d, f, method)
+        f = tuple(p.with_scale_from(v) for p, v in zip(f, _fit._start_values(f, d.model)))
         scheds = schedules_for(d.model, d.experiments)
-        families.setdefault((scheds[0].levels.shape[1], scheds[0].n_quad), []).append(i)
-        scheds_of.append(scheds)
-    padded = [None] * len(devices)
+        family = families.setdefault((scheds[0].levels.shape[1], scheds[0].n_quad), [])
+        family.append(len(checked))
+        checked.append((d, f, m, scheds))
+    padded = [None] * len(checked)
     for members in families.values():
-        joint = pad_schedules([s for i in members for s in scheds_of[i]], on_device=False)
+        joint = pad_schedules([s for i in members for s in checked[i][3]], on_device=False)
         start = 0
         for i in members:
-            n_e = len(devices[i].experiments)
+            n_e = len(checked[i][0].experiments)
             padded[i] = {k: v[start : start + n_e] for k, v in joint.items()}
             start += n_e
-    return _Plan(
-        list(devices), frees, methods, padded, (loss, huber_c, student_nu, solver), sigma,
-        n_starts, seed,
-    )
-
-
-def _build(plan: _Plan, indices) -> tuple[dict, list]:
-    """({device index: _Prepared}, groups) for the devices at `indices`: their problems
-    (padded as `plan` says), start points and first noise scales, grouped by structure, each
-    group's array leaves stacked once."""
-    loss, huber_c, student_nu, solver = plan.settings
-    built = {}
-    for i in indices:
-        d, f = plan.devices[i], plan.free[i]
-        sig_d = d.sigma if d.sigma is not None else _device_sigma(plan.sigma, d.name)
+    built = []
+    for (d, f, m, _), sched in zip(checked, padded):
+        sig_d = d.sigma if d.sigma is not None else _device_sigma(sigma, d.name)
         source = _fit._noise_source(d.experiments, sig_d)
         prob = _fit._Problem.build(
             d.model,
             d.experiments,
             f,
-            plan.methods[i],
+            m,
             loss,
             huber_c,
             student_nu,
             *solver,
-            padded=plan.padded[i],
+            padded=sched,
             on_device=False,
         )
         if prob.n_data <= prob.n_raw:
             raise ValueError(
                 f"{d.name}: {prob.n_data} valid frames cannot determine {prob.n_raw} parameters"
             )
+        raw0 = _fit._initial_raw(prob, d.model)
         # the starting values live in raw0; `FreeParameter.initial` takes no part in the static
         # part's equality, so every device of the same structure shares one compiled solver
-        built[i] = (prob, source, sig_d, _fit._initial_raw(prob, d.model))
+        built.append((d, prob, f, source, sig_d, raw0))
 
     # group by structure (static fields), each group's array leaves stacked once
     groups: dict = {}
-    parts = {i: eqx.partition(b[0], eqx.is_array) for i, b in built.items()}
-    for i, (dyn, static) in parts.items():
+    parts = [eqx.partition(prob, eqx.is_array) for _, prob, *_rest in built]
+    for i, (dyn, static) in enumerate(parts):
         key = (jtu.tree_structure(static), jtu.tree_structure(dyn))
         groups.setdefault(key, []).append(i)
-    prepared: dict = {}
+    prepared: list = [None] * len(built)
     out_groups = []
-    for key, members in groups.items():
+    for members in groups.values():
         dyns = [parts[i][0] for i in members]
         static = parts[members[0]][1]
         stacked = jtu.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *dyns)
-        group = _Group(list(members), static, stacked, key)
+        group = _Group(list(members), static, stacked)
         out_groups.append(group)
         for row, i in enumerate(members):
-            d = plan.devices[i]
-            prob, source, sig_d, raw0 = built[i]
-            k = plan.n_starts
+            d, prob, f, source, sig_d, raw0 = built[i]
+            k = n_starts
             if k is None:
                 k = _fit.AUTO_STARTS if len(prob.shared) > 2 else 1
             if int(k) < 1:
                 raise ValueError(f"n_starts: {k} starts; give at least 1 (or None for auto)")
-            rng = np.random.default_rng(plan.seed)
+            rng = np.random.default_rng(seed)
             starts = [raw0] + [_fit._perturbed(prob, raw0, rng) for _ in range(int(k) - 1)]
             n_y = prob.y.shape[-1]
             if source == "estimated":
@@ -385,16 +353,8 @@ def _build(plan: _Plan, indices) -> tuple[dict, list]:
                     raise ValueError(f"{d.name}: sigma must be > 0 (SI units of the output)")
             else:
                 sig = np.ones(n_y)
-            prepared[i] = _Prepared(d, group, row, plan.free[i], source, raw0, starts, sig)
+            prepared[i] = _Prepared(d, group, row, f, source, raw0, starts, sig)
     return prepared, out_groups
-
-
-def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver):
-    """Per-device problems (padded jointly), start points and first noise scales, and the
-    groups of one structure: `_build` of every device of `_plan`."""
-    plan = _plan(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver)
-    prepared, groups = _build(plan, range(len(devices)))
-    return [prepared[i] for i in range(len(devices))], groups
 
 
 def _fit_process(devices, free, noise, sigma, n_starts, seed, max_steps, chunk_size, say):
@@ -456,33 +416,20 @@ def _device_sigma(sigma, name):
 def _run_items(prepared, items, chunk, rtol, atol, max_steps, say, label, counter):
     """Solve `items` ((device index, raw start, sigma), all of one group) in fixed-size chunks;
     returns one host-side output dict per item."""
-    dispatched = _dispatch_items(prepared, items, chunk, (rtol, atol, max_steps), counter)
-    return _collect_items(dispatched, say, label)
-
-
-def _dispatch_items(prepared, items, chunk, opts, counter) -> list:
-    """The compiled calls solving `items` in chunks, dispatched but not waited for (JAX runs
-    them asynchronously): [(solves in the chunk, its output arrays)]."""
-    calls = []
+    outputs = []
+    n_chunks = math.ceil(len(items) / chunk)
     group = prepared[items[0][0]].group
-    for c in range(0, len(items), chunk):
-        part = items[c : c + chunk]
+    for c in range(n_chunks):
+        part = items[c * chunk : (c + 1) * chunk]
         padded = part + [part[-1]] * (chunk - len(part))
         stacked = group.rows([prepared[i].row for i, _, _ in padded])
-        raw = np.stack([r for _, r, _ in padded])
-        sig = np.stack([s for _, _, s in padded])
-        calls.append((len(part), _solve_many(stacked, group.static, raw, sig, *opts)))
+        raw = jnp.asarray(np.stack([r for _, r, _ in padded]))
+        sig = jnp.asarray(np.stack([s for _, _, s in padded]))
+        out = jax.device_get(_solve_many(stacked, group.static, raw, sig, rtol, atol, max_steps))
         counter[0] += 1
-    return calls
-
-
-def _collect_items(dispatched, say, label) -> list:
-    """One host-side output dict per item of `_dispatch_items`' calls (waits for them)."""
-    outputs = []
-    for c, (n, out) in enumerate(dispatched):
-        out = jax.device_get(out)
-        outputs.extend({k: v[j] for k, v in out.items()} for j in range(n))
-        say(f"{label}: chunk {c + 1}/{len(dispatched)} done ({n} solves)")
+        for j in range(len(part)):
+            outputs.append({k: v[j] for k, v in out.items()})
+        say(f"{label}: chunk {c + 1}/{n_chunks} done ({len(part)} solves)")
     return outputs
 
 
@@ -566,83 +513,52 @@ def _fit_output_error(
     devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, max_steps, rtol,
     atol, solver, chunk_size, memory_budget_bytes, say,
 ) -> BatchResult:
-    """`fit_batch` of output-error (least-squares) problems, wave by wave (a wave: the devices
-    of one structure whose solves fill one chunk). This thread runs the compiled calls of each
-    wave (its starts, its re-fits at the re-estimated noise, its fitted models) back to back,
-    while one host thread does the interpreter work: first it builds the problems of every
-    device after the first chunk's worth (while those solve), then it assembles the waves
-    already solved (residual tests and `_fit._assemble`). A compiled call releases the
-    interpreter, so on two or more cores that work overlaps the solves instead of preceding
-    or following all of them."""
+    """`fit_batch` of output-error (least-squares) problems, group by group and, within a
+    group, wave by wave (a wave: the devices whose solves fill one chunk). This thread runs
+    the compiled calls of each wave (its starts, its re-fits at the re-estimated noise, its
+    fitted models) back to back, while one host thread assembles the waves already solved
+    (residual tests and `_fit._assemble`): a compiled call releases the interpreter, so on
+    two or more cores the host work of wave k overlaps the solves of wave k + 1 instead of
+    following all of them."""
     max_steps = 200 if max_steps is None else int(max_steps)
-    plan = _plan(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver)
+    prepared, groups = _prepare(
+        devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver
+    )
     opts = (float(rtol), float(atol), int(max_steps))
     budget, max_chunk = device_budget()
     if memory_budget_bytes is not None:
         budget = float(memory_budget_bytes)
-    n = len(devices)
-    # the first device sizes the chunks (bytes per solve, starts per device; the batch is
-    # taken to be of its structure, the usual case); the devices filling the first chunk are
-    # built here, the rest in the host thread while they solve
-    first, _ = _build(plan, [0])
-    b0, starts0 = bytes_per_item(first[0].problem), len(first[0].starts)
-    chunk0 = int(chunk_size) if chunk_size else chunk_size_for(b0, budget, n * starts0, max_chunk)
-    head = min(n, max(1, chunk0 // starts0))
     counter = [0]
-    results, chunks, item_bytes = {}, {}, {}
+    results, item_bytes, chunk_used = {}, 0, 0
     host = ThreadPoolExecutor(max_workers=1, thread_name_prefix="greybox-assemble")
     try:
-        parts = [_build(plan, range(head))]
-        rest = host.submit(_build, plan, range(head, n)) if head < n else None
-        assembled, built = [], head
-        while parts:
-            prepared, groups = parts.pop()
-            for group in groups:
-                members = group.members
-                n_items = sum(len(prepared[i].starts) for i in members)
-                if not chunks:  # the first device's structure: sized above
-                    chunks[group.key], item_bytes[group.key] = chunk0, b0
-                elif group.key not in chunks:  # one chunk size (one compiled call) per structure
-                    b = bytes_per_item(prepared[members[0]].problem)
-                    estimate = math.ceil(n_items * n / built)  # this structure's share of all
-                    chunks[group.key] = int(chunk_size) if chunk_size else chunk_size_for(
-                        b, budget, estimate, max_chunk
-                    )
-                    item_bytes[group.key] = b
-                chunk = chunks[group.key]
-                label = f"structure {list(chunks).index(group.key) + 1}"
-                say(
-                    f"{label}: {len(members)} devices, {n_items} solves, chunks of {chunk} "
-                    f"(~{item_bytes[group.key] * chunk / 1e6:.0f} MB each)"
-                )
-                waves = _waves(members, [len(prepared[i].starts) for i in members], chunk)
-                # the starts of the next wave are dispatched before this wave's own re-fit and
-                # models: the compiled queue never runs dry while this thread waits for the
-                # interpreter (held by the host thread)
-                started = _start_wave(prepared, waves[0], chunk, opts, counter)
-                for w in range(len(waves)):
-                    following = (
-                        _start_wave(prepared, waves[w + 1], chunk, opts, counter)
-                        if w + 1 < len(waves)
-                        else None
-                    )
-                    wave_label = f"{label} wave {w + 1}/{len(waves)}"
-                    solved = _finish_wave(prepared, started, chunk, opts, say, wave_label, counter)
-                    assembled.append(host.submit(_assemble_wave, prepared, *solved))
-                    started = following
-                say(f"{label}: {len(members)} devices solved")
-            if rest is not None:
-                parts.append(rest.result())
-                rest, built = None, n
+        assembled = []
+        for g, group in enumerate(groups):
+            members = group.members
+            n_items = sum(len(prepared[i].starts) for i in members)
+            b = bytes_per_item(prepared[members[0]].problem)
+            chunk = (
+                int(chunk_size) if chunk_size else chunk_size_for(b, budget, n_items, max_chunk)
+            )
+            item_bytes, chunk_used = max(item_bytes, b), max(chunk_used, chunk)
+            label = f"group {g + 1}/{len(groups)}"
+            say(
+                f"{label}: {len(members)} devices, {n_items} solves, chunks of {chunk} "
+                f"(~{b * chunk / 1e6:.0f} MB each)"
+            )
+            waves = _waves(members, [len(prepared[i].starts) for i in members], chunk)
+            for w, wave in enumerate(waves):
+                wave_label = f"{label} wave {w + 1}/{len(waves)}"
+                solved = _solve_wave(prepared, wave, chunk, opts, say, wave_label, counter)
+                assembled.append(host.submit(_assemble_wave, prepared, wave, *solved))
+            say(f"{label}: {len(members)} devices solved")
         for future in assembled:
             results.update(future.result())
-    finally:  # an error or an interrupt: drop the work not yet started, do not wait on it
+    finally:  # an error or an interrupt: drop the waves not yet assembled, do not wait on them
         host.shutdown(wait=True, cancel_futures=True)
     say(f"{len(results)} devices assembled")
     ordered = {d.name: results[d.name] for d in devices}
-    return BatchResult(
-        ordered, len(chunks), max(chunks.values()), counter[0], max(item_bytes.values())
-    )
+    return BatchResult(ordered, len(groups), chunk_used, counter[0], item_bytes)
 
 
 def _waves(members, n_starts, chunk) -> list:
@@ -657,19 +573,12 @@ def _waves(members, n_starts, chunk) -> list:
     return waves + [wave] if wave else waves
 
 
-def _start_wave(prepared, wave, chunk, opts, counter) -> tuple:
-    """Dispatch the starts of every device of `wave` (not waited for): (wave, the calls)."""
+def _solve_wave(prepared, wave, chunk, opts, say, label, counter) -> tuple:
+    """The compiled work of one wave: every start, the best start's re-fit at the robust
+    noise estimate where the noise is estimated, the fitted models. Returns (runs per device,
+    (best index, best solve, sigma, steps) per device, fitted models per device)."""
     items = [(i, s, prepared[i].sigma0) for i in wave for s in prepared[i].starts]
-    return wave, _dispatch_items(prepared, items, chunk, opts, counter)
-
-
-def _finish_wave(prepared, started, chunk, opts, say, label, counter) -> tuple:
-    """The rest of the compiled work of a wave whose starts `_start_wave` dispatched: the best
-    start's re-fit at the robust noise estimate where the noise is estimated, the fitted
-    models. Returns (wave, runs per device, (best index, best solve, sigma, steps) per device,
-    fitted models per device)."""
-    wave, dispatched = started
-    outs = _collect_items(dispatched, say, f"{label} starts")
+    outs = _run_items(prepared, items, chunk, *opts, say, f"{label} starts", counter)
     runs_of, k = {}, 0
     for i in wave:
         n = len(prepared[i].starts)
@@ -693,7 +602,7 @@ def _finish_wave(prepared, started, chunk, opts, say, label, counter) -> tuple:
             best_of[i] = (bi, out, sig, steps + int(out["steps"]))
     raws = {i: np.asarray(best_of[i][1]["raw"]) for i in wave}
     models = _fitted_models(prepared, wave, raws, chunk)
-    return wave, runs_of, best_of, models
+    return runs_of, best_of, models
 
 
 def _assemble_wave(prepared, wave, runs_of, best_of, models) -> dict:

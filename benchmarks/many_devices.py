@@ -19,6 +19,12 @@ constant are drawn from a known log-normal population. It measures
     `assemble_s`: the per-device `_fit._assemble`). The last two run in `fit_batch`'s host
     thread while the next wave solves, so the phases add up to more than the wall time;
     `host_overlap_s` is by how much;
+(c') `compiled_alone_s`: the same compiled calls run alone (`compiled_alone`: every wave's
+    starts, re-fits and models back to back, problems built beforehand, no host work), and
+    `compiled_alone_share` = that over the batch's wall time: beside the host thread the
+    solves run slower (they share the two cores), and `solve_share` counts that slowdown
+    as compiled time, so this is the stricter figure of how much of the batch is the work
+    only compiled code can do;
 (d) optionally (`--dask`) `fit_distributed` on a Dask `LocalCluster` of `--workers` processes;
 
 and checks that the batch agrees with the single fits of the loop (`batch_vs_fit_max_rel`)
@@ -154,6 +160,24 @@ class PhaseTimer:
         _fit._assemble = self.saved_assemble
 
 
+def compiled_alone(devices, free, chunk) -> float:
+    """Wall time of the batch's compiled work alone: every wave's starts, re-fits at the
+    estimated noise and fitted models (`_batch._solve_wave`) run back to back by one thread,
+    in chunks of `chunk`, on problems built beforehand, with no residual tests, no assembly
+    and no host thread (warm: compiled by the batch before)."""
+    solver = (1e-8, 1e-10, 16384)  # fit_batch's defaults, as the timed batch runs
+    prepared, groups = _batch._prepare(
+        devices, tuple(free), None, "huber", 1.5, 4.0, None, None, 0, solver
+    )
+    opts, counter, quiet = (1e-6, 1e-6, 200), [0], lambda _m: None
+    t0 = time.perf_counter()
+    for group in groups:
+        starts = [len(prepared[i].starts) for i in group.members]
+        for wave in _batch._waves(group.members, starts, chunk):
+            _batch._solve_wave(prepared, wave, chunk, opts, quiet, "", counter)
+    return time.perf_counter() - t0
+
+
 def max_rel_diff(a, b):
     """Largest relative difference over every parameter value of two {name: FitResult}."""
     worst = 0.0
@@ -219,7 +243,11 @@ def main(argv=None):
         t0 = time.perf_counter()
         batch = greybox.fit_batch(batch_devs, free)
         batch_s = time.perf_counter() - t0
-    say(f"batch: first call {batch_first_s:.1f} s, warm {batch_s:.2f} s; phases {phases.t}")
+    alone_s = compiled_alone(batch_devs, free, batch.chunk_size)
+    say(
+        f"batch: first call {batch_first_s:.1f} s, warm {batch_s:.2f} s; phases {phases.t}; "
+        f"its compiled work alone {alone_s:.2f} s"
+    )
     common = [k for k in single if k in batch.results]
     agree = max_rel_diff({k: batch[k] for k in common}, {k: single[k] for k in common})
 
@@ -241,6 +269,8 @@ def main(argv=None):
         "models_s": round(phases.t["models"], 3),
         "assemble_s": round(phases.t["assemble"], 3),
         "host_overlap_s": round(sum(phases.t.values()) - batch_s, 3),
+        "compiled_alone_s": round(alone_s, 3),
+        "compiled_alone_share": round(alone_s / batch_s, 3),
         "batch_chunk": batch.chunk_size,
         "batch_calls": batch.n_calls,
         "bytes_per_solve": batch.bytes_per_item,

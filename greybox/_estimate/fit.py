@@ -549,12 +549,14 @@ def _solve(
     # a start stopped by the stall test in the interior, with (almost) nothing left to gain,
     # has converged by the likelihood back end's own test: its raw tolerances failed only on
     # rounding (the remaining step is a tiny fraction of a standard error)
-    settled = stalled & ~pinned(raw) & (_gauss_newton_decrement(jac, res) < DECREMENT_TOL)
+    decrement = _gauss_newton_decrement(jac, res)
+    settled = stalled & ~pinned(raw) & (decrement < DECREMENT_TOL)
     return dict(
         raw=raw,
         ok=ok | settled,
         steps=steps,
         stalled=stalled & ~settled,
+        decrement=decrement,
         cost=0.5 * jnp.sum(res**2),
         residuals=res,
         data_residuals=d,
@@ -593,7 +595,9 @@ def _stall_reason(best) -> str | None:
     return (
         f"the cost fell by less than {STALL_RTOL:g} (relative; {STALL_RTOL_AT_BOUND:g} while a "
         f"parameter sat on a bound) over the last {STALL_WINDOW} "
-        f"Levenberg-Marquardt steps (stopped after {int(best['steps'])}): the optimiser stalled, "
+        f"Levenberg-Marquardt steps (stopped after {int(best['steps'])}; a Gauss-Newton step "
+        f"would still lower the cost by {0.5 * float(best.get('decrement', np.nan)):.3g}): "
+        "the optimiser stalled, "
         "typically a parameter drifting along a direction the data barely constrain or "
         "toward a bound; fix or bound that parameter, or revise the model"
     )

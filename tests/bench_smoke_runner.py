@@ -1,6 +1,6 @@
 """Run several benchmark scripts with `--smoke` in this one process, one after another, as
 `python benchmarks/NAME --smoke` would (run as `__main__`, the script's folder first on
-sys.path, its own argv), and print one JSON line per script: its name, exit status, stdout
+sys.path, its own argv), and print one JSON line per script: its name, exit status, seconds, stdout
 and stderr.
 
 Used by tests/test_benchmarks_smoke.py: one Python + JAX start-up for several scripts instead
@@ -15,6 +15,7 @@ import io
 import json
 import runpy
 import sys
+import time
 import traceback
 from pathlib import Path
 
@@ -25,7 +26,7 @@ def run_one(name: str) -> dict:
     out, err = io.StringIO(), io.StringIO()
     argv, path = sys.argv[:], sys.path[:]
     sys.argv, sys.path = [str(BENCH / name), "--smoke"], [str(BENCH), *path]
-    code = 0
+    code, t0 = 0, time.perf_counter()
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             runpy.run_path(str(BENCH / name), run_name="__main__")
@@ -39,7 +40,8 @@ def run_one(name: str) -> dict:
         err.write(traceback.format_exc())
     finally:
         sys.argv, sys.path = argv, path
-    return {"name": name, "returncode": code, "stdout": out.getvalue(), "stderr": err.getvalue()}
+    return {"name": name, "returncode": code, "seconds": round(time.perf_counter() - t0, 2),
+            "stdout": out.getvalue(), "stderr": err.getvalue()}  # fmt: skip
 
 
 if __name__ == "__main__":

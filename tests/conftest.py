@@ -6,6 +6,14 @@ One JAX compilation cache serves the whole session: the pytest-xdist workers, an
 processes; the second one then loads the executable instead of compiling it again. The cache
 lives in a temporary folder made for the session and removed at its end, so no run sees
 another's executables (set GREYBOX_TEST_JAX_CACHE to keep one across sessions).
+
+What it does not share: any program that holds a host callback, which JAX never writes to the
+cache ("Not writing persistent cache entry ... because it uses host callbacks"). Every fit's
+solve and response do (equinox's `error_if` inside optimistix and diffrax is a
+`pure_callback` under `EQX_ON_ERROR=raise`, the default), so each process compiles its own
+fits. `EQX_ON_ERROR=nan` makes them cacheable but saved nothing measurable here (tracing
+dominates; tests/test_benchmarks_smoke.py 107 -> 110 s CPU), and it would test another
+error mode than users run, so it is not set.
 """
 
 import os

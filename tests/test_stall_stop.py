@@ -121,6 +121,8 @@ def test_gauss_newton_decrement_is_twice_the_cost_left_to_gain():
         left = 0.5 * np.sum((a @ x - b) ** 2) - min_cost
         got = float(_gauss_newton_decrement(jnp.asarray(a), jnp.asarray(a @ x - b)))
         assert got == pytest.approx(2.0 * left, rel=1e-8)
+    a[3, 1] = np.nan  # a Jacobian that is not finite settles nothing
+    assert np.isnan(float(_gauss_newton_decrement(jnp.asarray(a), jnp.asarray(b))))
 
 
 def test_a_stalled_start_with_nothing_left_to_gain_has_converged():

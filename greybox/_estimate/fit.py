@@ -572,13 +572,17 @@ def _gauss_newton_decrement(jac, res):
     """g^T H^+ g (twice the cost a Gauss-Newton step would still gain; g = J^T r, H = J^T J)
     on the determined subspace: columns scaled to unit norm, eigenvalues of H at least
     RANK_TOL^2 of the largest (the identifiability report's rank cut). Drift along an
-    undetermined direction is the identifiability report's to flag, not non-convergence."""
+    undetermined direction is the identifiability report's to flag, not non-convergence.
+    NaN when the Jacobian or the residuals are not finite (nothing is known then)."""
+    finite = jnp.all(jnp.isfinite(jac)) & jnp.all(jnp.isfinite(res))
+    jac, res = jnp.where(finite, jac, 0.0), jnp.where(finite, res, 0.0)
     norm = jnp.sqrt(jnp.sum(jac**2, axis=0))
     js = jac / jnp.where(norm > 0, norm, 1.0)
     w, v = jnp.linalg.eigh(js.T @ js)
     keep = w > RANK_TOL**2 * w[-1]
     gt = v.T @ (js.T @ res)
-    return jnp.sum(jnp.where(keep, gt**2 / jnp.where(keep, w, 1.0), 0.0))
+    decrement = jnp.sum(jnp.where(keep, gt**2 / jnp.where(keep, w, 1.0), 0.0))
+    return jnp.where(finite, decrement, jnp.nan)
 
 
 def _ending(out) -> str:

@@ -64,7 +64,7 @@ from greybox._simulate.simulate import (
     observe_schedule,
     pad_schedules,
     require_x64,
-    schedule_for,
+    schedules_for,
 )
 from greybox._estimate.verdict import interval_verdict
 
@@ -349,21 +349,14 @@ class _Problem(eqx.Module):
     @staticmethod
     def build(  # the problem's settings, in `fit`'s order
         model, experiments, free, method, loss, huber_c, student_nu, rtol, atol, max_steps,
-        *, schedules=None, padded=None, on_device: bool = True,
+        *, padded=None, on_device: bool = True,
     ):  # fmt: skip
-        """`schedules`: the runs' `Schedule`s when already built; `padded`: their stacked,
-        padded arrays (`pad_schedules`) when a batch already padded them jointly with other
-        devices' runs; `on_device=False` keeps numpy leaves (a batch stacks many problems
-        before one transfer)."""
-        if padded is not None:
-            sched = padded
-        else:
-            if schedules is None:
-                schedules = [
-                    schedule_for(model, e.inputs, e.t_s, t_start_s=e.t_start_s)
-                    for e in experiments
-                ]
-            sched = pad_schedules(schedules, on_device=on_device)
+        """`padded`: the runs' stacked, padded schedule arrays (`pad_schedules`) when a batch
+        already padded them jointly with other devices' runs; `on_device=False` keeps numpy
+        leaves (a batch stacks many problems before one transfer)."""
+        if padded is None:
+            padded = pad_schedules(schedules_for(model, experiments), on_device=on_device)
+        sched = padded
         put = jnp.asarray if on_device else np.asarray
         n_exp = len(experiments)
         n_frames = sched["t_s"].shape[1]

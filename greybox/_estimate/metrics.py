@@ -36,11 +36,8 @@ def fit_percent(y, y_hat) -> float:
             f"y: has {np.shape(y)[1]} output columns; fit % is per output, use "
             "fit_percent_per_output (pooling channels with different spreads misleads)"
         )
-    y, y_hat = _valid(y, y_hat)
-    spread = np.linalg.norm(y - y.mean())
-    if spread == 0:
-        return float("nan")  # a constant signal has no variation to explain
-    return float(100.0 * (1.0 - np.linalg.norm(y - y_hat) / spread))
+    _valid(y, y_hat)  # the checks: same shapes, at least one finite sample
+    return float(fit_percent_per_output(y, y_hat)[0])  # NaN for a constant signal
 
 
 def rmse(y, y_hat) -> float:
@@ -69,10 +66,9 @@ def r_squared(y, y_hat) -> float:
 
 def fit_percent_per_output(y, y_hat) -> np.ndarray:
     """(n_y,) fit % of each output column of `y`, `y_hat` ((N,) or (N, n_y)), each over its
-    own finite samples; NaN for a column with fewer than two of them or no spread.
-
-    `fit_percent` of each column, computed for all columns at once (a batch of devices asks
-    for it per run and output)."""
+    own finite samples; NaN for a column with fewer than two of them or no spread (a constant
+    signal has no variation to explain). All columns at once: a batch of devices asks for it
+    per run and output; `fit_percent` is its one-column case."""
     y = np.asarray(y, dtype=float)
     y_hat = np.asarray(y_hat, dtype=float)
     if y.shape != y_hat.shape:

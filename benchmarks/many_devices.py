@@ -61,6 +61,7 @@ host thread than alone.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import resource
@@ -169,11 +170,14 @@ def compiled_alone(devices, free, chunk) -> float:
     estimated noise and fitted models (`_batch._solve_wave`) run back to back by one thread,
     in chunks of `chunk`, on problems built beforehand, with no residual tests, no assembly
     and no host thread (warm: compiled by the batch before)."""
-    solver = (1e-8, 1e-10, 16384)  # fit_batch's defaults, as the timed batch runs
+    d = {k: v.default for k, v in inspect.signature(greybox.fit_batch).parameters.items()}
+    solver = (d["solver_rtol"], d["solver_atol"], d["solver_max_steps"])  # as the timed batch
     prepared, groups = _batch._prepare(
-        devices, tuple(free), None, "huber", 1.5, 4.0, None, None, 0, solver
+        devices, tuple(free), d["method"], d["loss"], d["huber_c"], d["student_nu"],
+        d["sigma"], d["n_starts"], d["seed"], solver,
     )
-    opts, counter, quiet = (1e-6, 1e-6, 200), [0], lambda _m: None
+    max_steps = 200 if d["max_steps"] is None else d["max_steps"]  # fit_batch's own default
+    opts, counter, quiet = (d["rtol"], d["atol"], max_steps), [0], lambda _m: None
     t0 = time.perf_counter()
     for group in groups:
         starts = [len(prepared[i].starts) for i in group.members]

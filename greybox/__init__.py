@@ -132,7 +132,10 @@ _MOVED = {
     "with_shared": "parameters",
 }
 __all__ = list(_NAMES)
-__version__ = _metadata.version("greybox")
+try:
+    __version__ = _metadata.version("greybox")
+except _metadata.PackageNotFoundError:  # a source tree on PYTHONPATH, not installed (a GPU box)
+    __version__ = "0+source"
 
 __getattr__, __dir__ = _lazy_names(__name__, _NAMES, _SUBPACKAGES, moved=_MOVED)
 

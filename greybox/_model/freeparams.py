@@ -318,7 +318,9 @@ def levenberg_marquardt(
     None runs to the tolerances or `max_steps` only."""
     import optimistix as optx
 
-    lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    from greybox._model.householder import lm_linear_solver
+
+    lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lm_linear_solver())
     solver = lm if stall_window is None else _stall_solver()(
         lm, int(stall_window), float(stall_rtol), STALL_RTOL_AT_BOUND, pinned
     )

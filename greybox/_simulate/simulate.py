@@ -32,6 +32,7 @@ import numpy as np
 from greybox._model.data import check_times
 from greybox._model.device import METHODS, AbstractDevice, AbstractSteppedDevice, check_method
 from greybox._model.waveforms import PiecewiseConstant
+from greybox._platform import on_accelerator
 
 
 def require_x64(where: str) -> None:
@@ -244,14 +245,14 @@ def zoh_scan_kind(n_intervals: int, scan: str = "auto") -> str:
     """Which scan steps the ZOH intervals: "sequential" (one interval after another) or
     "associative" (`jax.lax.associative_scan`, log depth: what an accelerator needs, since a
     sequential scan runs one tiny kernel per interval). "auto" takes the associative scan on
-    an accelerator (`jax.default_backend() != "cpu"`) or for records of at least
+    an accelerator (`greybox._platform.on_accelerator()`) or for records of at least
     `ASSOCIATIVE_MIN_INTERVALS` intervals, else the sequential one. Both give the same
     states to rounding (`tests/test_simulate_scan.py`)."""
     if scan not in ZOH_SCANS:
         raise ValueError(f"zoh_scan: {scan!r} is unknown; use one of {ZOH_SCANS}")
     if scan != "auto":
         return scan
-    if jax.default_backend() != "cpu" or int(n_intervals) >= ASSOCIATIVE_MIN_INTERVALS:
+    if on_accelerator() or int(n_intervals) >= ASSOCIATIVE_MIN_INTERVALS:
         return "associative"
     return "sequential"
 

@@ -13,6 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from greybox._model.householder import lm_linear_solver
+
 from ._poly import poly_from_reflection
 
 
@@ -51,7 +53,7 @@ def stable_poly(kappa):
 
 def _lm_solve(resid, theta0, args, to_direct, max_steps):
     """LM on resid(theta, args); also returns the Jacobian and d(direct)/d(theta)."""
-    solver = optx.LevenbergMarquardt(rtol=1e-7, atol=1e-10)
+    solver = optx.LevenbergMarquardt(rtol=1e-7, atol=1e-10, linear_solver=lm_linear_solver())
     sol = optx.least_squares(resid, solver, theta0, args, max_steps=max_steps, throw=False)
     theta = sol.value
     r = resid(theta, args)

@@ -20,6 +20,7 @@ RING = {
     "greybox._log": 0,  # the library's logger
     "greybox._lazy": 0,  # names imported on first use
     "greybox._extras": 0,  # the message naming a missing optional extra
+    "greybox._platform": 0,  # the processor a trace will run on (algorithm choices)
     "greybox.blocks": 0,
     "greybox._simulate": 1,
     "greybox.stochastic": 2,

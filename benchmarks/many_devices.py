@@ -1,4 +1,4 @@
-"""Many devices: a loop of `greybox.fit` calls vs one vmapped batch (issues 19 and 24).
+"""Many devices: a loop of `greybox.fit` calls vs one compiled batch (issues 19 and 24).
 
 Synthetic chevron-laser devices (six short pulse-train runs each, 30 fps camera with jitter,
 noise and dropped frames, from `greybox.waveforms.record`) whose absorptance and thermal time
@@ -12,7 +12,7 @@ constant are drawn from a known log-normal population. It measures
 (b) `batch_fits_per_min`: `fit_batch` of `--devices` devices (default 512), warm: a first
     call of the same batch compiles (`batch_first_s`, reported apart), the second is timed;
 (c) `solve_share`: the fraction of the warm batch's wall time spent inside compiled code:
-    the vmapped solver (`_batch._solve_many`, waited for, `solve_s`) and the vmapped fitted
+    the batched solver (`_batch._solve_many`, waited for, `solve_s`) and the vmapped fitted
     models (`_batch._fitted_models`, `models_s`), both run back to back by the calling
     thread; beside it the host phases (`prepare_s`: `_batch._prepare`, before any solve;
     `residual_tests_s`: the residual tests of each wave of devices in one vectorised pass;
@@ -56,6 +56,13 @@ Then (load 0.66), after a stalled start with nothing left to gain counts as conv
 512 devices valid (506 before), 5,630 fits/min (5.46 s warm), solve_share 0.69, the compiled
 calls alone 2.57 s (compiled_alone_share 0.47): the solves run ~1.2x slower beside the
 host thread than alone.
+Then (2026-11-26, alternating runs of main at 030f403 and this change, loads 1.0-1.3, the
+machine slower than the day before): a chunk's solves one after another (`lax.map`) on the
+CPU instead of vmapped. Before: 7.47 and 7.71 s warm (4,115 and 3,984 fits/min),
+compiled alone 3.2-4.4 s, solve_share 0.66-0.71. After: 6.66 and 6.03 s (4,615 and 5,095
+fits/min), compiled alone 2.05-2.10 s, solve_share 0.33-0.40, batch_vs_fit_max_rel 0.0 (each
+solve is bit for bit `fit`'s). The batch is now the host thread's time (prepare ~1, residual
+tests ~2.7, assembly ~2.2 s), which is why solve_share fell as the solves got faster.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """Batched fits: many devices, one compiled solver (issue 19).
 
 `fit_batch(devices, free)` fits every device exactly as `greybox.fit` would fit it alone, but
-runs the Levenberg-Marquardt solves of all devices through ONE compiled function, vmapped over
-devices:
+runs the Levenberg-Marquardt solves of all devices through ONE compiled function over chunks
+of devices (vmapped on an accelerator, one solve after another on a CPU: `map_over_items`):
 
 - devices are grouped by their problem structure (the same free parameters and transforms,
   the same number of runs, the same settings paths, method and loss); within a group every
@@ -54,10 +54,11 @@ from greybox._model.data import Experiment
 from greybox._model.device import check_method
 from greybox._model.freeparams import FreeParameter
 from greybox._model.parameters import get_value
+from greybox._platform import map_over_items
 from greybox._simulate.simulate import pad_schedules, require_x64, schedules_for, zoh_scan_kind
 
-MAX_CHUNK = 64  # solves per compiled call on a CPU: beyond this vmap gains nothing there (a
-# vmapped solve runs as long as its slowest member), and smaller waves overlap the host better
+MAX_CHUNK = 64  # solves per compiled call on a CPU (one after another there, `map_over_items`):
+# more saves little dispatch, and smaller waves overlap the host work better
 MAX_CHUNK_ACCELERATOR = 65536  # on a GPU/TPU the memory budget is what limits a chunk
 ACCELERATOR_MEMORY_SHARE = 0.5  # of the accelerator memory not in use, for one chunk
 CPU_MEMORY_SHARE = 0.25  # of the physical memory, for one chunk
@@ -185,12 +186,13 @@ def chunk_size_for(bytes_item: int, budget: float, n_items: int, max_chunk=MAX_C
 
 @eqx.filter_jit
 def _solve_many(dynamic, static, raw, sigma, rtol, atol, max_steps):
-    """`_fit._solve` vmapped over a stacked chunk of problems (one compiled function)."""
+    """`_fit._solve` over a stacked chunk of problems (one compiled function; vmapped on an
+    accelerator, one solve after another on a CPU: `map_over_items`)."""
 
     def one(dyn, r, s):
         return _fit._solve(eqx.combine(dyn, static), r, s, rtol, atol, max_steps)
 
-    return jax.vmap(one)(dynamic, raw, sigma)
+    return map_over_items(one, dynamic, raw, sigma)
 
 
 @eqx.filter_jit

@@ -1,5 +1,5 @@
 """`fit_batch(..., noise=ProcessNoise(...))`: many devices of one structure fitted by maximum
-likelihood with the likelihood back end's one compiled optimiser, vmapped over devices.
+likelihood with the likelihood back end's one compiled optimiser, over chunks of devices.
 
 - Each device is set up exactly as `greybox.fit` sets it up alone (`likelihood.setup`: the
   filtered `StochasticDevice`, data-based noise starts, scales, multi-start points).
@@ -10,10 +10,11 @@ likelihood with the likelihood back end's one compiled optimiser, vmapped over d
   unchanged, which `FilterGrid` does not offer; runs of different lengths therefore form
   different groups rather than being padded.
 - Every start of every device of a group is an item; items run in chunks of one size through
-  `likelihood._newton` vmapped (its `lax.while_loop` runs until the last item of a chunk
-  has converged, each pass evaluating one point for every item whatever phase it is in; an
-  item that is done keeps its state, so each item's result is the one the
-  unbatched solve gives, to rounding). The last chunk is padded with copies of its last item,
+  `likelihood._newton`, one after another on a CPU and vmapped on an accelerator
+  (`map_over_items`; vmapped, its `lax.while_loop` runs until the last item of a chunk has
+  converged, each pass evaluating one point for every item whatever phase it is in; an
+  item that is done keeps its state, so each item's result is the one the unbatched solve
+  gives, to rounding). The last chunk is padded with copies of its last item,
   so a group compiles once. Reviving vanished noise intensities (`likelihood.revive`) reuses
   the same compiled chunk.
 - Each device's `FitResult` is assembled by `likelihood.assemble`, as `fit` assembles it
@@ -31,18 +32,20 @@ import jax.tree_util as jtu
 import numpy as np
 
 from greybox._estimate import likelihood as _lik
+from greybox._platform import map_over_items
 
 MAX_CHUNK = 64  # likelihood solves per compiled call (each carries its own Hessian work)
 
 
 @eqx.filter_jit
 def _newton_many(dynamic, static, raws, budget):
-    """`likelihood._newton` vmapped over a chunk of stacked objectives and start points."""
+    """`likelihood._newton` over a chunk of stacked objectives and start points (vmapped on
+    an accelerator, one after another on a CPU: `map_over_items`)."""
 
     def one(dyn, raw):
         return _lik._newton(eqx.combine(dyn, static), raw, budget)
 
-    return jax.vmap(one)(dynamic, raws)
+    return map_over_items(one, dynamic, raws)
 
 
 def _key(obj) -> tuple:

@@ -1,15 +1,16 @@
 """Does a solve's result depend on the batch it rides in? 8 solves alone and inside 1,000.
 
 The chevron problems of `benchmarks/gpu_many_devices.py` (a recorded pool, every further
-device a copy with fresh noise) are solved through the compiled, vmapped solver
-(`_batch._solve_many`) twice: the first `--small` of them in one call of that size, and all
-`--large` in one call. Inside `jax.vmap`, Levenberg-Marquardt's while loop runs until every
-member has stopped; a member that has stopped must keep its iterate, step count, damping and
-verdict frozen. Reported: the largest relative difference of the raw estimates
-(`max_rel`), how many of the small batch's step counts and verdicts differ inside the large
-one (`steps_differ`, `ok_differ`; all should be 0), and the step counts' spread in the large
-batch (its members do stop at different steps). `tests/test_batch_independence.py` is the
-same check at 8 against 64.
+device a copy with fresh noise) are solved through the compiled chunk solver
+(`_batch._solve_many`; vmapped on an accelerator, and on a CPU with `--vmapped`) twice:
+the first `--small` of them in one call of that size, and all `--large` in one call.
+Inside `jax.vmap`, Levenberg-Marquardt's while loop runs until every member has stopped;
+a member that has stopped must keep its iterate, step count, damping and verdict frozen.
+Reported: the largest relative difference of the raw estimates (`max_rel`), how many of
+the small batch's step counts and verdicts differ inside the large one (`steps_differ`,
+`ok_differ`; all should be 0), and the step counts' spread in the large batch (its members
+do stop at different steps). `tests/test_batch_independence.py` is the same check at 8
+against 64, both ways.
 
 Usage: .venv/bin/python benchmarks/batch_independence.py [--large 1000] [--smoke]
 Last line: one JSON object.
@@ -36,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import gpu_many_devices as gpu  # noqa: E402
 import many_devices as md  # noqa: E402
 
+import greybox._platform  # noqa: E402
 from greybox._estimate import batch as _batch  # noqa: E402
 
 SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
@@ -46,8 +48,16 @@ def main(argv=None):
     ap.add_argument("--small", type=int, default=8)
     ap.add_argument("--large", type=int, default=1000)
     ap.add_argument("--pool", type=int, default=16)
+    ap.add_argument(
+        "--vmapped",
+        action="store_true",
+        help="on a CPU, solve as an accelerator does (vmapped, its step QR); a CPU's own "
+        "chunks run their solves one after another, which cannot depend on the batch",
+    )
     ap.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
     args = ap.parse_args(argv)
+    if args.vmapped:
+        greybox._platform.on_accelerator = lambda: True
     if args.smoke:
         args.large, args.pool = 16, 4
     free = tuple(md.SPEC.free_parameters())
@@ -71,6 +81,7 @@ def main(argv=None):
     diff = np.abs(alone["raw"] - inside["raw"][: args.small])
     out = {
         "backend": jax.default_backend(),
+        "mode": "vmapped" if greybox._platform.on_accelerator() else "one after another",
         "small": args.small,
         "large": args.large,
         "max_rel": float(np.max(diff / np.maximum(np.abs(alone["raw"]), 1e-12))),

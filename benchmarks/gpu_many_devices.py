@@ -66,13 +66,12 @@ jax.config.update("jax_enable_x64", True)
 
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+import lineax as lx  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import many_devices as md  # noqa: E402
-
-import lineax as lx  # noqa: E402
 
 import greybox  # noqa: E402
 from greybox._estimate import batch as _batch  # noqa: E402
@@ -250,7 +249,8 @@ def _warm_chunk_s(group, head, raw, sig, chunk, opts, solver=None):
     """Seconds of one chunk of solves, warm; `solver` (a lineax solver class) replaces the
     Levenberg-Marquardt step's QR (`householder.lm_linear_solver`) for this timing only."""
     saved = householder.lm_linear_solver
-    if solver is not None:
+    swap = solver is not None and not isinstance(saved(), solver)  # a CPU's own is lx.QR
+    if swap:
         householder.lm_linear_solver = solver
         jax.clear_caches()  # a new trace picks the replacement up
     try:
@@ -259,7 +259,7 @@ def _warm_chunk_s(group, head, raw, sig, chunk, opts, solver=None):
         solve_all(group, head, raw, sig, chunk, opts)
         return time.perf_counter() - t0
     finally:
-        if solver is not None:
+        if swap:
             householder.lm_linear_solver = saved
             jax.clear_caches()
 

@@ -1,16 +1,19 @@
 """A solve's result does not depend on the batch it rides in (issue 24).
 
-Inside `jax.vmap`, Levenberg-Marquardt's while loop runs until every member has stopped; a
-member that has stopped must keep its iterate, step count, damping and verdict frozen while
-its batch-mates go on. Truth: the same solve in a batch of 8 whose members all stop early
+Inside `jax.vmap` (how an accelerator runs a chunk), Levenberg-Marquardt's while loop runs
+until every member has stopped; a member that has stopped must keep its iterate, step count,
+damping and verdict frozen while its batch-mates go on. A CPU runs a chunk's solves one after
+another; both are tested. Truth: the same solve in a batch of 8 whose members all stop early
 (one start per device) against the same solve in a batch of 64 in which perturbed starts of
 the same devices run longer; `benchmarks/batch_independence.py` does 8 against 1,000.
 """
 
+import jax
 import numpy as np
 import pytest
 
 import greybox
+import greybox._platform
 from greybox._estimate.batch import _prepare, _run_items
 from greybox._model.freeparams import FreeParameter
 
@@ -41,8 +44,23 @@ FREE = (
 )
 
 
-@pytest.fixture(scope="module")
-def solves():
+@pytest.fixture(scope="module", params=["cpu", "accelerator"])
+def solves(request):
+    """The solves as a CPU runs them (a chunk's solves one after another), and as an
+    accelerator does (vmapped, with the vectorised Householder step QR): there a member that
+    has stopped must stay frozen while its batch-mates go on."""
+    if request.param == "cpu":
+        return _solves()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(greybox._platform, "on_accelerator", lambda: True)
+        jax.clear_caches()  # trace the chunk solver afresh, vmapped
+        try:
+            return _solves()
+        finally:
+            jax.clear_caches()
+
+
+def _solves():
     devices = _devices(8)
     prepared, groups = _prepare(
         devices, FREE, None, "huber", 1.5, 4.0, None, 8, 0, (1e-8, 1e-10, 16384)

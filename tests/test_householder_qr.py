@@ -20,7 +20,8 @@ RNG = np.random.default_rng(24)
 
 
 def _solve(a, b):
-    return np.asarray(lx.linear_solve(lx.MatrixLinearOperator(jnp.asarray(a)), jnp.asarray(b), HouseholderQR()).value)
+    op = lx.MatrixLinearOperator(jnp.asarray(a))
+    return np.asarray(lx.linear_solve(op, jnp.asarray(b), HouseholderQR()).value)
 
 
 @pytest.mark.parametrize("m, n", [(392, 8), (12, 12), (40, 3)])

@@ -50,12 +50,12 @@ def solves(request):
     accelerator does (vmapped, with the vectorised Householder step QR): there a member that
     has stopped must stay frozen while its batch-mates go on."""
     if request.param == "cpu":
-        return _solves()
+        return (*_solves(), "cpu")
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(greybox._platform, "on_accelerator", lambda: True)
         jax.clear_caches()  # trace the chunk solver afresh, vmapped
         try:
-            return _solves()
+            return (*_solves(), "accelerator")
         finally:
             jax.clear_caches()
 
@@ -75,15 +75,23 @@ def _solves():
 
 
 def test_batch_mates_run_longer_than_the_small_batch(solves):
-    small, _, big_steps = solves
+    small, _, big_steps, _mode = solves
     # the batch of 64 keeps iterating after every member of the batch of 8 has stopped
     assert max(big_steps) > max(int(o["steps"]) for o in small)
 
 
 def test_same_solve_same_result_in_a_batch_of_8_and_of_64(solves):
-    small, in_big, _ = solves
+    small, in_big, _, mode = solves
     for a, b in zip(small, in_big):
-        assert int(a["steps"]) == int(b["steps"])
         assert bool(a["ok"]) == bool(b["ok"])
-        np.testing.assert_allclose(a["raw"], b["raw"], rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(a["cost"], b["cost"], rtol=1e-12)
+        if mode == "cpu":  # one solve after another: the same arithmetic, bit for bit
+            assert int(a["steps"]) == int(b["steps"])
+            np.testing.assert_array_equal(a["raw"], b["raw"])
+            np.testing.assert_array_equal(a["cost"], b["cost"])
+        else:  # vmapped, XLA may sum in an order that depends on the batch's size: the same
+            # end point to rounding, and a step count that can differ by a few near the
+            # stopping test (8 against 1,000: 1e-10 and one count of 8;
+            # benchmarks/batch_independence.py --vmapped)
+            assert abs(int(a["steps"]) - int(b["steps"])) <= 4
+            np.testing.assert_allclose(a["raw"], b["raw"], rtol=1e-8, atol=1e-9)
+            np.testing.assert_allclose(a["cost"], b["cost"], rtol=1e-8)

@@ -23,6 +23,9 @@ Measured, on the default JAX backend (`backend`):
 - `batch_independence_max_rel`, `batch_independence_steps_differ`: the first 64 solves
   inside the big batch against the same solves in a batch of 64 (a solve must not depend
   on the batch it rides in);
+- with `--process N` (not in `--smoke`): `process_fits_per_min`, `fit_batch` with process
+  noise (the batched likelihood back end) of N scalar Ornstein-Uhlenbeck devices, warm, and
+  `process_cpu_agreement_max_rel` against the CPU for the first `--check`;
 - `step_qr_speedup`: one chunk of solves, warm, with LAPACK's QR in each Levenberg-Marquardt
   step (`lx.QR`, `solve_chunk_lapack_qr_s`) over the same chunk with this backend's own
   (`householder.lm_linear_solver`: the vectorised Householder QR on an accelerator,
@@ -143,6 +146,13 @@ def main(argv=None):
     ap.add_argument("--pool", type=int, default=64)
     ap.add_argument("--complete", type=int, default=1024, help="devices of the full fit_batch")
     ap.add_argument("--check", type=int, default=16, help="devices compared with the CPU")
+    ap.add_argument(
+        "--process",
+        type=int,
+        default=0,
+        help="also fit this many process-noise (Ornstein-Uhlenbeck) devices with fit_batch(..., "
+        "noise=...) and compare the first --check with the CPU (0: skip; not in --smoke)",
+    )
     ap.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
     args = ap.parse_args(argv)
     if args.smoke:
@@ -229,6 +239,8 @@ def main(argv=None):
         worst = max(worst, float(np.max(np.abs(va - vb) / np.maximum(np.abs(vb), 1e-300))))
 
     partial(cpu_agreement_max_rel=worst, cpu_check_devices=len(check))
+    if args.process:
+        partial(**process_batch(args.process, args.check, say))
 
     # last (it clears the compiled functions): one chunk, warm, with this backend's step QR
     # and with LAPACK's (`lx.QR`, what every backend used before)
@@ -243,6 +255,48 @@ def main(argv=None):
         load_average=round(os.getloadavg()[0], 2),
     )
     print(json.dumps(out))
+
+
+def process_batch(n, n_check, say) -> dict:
+    """`fit_batch` with process noise (the likelihood back end, batched) of `n` scalar
+    Ornstein-Uhlenbeck devices of 200 frames (tests/ou_device.py; readings from the numpy
+    simulator tests/ou_reference.py, parameters spread around its truth), two starts each,
+    warm; and the first `n_check` again on the CPU."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from tests import ou_device as od
+    from tests import ou_reference as ou
+
+    rng = np.random.default_rng(11)
+    start = {"Ci": 2.5e6, "Rea": 6.0e-3, "q": 3.0e-6, "sd": 0.06}
+    devices = []
+    for k in range(n):
+        truth = {p: v * np.exp(0.2 * rng.normal()) for p, v in ou.TRUTH.items()}
+        y = ou.simulate(truth, 200, 1000 + k)
+        devices.append(greybox.population.Device(f"ou{k:05d}", od.model(start), [od.experiment(y)]))
+    noise = greybox.ProcessNoise(od.STRUCTURE)
+    t0 = time.perf_counter()
+    greybox.fit_batch(devices, od.FREE, noise=noise, n_starts=2)
+    first_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    res = greybox.fit_batch(devices, od.FREE, noise=noise, n_starts=2)
+    warm_s = time.perf_counter() - t0
+    say(f"process-noise fit_batch of {n}: first {first_s:.1f} s, warm {warm_s:.1f} s")
+    check = devices[:n_check]
+    with jax.default_device(jax.devices("cpu")[0]):
+        cpu = greybox.fit_batch(check, od.FREE, noise=noise, n_starts=2)
+    worst = 0.0
+    for d in check:
+        va = np.array([p.value for p in res[d.name].parameters])
+        vb = np.array([p.value for p in cpu[d.name].parameters])
+        worst = max(worst, float(np.max(np.abs(va - vb) / np.maximum(np.abs(vb), 1e-300))))
+    converged = sum(res[d.name].status == "converged" for d in devices)
+    return {
+        "process_devices": n,
+        "process_fits_per_min": round(60.0 * n / warm_s, 1),
+        "process_first_s": round(first_s, 2),
+        "process_converged": int(converged),
+        "process_cpu_agreement_max_rel": worst,
+    }
 
 
 def _warm_chunk_s(group, head, raw, sig, chunk, opts, solver=None):

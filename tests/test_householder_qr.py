@@ -13,7 +13,7 @@ from scipy.optimize import least_squares
 
 import greybox._platform
 from greybox._model.freeparams import levenberg_marquardt
-from greybox._model.householder import HouseholderQR, apply_q, householder_qr
+from greybox._model.householder import HouseholderQR, apply_q, householder_qr, lm_linear_solver
 
 jax.config.update("jax_enable_x64", True)
 RNG = np.random.default_rng(24)
@@ -77,6 +77,7 @@ def _residuals(p, y):
 
 def test_levenberg_marquardt_with_it_matches_scipy(monkeypatch):
     monkeypatch.setattr(greybox._platform, "on_accelerator", lambda: True)
+    assert isinstance(lm_linear_solver(), HouseholderQR)  # what an accelerator's fit uses
 
     def run(p0, y):
         return levenberg_marquardt(_residuals, p0, y, rtol=1e-10, atol=1e-12, max_steps=200)

@@ -170,6 +170,7 @@ def main(argv=None):
     def partial(**figures):  # each phase's figures as soon as it ends: a run cut off by its
         out.update(figures)  # device window still reports what it measured
         say("partial " + json.dumps(out))
+
     free = tuple(md.SPEC.free_parameters())
 
     t0 = time.perf_counter()

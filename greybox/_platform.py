@@ -10,12 +10,20 @@ from __future__ import annotations
 import jax
 
 
-def compute_platform() -> str:
-    """"cpu", "gpu", "tpu", ...: the platform of the default device in effect."""
+def default_device():
+    """The device computations go to: `jax.default_device`'s when one is set (a device or a
+    platform name), else JAX's first device."""
     device = jax.config.jax_default_device
     if device is None:
+        return jax.devices()[0]
+    return jax.devices(device)[0] if isinstance(device, str) else device
+
+
+def compute_platform() -> str:
+    """"cpu", "gpu", "tpu", ...: the platform of the default device in effect."""
+    if jax.config.jax_default_device is None:
         return jax.default_backend()
-    return device if isinstance(device, str) else device.platform
+    return default_device().platform
 
 
 def on_accelerator() -> bool:

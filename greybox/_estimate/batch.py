@@ -54,7 +54,7 @@ from greybox._model.data import Experiment
 from greybox._model.device import check_method
 from greybox._model.freeparams import FreeParameter
 from greybox._model.parameters import get_value
-from greybox._platform import map_over_items
+from greybox._platform import default_device, map_over_items
 from greybox._simulate.simulate import pad_schedules, require_x64, schedules_for, zoh_scan_kind
 
 MAX_CHUNK = 64  # solves per compiled call on a CPU (one after another there, `map_over_items`):
@@ -66,9 +66,10 @@ CPU_MEMORY_SHARE = 0.25  # of the physical memory, for one chunk
 
 def device_budget(device=None) -> tuple[float, int]:
     """(bytes one chunk may allocate, most solves per compiled call) on `device` (default:
-    JAX's first device): from the accelerator's own memory limit (`memory_stats`) or, on a
-    CPU, from the physical memory, never a fixed constant."""
-    device = device or jax.devices()[0]
+    the device computations go to, `jax.default_device` honoured, as the chunk solver's own
+    CPU/accelerator choice is): from the accelerator's own memory limit (`memory_stats`)
+    or, on a CPU, from the physical memory, never a fixed constant."""
+    device = device or default_device()
     stats = device.memory_stats() if device.platform != "cpu" else None
     if stats and stats.get("bytes_limit"):
         free = stats["bytes_limit"] - stats.get("bytes_in_use", 0)

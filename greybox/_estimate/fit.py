@@ -354,9 +354,9 @@ class _Problem(eqx.Module):
         """`padded`: the runs' stacked, padded schedule arrays (`pad_schedules`) when a batch
         already padded them jointly with other devices' runs; `on_device=False` keeps numpy
         leaves (a batch stacks many problems before one transfer)."""
-        if padded is None:
-            padded = pad_schedules(schedules_for(model, experiments), on_device=on_device)
         sched = padded
+        if sched is None:
+            sched = pad_schedules(schedules_for(model, experiments), on_device=on_device)
         put = jnp.asarray if on_device else np.asarray
         n_exp = len(experiments)
         n_frames = sched["t_s"].shape[1]

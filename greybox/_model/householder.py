@@ -72,24 +72,20 @@ def householder_qr(a):
     return jnp.triu(r_full[:n]), v, tau
 
 
+def _reflect(v, tau, k, b):
+    """H_k b = b - tau_k v_k (v_k^T b)."""
+    return b - tau[k] * v[:, k] * (v[:, k] @ b)
+
+
 def apply_qt(v, tau, b):
     """Q^T b = H_n ... H_1 b."""
-
-    def one(k, b):
-        return b - tau[k] * v[:, k] * (v[:, k] @ b)
-
-    return jax.lax.fori_loop(0, v.shape[1], one, b)
+    return jax.lax.fori_loop(0, v.shape[1], lambda k, b: _reflect(v, tau, k, b), b)
 
 
 def apply_q(v, tau, b):
     """Q b = H_1 ... H_n b."""
     n = v.shape[1]
-
-    def one(i, b):
-        k = n - 1 - i
-        return b - tau[k] * v[:, k] * (v[:, k] @ b)
-
-    return jax.lax.fori_loop(0, n, one, b)
+    return jax.lax.fori_loop(0, n, lambda i, b: _reflect(v, tau, n - 1 - i, b), b)
 
 
 class HouseholderQR(lx.AbstractLinearSolver):

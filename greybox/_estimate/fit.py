@@ -49,7 +49,7 @@ from greybox._model.freeparams import (
     pinned_fn,
 )
 from greybox._estimate.identifiability import RANK_TOL, IdentifiabilityReport, analyse
-from greybox._estimate.metrics import fit_percent_per_output, noise_ceiling
+from greybox._estimate.metrics import fit_percent_per_output, noise_ceiling_per_output
 from greybox._estimate.posterior import Posterior
 from greybox._estimate.residuals import (
     GoodnessOfFit,
@@ -1057,14 +1057,14 @@ def _scores(
     j4 = jac_data.reshape(e_n, n_f, n_y, -1)
     r3 = resid.reshape(e_n, n_f, n_y)
     w3 = np.asarray(problem.w).reshape(e_n, n_f, n_y) > 0
-    out, fitted = [], 0
+    left, fitted = np.zeros_like(r3), 0  # what the model-error model leaves, per run
     for i, e in enumerate(experiments):
         n = e.n_frames
         u = np.asarray(e.inputs(e.t_s), dtype=float).reshape(n, -1)  # levels at the frames
-        r, k = model_error_residuals(e.t_s, r3[i, :n], w3[i, :n], u, lags)
+        left[i, :n], k = model_error_residuals(e.t_s, r3[i, :n], w3[i, :n], u, lags)
         fitted += k
-        out.append((e.t_s, np.einsum("fyp,fy->fp", j4[i, :n], r)))
-    return out, fitted
+    g = np.einsum("efyp,efy->efp", j4, left)  # every run's scores in one product
+    return [(e.t_s, g[i, : e.n_frames]) for i, e in enumerate(experiments)], fitted
 
 
 def _assemble(
@@ -1125,12 +1125,7 @@ def _assemble(
 
     base, exp_models = _fitted_models(problem, jnp.asarray(raw)) if models is None else models
     sigma_out = _rms_sigma(experiments, n_y) if source == "per-frame" else np.asarray(sig)
-    fits, robust, outliers, ceilings = {}, {}, {}, {}
-    scaled = []
-    for e, zi in zip(experiments, preds):
-        s_frame = _frame_sigma(e, sigma_out)
-        fits[e.name], robust[e.name], outliers[e.name], ceilings[e.name] = _scored(e, zi, s_frame)
-        scaled.append((e.y - zi) / s_frame)
+    fits, robust, outliers, ceilings, scaled = _scored_runs(experiments, preds, sigma_out)
     gof = (
         goodness_of_fit(scaled, [e.mask for e in experiments], problem.n_raw)
         if source != "estimated" and finite
@@ -1198,23 +1193,31 @@ def _assemble(
 
 def _simulation_sd(problem, best, cov, experiments, solved) -> list:
     """Per run, the (N, n_y) sd of the simulated response from the shared parameters'
-    covariance `cov` (delta method, `prediction.delta_variance`; inf where it depends on an
-    undetermined direction), from the fit's own prediction Jacobian; NaN for a run whose
-    simulation failed, or for every run when `solved` is None (a fit that is not finite)."""
-    from greybox._estimate.prediction import delta_variance
-
+    covariance `cov`, from the fit's own prediction Jacobian (`_response_sd`); NaN for every
+    run when `solved` is None (a fit that is not finite)."""
     n_shared = len(problem.shared)
     jac = best.get("prediction_jacobian")
-    out = []
-    for i, e in enumerate(experiments):
-        n_y = problem.y.shape[-1]
-        if solved is None or jac is None or not bool(solved[i]):
-            out.append(np.full((e.n_frames, n_y), np.nan))
-            continue
-        g = np.asarray(jac[i, : e.n_frames, :, :n_shared])
-        var = delta_variance(g, cov[:n_shared, :n_shared])
-        out.append(np.sqrt(np.clip(var, 0.0, None)))
-    return out
+    if solved is None or jac is None:
+        return [np.full((e.n_frames, problem.y.shape[-1]), np.nan) for e in experiments]
+    g, c = np.asarray(jac)[..., :n_shared], cov[:n_shared, :n_shared]
+    return _response_sd(g, c, experiments, solved)
+
+
+def _response_sd(jac, cov, experiments, solved) -> list:
+    """Per run, the (N, n_y) sd of a response whose sensitivities are `jac` (runs, frames,
+    n_y, P) given the covariance `cov` (P, P) (delta method, `prediction.delta_variance`, all
+    runs in one call; inf where it depends on an undetermined direction); NaN for a run whose
+    simulation failed (`solved` False)."""
+    from greybox._estimate.prediction import delta_variance
+
+    jac = np.asarray(jac)
+    r, f, n_y, p = jac.shape
+    var = delta_variance(jac.reshape(r * f, n_y, p), cov).reshape(r, f, n_y)
+    sd = np.sqrt(np.clip(var, 0.0, None))
+    return [
+        sd[i, : e.n_frames] if bool(solved[i]) else np.full((e.n_frames, jac.shape[2]), np.nan)
+        for i, e in enumerate(experiments)
+    ]
 
 
 def unidentified_with_reasons(params, report) -> list:
@@ -1499,8 +1502,6 @@ def _shared_response(result: FitResult, experiments, fit_kwargs) -> tuple[list, 
     it cannot be had), every simulation succeeded) of the fitted physics on `experiments`
     (per-run values at the model's own), with the fit's solver settings (`fit_kwargs`
     solver_*): one compiled simulation with its sensitivities."""
-    from greybox._estimate.prediction import delta_variance
-
     shared = tuple(p for p in result.free if not p.per_experiment)
     solver = [fit_kwargs.get(k) for k in ("solver_rtol", "solver_atol", "solver_max_steps")]
     solver = [d if v is None else v for v, d in zip(solver, (1e-8, 1e-10, 16384))]
@@ -1511,20 +1512,13 @@ def _shared_response(result: FitResult, experiments, fit_kwargs) -> tuple[list, 
     z, ok, jac = jax.device_get(_response(problem, jnp.asarray(result.raw[:n])))
     cov = np.asarray(result.covariance_raw, dtype=float)[:n, :n]
     finite = np.all(np.isfinite(result.raw[:n]))
-    preds, sds = [], []
-    for i, e in enumerate(experiments):
-        preds.append(np.asarray(z[i, : e.n_frames]))
-        var = delta_variance(jac[i, : e.n_frames], cov) if finite and ok[i] else np.nan
-        sds.append(np.sqrt(np.clip(var, 0.0, None)) * np.ones_like(preds[-1]))
+    preds = [np.asarray(z[i, : e.n_frames]) for i, e in enumerate(experiments)]
+    sds = _response_sd(jac, cov, experiments, np.asarray(ok) & finite)
     return preds, sds, bool(np.all(ok))
 
 
 def _validation_scores(experiments, preds, sigma, known: bool, n_params: int):
-    fits, robust, outl, ceilings, scaled = {}, {}, {}, {}, []
-    for e, z in zip(experiments, preds):
-        s_frame = _frame_sigma(e, sigma)
-        fits[e.name], robust[e.name], outl[e.name], ceilings[e.name] = _scored(e, z, s_frame)
-        scaled.append((e.y - z) / s_frame)
+    fits, robust, outl, ceilings, scaled = _scored_runs(experiments, preds, sigma)
     gof = goodness_of_fit(scaled, [e.mask for e in experiments], n_params) if known else None
     return ValidationResult(
         experiments,
@@ -1538,10 +1532,20 @@ def _validation_scores(experiments, preds, sigma, known: bool, n_params: int):
     )
 
 
-def _scored(e: Experiment, z: np.ndarray, s_frame) -> tuple:
-    """Per output (n_y,) arrays: (simulation fit % on every valid frame, fit % without the
-    readings more than OUTLIER_SIGMAS from the model, the number of such readings (int), the
-    noise ceiling). `s_frame`: noise sd per reading (N, n_y).
+def _padded(arrays, fill: float) -> np.ndarray:
+    """(R, longest N, n_y) stack of per-run (N, n_y) arrays, shorter runs padded with `fill`."""
+    n = max(a.shape[0] for a in arrays)
+    out = np.full((len(arrays), n, arrays[0].shape[1]), fill)
+    for k, a in enumerate(arrays):
+        out[k, : a.shape[0]] = a
+    return out
+
+
+def _scored_runs(experiments, preds, sigma) -> tuple:
+    """Per run {name: value}: (simulation fit % per output (n_y,) on every valid frame, fit %
+    without the readings more than OUTLIER_SIGMAS from the model, the number of such readings
+    (int), the noise ceiling per output), and per run the residuals scaled by each reading's
+    noise sd (`_frame_sigma` from `sigma`). All runs in one stacked pass.
 
     The first is MATLAB `compare`'s figure (per output channel, as `compare` reports it) and
     the honest headline: a model that drifts away from the data loses fit % for it. The
@@ -1550,13 +1554,21 @@ def _scored(e: Experiment, z: np.ndarray, s_frame) -> tuple:
     corrupted frames would otherwise inflate std(y) and the ceiling with it); compare it with
     the second figure.
     """
-    s_frame = np.broadcast_to(np.asarray(s_frame, dtype=float), e.y.shape)
-    flagged = (np.abs((e.y - z) / s_frame) > OUTLIER_SIGMAS) & e.mask
-    clean = np.where(flagged, np.nan, e.y)
-    ceiling = np.array([noise_ceiling(clean[:, j], s_frame[:, j]) for j in range(e.y.shape[1])])
+    s_frames = [np.broadcast_to(_frame_sigma(e, sigma), e.y.shape) for e in experiments]
+    y = _padded([e.y for e in experiments], np.nan)
+    z = _padded([np.asarray(zi, dtype=float) for zi in preds], np.nan)
+    s = _padded(s_frames, 1.0)
+    with np.errstate(invalid="ignore"):
+        flagged = (np.abs((y - z) / s) > OUTLIER_SIGMAS) & np.isfinite(y)
+    clean = np.where(flagged, np.nan, y)
+    fits, robust = fit_percent_per_output(y, z), fit_percent_per_output(clean, z)
+    outliers, ceilings = flagged.sum(axis=(1, 2)), noise_ceiling_per_output(clean, s)
+    names = [e.name for e in experiments]
+    scaled = [(e.y - zi) / sf for e, zi, sf in zip(experiments, preds, s_frames)]
     return (
-        fit_percent_per_output(e.y, z),
-        fit_percent_per_output(clean, z),
-        int(np.sum(flagged)),
-        ceiling,
+        dict(zip(names, fits)),
+        dict(zip(names, robust)),
+        {n: int(k) for n, k in zip(names, outliers)},
+        dict(zip(names, ceilings)),
+        scaled,
     )

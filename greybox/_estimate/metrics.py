@@ -67,21 +67,39 @@ def r_squared(y, y_hat) -> float:
 def fit_percent_per_output(y, y_hat) -> np.ndarray:
     """(n_y,) fit % of each output column of `y`, `y_hat` ((N,) or (N, n_y)), each over its
     own finite samples; NaN for a column with fewer than two of them or no spread (a constant
-    signal has no variation to explain). All columns at once: a batch of devices asks for it
-    per run and output; `fit_percent` is its one-column case."""
+    signal has no variation to explain). All columns at once; stacks of runs too: (..., N,
+    n_y) arrays give (..., n_y) (runs of different lengths padded with NaN). `fit_percent`
+    is its one-column case."""
     y = np.asarray(y, dtype=float)
     y_hat = np.asarray(y_hat, dtype=float)
     if y.shape != y_hat.shape:
         raise ValueError(f"y and y_hat: shapes differ ({y.shape} vs {y_hat.shape})")
-    y2, h2 = y.reshape(y.shape[0], -1), y_hat.reshape(y.shape[0], -1)
-    ok = np.isfinite(y2) & np.isfinite(h2)
-    n = ok.sum(axis=0)
-    mean = np.where(ok, y2, 0.0).sum(axis=0) / np.maximum(n, 1)
-    spread = np.sqrt(np.sum(np.where(ok, y2 - mean, 0.0) ** 2, axis=0))
-    error = np.sqrt(np.sum(np.where(ok, y2 - h2, 0.0) ** 2, axis=0))
+    if y.ndim <= 2:
+        y, y_hat = y.reshape(y.shape[0], -1), y_hat.reshape(y.shape[0], -1)
+    ok = np.isfinite(y) & np.isfinite(y_hat)
+    n = ok.sum(axis=-2)
+    mean = np.where(ok, y, 0.0).sum(axis=-2) / np.maximum(n, 1)
+    spread = np.sqrt(np.sum(np.where(ok, y - mean[..., None, :], 0.0) ** 2, axis=-2))
+    error = np.sqrt(np.sum(np.where(ok, y - y_hat, 0.0) ** 2, axis=-2))
     with np.errstate(divide="ignore", invalid="ignore"):
         out = 100.0 * (1.0 - error / spread)
     return np.where((n > 1) & (spread > 0), out, np.nan)
+
+
+def noise_ceiling_per_output(y, sigma) -> np.ndarray:
+    """`noise_ceiling` of each output column of `y` (..., N, n_y) (stacks of runs, padded
+    with NaN), `sigma` broadcastable to it: (..., n_y)."""
+    y = np.asarray(y, dtype=float)
+    s = np.broadcast_to(np.asarray(sigma, dtype=float), y.shape)
+    ok = np.isfinite(y) & np.isfinite(s)
+    n = ok.sum(axis=-2)
+    m = np.maximum(n, 1)
+    mean = np.where(ok, y, 0.0).sum(axis=-2) / m
+    spread = np.sqrt(np.sum(np.where(ok, y - mean[..., None, :], 0.0) ** 2, axis=-2) / m)
+    level = np.sqrt(np.sum(np.where(ok, s, 0.0) ** 2, axis=-2) / m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = 100.0 * (1.0 - level / spread)
+    return np.where((n >= 2) & (spread > level), out, np.nan)
 
 
 def noise_ceiling(y, sigma) -> float:
@@ -92,11 +110,6 @@ def noise_ceiling(y, sigma) -> float:
     Only as good as `sigma`: a noise level estimated from the residuals of a wrong model is
     inflated by the misfit, and the ceiling it gives is too low.
     """
-    y = np.asarray(y, dtype=float).reshape(-1)
-    s = np.broadcast_to(np.asarray(sigma, dtype=float), y.shape)
-    ok = np.isfinite(y) & np.isfinite(s)
-    if ok.sum() < 2:
-        return float("nan")
-    spread = float(np.std(y[ok]))
-    level = float(np.sqrt(np.mean(s[ok] ** 2)))
-    return 100.0 * (1.0 - level / spread) if spread > level else float("nan")
+    y = np.asarray(y, dtype=float).reshape(-1, 1)
+    s = np.reshape(np.asarray(sigma, dtype=float), (-1, 1))
+    return float(noise_ceiling_per_output(y, s)[0])

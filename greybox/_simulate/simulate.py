@@ -133,46 +133,44 @@ def pad_schedules(schedules: Sequence[Schedule], *, on_device: bool = True) -> d
     n_breaks = _bucket(max(s.breaks.size for s in schedules))
     n_jumps = _bucket(max(s.jump_ts.size for s in schedules))
     n_u = schedules[0].levels.shape[1]
+    q = schedules[0].n_quad
+    if any(s.n_quad != q for s in schedules):
+        raise ValueError("schedules: their exposure quadratures differ; pad them apart")
+    r = len(schedules)
+    # filled in place, run by run (one allocation per field, not a concatenation per run)
     out = {
-        k: []
-        for k in (
-            "t_s",
-            "t_start",
-            "dt",
-            "u_grid",
-            "eval_index",
-            "eval_t",
-            "unsort",
-            "breaks",
-            "levels",
-            "jump_ts",
-        )
+        "t_s": np.empty((r, n_frames)),
+        "t_start": np.array([s.t_start_s for s in schedules], dtype=float),
+        "dt": np.zeros((r, n_int)),
+        "u_grid": np.zeros((r, n_int, n_u)),
+        "eval_index": np.empty((r, n_frames * q), dtype=schedules[0].eval_index.dtype),
+        "eval_t": np.empty((r, n_frames * q)),
+        "unsort": np.empty((r, n_frames * q), dtype=schedules[0].eval_order.dtype),
+        "breaks": np.empty((r, n_breaks)),
+        "levels": np.empty((r, n_breaks, n_u)),
+        "jump_ts": np.empty((r, n_jumps)),
     }
-    for s in schedules:
-        pad_f = n_frames - s.t_s.size
-        q = s.n_quad
+    for i, s in enumerate(schedules):
+        n_f, n_e, n_l = s.t_s.size, s.eval_t.size, s.dt.size
+        n_b, n_j = s.breaks.size, s.jump_ts.size
         t_end = s.eval_t[-1]
-        out["t_s"].append(np.concatenate([s.t_s, np.full(pad_f, s.t_s[-1])]))
-        out["t_start"].append(s.t_start_s)
-        out["dt"].append(np.concatenate([s.dt, np.zeros(n_int - s.dt.size)]))
-        out["u_grid"].append(np.vstack([s.u_grid, np.zeros((n_int - s.dt.size, n_u))]))
-        out["eval_index"].append(
-            np.concatenate([s.eval_index, np.full(pad_f * q, s.eval_index[-1])])
-        )
-        out["eval_t"].append(np.concatenate([s.eval_t, np.full(pad_f * q, t_end)]))
+        out["t_s"][i, :n_f], out["t_s"][i, n_f:] = s.t_s, s.t_s[-1]
+        out["dt"][i, :n_l] = s.dt
+        out["u_grid"][i, :n_l] = s.u_grid
+        out["eval_index"][i, :n_e], out["eval_index"][i, n_e:] = s.eval_index, s.eval_index[-1]
+        out["eval_t"][i, :n_e], out["eval_t"][i, n_e:] = s.eval_t, t_end
         # frame-major position of each sorted evaluation; padded frames read the last one
-        unsort = np.empty_like(s.eval_order)
-        unsort[s.eval_order] = np.arange(s.eval_order.size)
-        out["unsort"].append(np.concatenate([unsort, np.full(pad_f * q, unsort.size - 1)]))
-        far = t_end + 1.0 + np.arange(n_breaks - s.breaks.size)
-        out["breaks"].append(np.concatenate([s.breaks, far]))
-        out["levels"].append(
-            np.vstack([s.levels, np.repeat(s.levels[-1:], n_breaks - s.breaks.size, 0)])
+        out["unsort"][i, s.eval_order] = np.arange(n_e)
+        out["unsort"][i, n_e:] = n_e - 1
+        out["breaks"][i, :n_b], out["breaks"][i, n_b:] = s.breaks, t_end + 1.0 + np.arange(
+            n_breaks - n_b
         )
-        far_j = t_end + 1.0 + np.arange(n_jumps - s.jump_ts.size)
-        out["jump_ts"].append(np.concatenate([s.jump_ts, far_j]))
+        out["levels"][i, :n_b], out["levels"][i, n_b:] = s.levels, s.levels[-1]
+        out["jump_ts"][i, :n_j], out["jump_ts"][i, n_j:] = s.jump_ts, t_end + 1.0 + np.arange(
+            n_jumps - n_j
+        )
     to = jnp.asarray if on_device else np.asarray
-    return {k: to(np.stack(v)) for k, v in out.items()}
+    return {k: to(v) for k, v in out.items()}
 
 
 _EXPM_MAX_SQUARINGS = 24  # handles |A h| up to ~4e6: far beyond any RC time-constant ratio

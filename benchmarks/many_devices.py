@@ -71,6 +71,7 @@ import argparse
 import inspect
 import json
 import os
+import pickle
 import resource
 import sys
 import time
@@ -291,6 +292,10 @@ def main(argv=None):
         "bytes_per_solve": batch.bytes_per_item,
         "batch_vs_fit_max_rel": agree,
         "batch_valid": int(sum(r.valid for r in batch.results.values())),
+        # what one device's complete result holds (pickled: as fit_distributed ships it)
+        "result_kb_per_device": round(
+            np.mean([len(pickle.dumps(r)) for r in list(batch.results.values())[:8]]) / 1e3, 1
+        ),
     }
     if args.dask:
         t0 = time.perf_counter()

@@ -48,6 +48,7 @@ KEYS = {
         "solve_share",
         "backend",
         "loop_first_fit_s",
+        "result_kb_per_device",
     },
     "memory.py": {"sizes", "within_30_percent", "worst_ratio"},
     "microrobot.py": {"detailed_1000_cycles_s", "play_1000_cycles_s"},

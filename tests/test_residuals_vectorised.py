@@ -147,3 +147,28 @@ def test_input_levels_hold_the_last_known_level_across_gaps():
         slot_u[k] = np.where(have, held, 0.0)
     want = np.concatenate([slot_u[np.maximum(grid.slots - k, 0)] for k in range(lags)], axis=1)
     np.testing.assert_array_equal(got, want)
+
+
+def test_stacked_outlier_screen_is_the_median_rule_row_by_row():
+    """`_robust_keep_rows` (every output of every run in one sorted pass) keeps what the rule
+    gives with np.median on each row alone: valid readings within OUTLIER_SCALES x 1.4826 MAD
+    of the median; rows with fewer than 3 valid readings or no spread keep them all."""
+    rng = np.random.default_rng(11)
+    rows, n = 60, 40
+    e = rng.standard_t(3, size=(rows, n)) * rng.uniform(0.1, 10, (rows, 1))
+    valid = rng.random((rows, n)) > rng.uniform(0, 0.5, (rows, 1))
+    valid[:4, 2:] = False  # 2 valid readings: nothing screened
+    e[4:8] = 1.5  # no spread
+    e[8, :5] = 1e3  # gross outliers
+    e = np.where(valid, e, np.nan)
+    got = _residuals._robust_keep_rows(e, valid)
+    for i in range(rows):
+        vals = e[i, valid[i]]
+        want = valid[i].copy()
+        if vals.size >= 3:
+            med = np.median(vals)
+            scale = 1.4826 * np.median(np.abs(vals - med))
+            if scale > 0:
+                want &= np.abs(e[i] - med) <= _residuals.OUTLIER_SCALES * scale
+        np.testing.assert_array_equal(got[i], want, err_msg=f"row {i}")
+    assert not got[8, :5].any() and got[:8][valid[:8]].all()

@@ -311,29 +311,6 @@ class RunResiduals:
             return z / np.sqrt(self.cross_pairs)
 
 
-def _median(x: np.ndarray) -> float:
-    """np.median of a 1-D array (the same value: the mean of the two middle values for an
-    even size), without its generic machinery: a batch takes two per run and output."""
-    n = x.size
-    k = n // 2
-    if n % 2:
-        return float(np.partition(x, k)[k])
-    part = np.partition(x, (k - 1, k))
-    return float((part[k - 1] + part[k]) / 2.0)
-
-
-def _robust_keep(e: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """`valid` without readings further than OUTLIER_SCALES robust scales from the median."""
-    vals = e[valid]
-    if vals.size < 3:
-        return valid
-    med = _median(vals)
-    scale = 1.4826 * _median(np.abs(vals - med))
-    if not scale > 0:
-        return valid
-    return valid & (np.abs(e - med) <= OUTLIER_SCALES * scale)
-
-
 ORDER_CACHE_ELEMENTS = 1 << 22  # a stream's B x n orders above this are drawn block by block
 _orders = _Cache(64 << 20)  # shuffle orders kept for reuse (a batch's devices share them)
 
@@ -526,8 +503,9 @@ def analyse_run(
     (correlations shown), `test_lag` the lags of the Ljung-Box test (default M),
     `permutations` the shuffles behind its p-value (0: chi-square only), `seed` their seed.
     """
-    run, jobs = _run_pending(name, t_s, residuals, valid, inputs, max_lag, test_lag,
-                             permutations, seed)
+    ((run, jobs),) = _pending_runs(
+        [(name, t_s, residuals, valid, inputs, max_lag, test_lag, seed)], permutations
+    )
     _permuted_autocorrelation(jobs, permutations)
     return _finished([run])[0]
 
@@ -540,95 +518,217 @@ def _finished(runs) -> list:
         [(r.permuted_autocorrelation, r.null_var[:, 1 : r.test_lag + 1], r.test_lag) for r in runs]
     )
     return [
-        dataclasses.replace(r, p_value=pr, permuted_autocorrelation=None)
-        for r, pr in zip(runs, p)
+        dataclasses.replace(r, p_value=pr, permuted_autocorrelation=None) for r, pr in zip(runs, p)
     ]
 
 
-def _run_pending(
-    name, t_s, residuals, valid, inputs, max_lag, test_lag, permutations, seed
-) -> tuple[RunResiduals, list]:
-    """`analyse_run` without its shuffles: the run (p-values not yet set) and the
-    `_Shuffled` jobs that fill its `permuted_autocorrelation` (so that many runs, of one fit
-    or of a batch of devices, shuffle in one vectorised pass)."""
-    e_all = np.asarray(residuals, dtype=float)
-    e_all = e_all.reshape(e_all.shape[0], -1)
-    valid = np.asarray(valid, dtype=bool).reshape(e_all.shape) & np.isfinite(e_all)
-    grid = FrameGrid.build(t_s)
-    n_y = e_all.shape[1]
-    m = int(max_lag)
-    h = m if test_lag is None else int(min(test_lag, m))
-    lags = np.arange(m + 1)
-    cross_lags = np.arange(-m, m + 1)
-    u = None if inputs is None else np.asarray(inputs, dtype=float).reshape(e_all.shape[0], -1)
-    n_u = 0 if u is None else u.shape[1]
-    auto = np.full((n_y, m + 1), np.nan)
-    pairs = np.zeros((n_y, m + 1))
-    null_var = np.full((n_y, m + 1), np.nan)
-    cross = np.full((n_y, n_u, 2 * m + 1), np.nan)
-    cross_pairs = np.zeros((n_y, 2 * m + 1))
-    q = np.full(n_y, np.nan)
-    n_used = np.zeros(n_y, dtype=int)
-    n_excl = np.zeros(n_y, dtype=int)
-    perm_r = np.full((n_y, int(permutations) + 1, h), np.nan)
-    jobs = []
-    for j in range(n_y):
-        keep = _robust_keep(e_all[:, j], valid[:, j])
-        n_excl[j] = int(valid[:, j].sum() - keep.sum())
-        n = int(keep.sum())
-        n_used[j] = n
-        if n < 3:
-            continue
-        e = np.where(keep, e_all[:, j] - e_all[keep, j].mean(), 0.0)
-        g, occ = grid.place(e, keep)
-        g, occ = g[:, 0], occ[:, 0]
-        n = int(occ.sum())
-        c0 = float(g @ g) / n
-        if not c0 > 0:
-            continue
-        sums, npairs = lagged_sums(g, occ, g, occ, lags)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            auto[j] = np.where(
-                npairs > 0, sums / np.maximum(npairs, 1) / c0 + 1.0 / (n - 1), np.nan
+def _sorted_median(x: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """Per row, the median of the first `count` entries of the row-sorted `x` (rows padded
+    with inf), as np.median gives it: the middle value, or the mean of the two middle ones."""
+    rows = np.arange(x.shape[0])
+    lo, hi = x[rows, np.maximum(count - 1, 0) // 2], x[rows, count // 2]
+    with np.errstate(invalid="ignore", over="ignore"):
+        return np.where(count % 2 == 1, lo, (lo + hi) / 2.0)
+
+
+def _robust_keep_rows(e: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Per row of `e` (S, N): `valid` without readings further than OUTLIER_SCALES robust
+    scales (1.4826 MAD) from the row's median; rows with fewer than 3 valid readings, or no
+    spread, keep every valid reading."""
+    count = valid.sum(axis=1)
+    med = _sorted_median(np.sort(np.where(valid, e, np.inf), axis=1), count)
+    dev = np.abs(e - med[:, None])
+    scale = 1.4826 * _sorted_median(np.sort(np.where(valid, dev, np.inf), axis=1), count)
+    robust = (count >= 3) & (scale > 0)
+    with np.errstate(invalid="ignore"):
+        near = dev <= OUTLIER_SCALES * scale[:, None]
+    return valid & (near | ~robust[:, None])
+
+
+def _on_grids(values, ok, slots, width) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of values (S, N) with `ok` (S, N) placed on their frame grids: (S, width) values
+    (zero where empty) and occupancy; `slots` per row, the slot of each of its frames."""
+    s = values.shape[0]
+    grid, occ = np.zeros((s, width)), np.zeros((s, width), dtype=bool)
+    rows = np.concatenate([np.full(sl.size, i) for i, sl in enumerate(slots)])
+    cols = np.concatenate(slots)
+    frames = np.concatenate([np.arange(sl.size) for sl in slots])
+    grid[rows, cols] = np.where(ok[rows, frames], values[rows, frames], 0.0)
+    occ[rows, cols] = ok[rows, frames]
+    return grid, occ
+
+
+def _pending_runs(specs, permutations) -> list:
+    """`analyse_run` without its shuffles, for many runs at once: per run (its
+    `RunResiduals`, p-values not yet set; the `_Shuffled` jobs that fill its
+    `permuted_autocorrelation`), so that many runs, of one fit or of a batch of devices,
+    shuffle in one vectorised pass. `specs`: (name, t_s, residuals, valid, inputs, max_lag,
+    test_lag, seed) per run. Every output of every run is one row of one stacked pass (the
+    robust outlier screen, the placing on the frame grid, the lagged sums of every lag), runs
+    of similar grid lengths together (`_bucket_rows`)."""
+    runs = []
+    for name, t_s, residuals, valid, inputs, max_lag, test_lag, seed in specs:
+        e = np.asarray(residuals, dtype=float)
+        e = e.reshape(e.shape[0], -1)
+        ok = np.asarray(valid, dtype=bool).reshape(e.shape) & np.isfinite(e)
+        m = int(max_lag)
+        h = m if test_lag is None else int(min(test_lag, m))
+        u = None if inputs is None else np.asarray(inputs, dtype=float).reshape(e.shape[0], -1)
+        runs.append((str(name), FrameGrid.build(t_s), e, ok, u, m, h, seed))
+    out = [None] * len(runs)
+    for members in _bucket_rows([r[1].n_slots for r in runs]):
+        for k, done in zip(members, _pending_group([runs[i] for i in members], permutations)):
+            out[k] = done
+    return out
+
+
+def _bucket_rows(widths) -> list:
+    """Indices of `widths` grouped by their power-of-two bucket (padding wastes at most half)."""
+    groups: dict = {}
+    for i, w in enumerate(widths):
+        groups.setdefault(max(int(w) - 1, 0).bit_length(), []).append(i)
+    return list(groups.values())
+
+
+def _pending_group(runs, permutations) -> list:
+    """`_pending_runs` of runs of similar grid lengths (one stacked pass)."""
+    n_rows = [r[2].shape[1] for r in runs]
+    first = np.concatenate([[0], np.cumsum(n_rows)])
+    s_total, n_max = int(first[-1]), max(r[2].shape[0] for r in runs)
+    width = max(r[1].n_slots for r in runs)
+    m_max = max(r[5] for r in runs)
+    e = np.full((s_total, n_max), np.nan)
+    ok = np.zeros((s_total, n_max), dtype=bool)
+    slots = []
+    for (_, grid, e_r, ok_r, *_rest), a in zip(runs, first):
+        e[a : a + e_r.shape[1], : e_r.shape[0]] = e_r.T
+        ok[a : a + e_r.shape[1], : e_r.shape[0]] = ok_r.T
+        slots += [grid.slots] * e_r.shape[1]
+    keep = _robust_keep_rows(e, ok)
+    n = keep.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        centred = np.where(keep, e - (np.where(keep, e, 0.0).sum(axis=1) / n)[:, None], 0.0)
+    g, occ = _on_grids(centred, keep, slots, width)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c0 = np.einsum("st,st->s", g, g) / n
+    live = (n >= 3) & (c0 > 0)
+    lags = np.arange(m_max + 1)
+    sums = lag_products(g, g, lags)
+    npairs = lag_products(occ.astype(float), occ.astype(float), lags)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        auto = np.where(
+            live[:, None] & (npairs > 0),
+            sums / np.maximum(npairs, 1) / c0[:, None] + 1.0 / (n[:, None] - 1),
+            np.nan,
+        )
+        null_var = np.where(live[:, None], white_null_variance(npairs, n[:, None]), np.nan)
+    auto[live, 0] = 1.0
+    npairs = np.where(live[:, None], npairs, 0.0)
+    cross_rows = _cross_correlations(runs, first, g, occ, c0, live, m_max, width)
+    results = []
+    for (name, grid, e_r, ok_r, u, m, h, seed), a in zip(runs, first):
+        n_y, rows = e_r.shape[1], slice(a, a + e_r.shape[1])
+        n_u = 0 if u is None else u.shape[1]
+        q = np.where(
+            live[rows], portmanteau(auto[rows, 1 : h + 1], null_var[rows, 1 : h + 1]), np.nan
+        )
+        perm_r = np.full((n_y, int(permutations) + 1, h), np.nan)
+        jobs = [
+            _Shuffled(
+                g[a + j, : grid.n_slots],
+                occ[a + j, : grid.n_slots],
+                npairs[a + j, 1 : h + 1],
+                int(n[a + j]),
+                float(c0[a + j]),
+                (*(int(x) for x in np.atleast_1d(seed)), j),
+                perm_r[j],
             )
-        null_var[j] = white_null_variance(npairs, n)
-        auto[j, 0] = 1.0
-        pairs[j] = npairs
-        q[j] = float(portmanteau(auto[j, 1 : h + 1], null_var[j, 1 : h + 1]))
-        key = (*(int(x) for x in np.atleast_1d(seed)), j)
-        jobs.append(_Shuffled(g, occ, npairs[1 : h + 1], n, c0, key, perm_r[j]))
-        for l in range(n_u):
-            ul = u[:, l]
-            ok_u = np.isfinite(ul)
-            ug, uocc = grid.place(np.where(ok_u, ul - ul[ok_u].mean(), 0.0), ok_u)
-            ug, uocc = ug[:, 0], uocc[:, 0]
-            cu = float(ug @ ug) / max(int(uocc.sum()), 1)
-            if not cu > 0:
-                continue
-            s, npair = lagged_sums(g, occ, ug, uocc, cross_lags)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                cross[j, l] = np.where(npair > 0, s / np.maximum(npair, 1), np.nan) / np.sqrt(
-                    c0 * cu
-                )
-            cross_pairs[j] = npair
-    run = RunResiduals(
-        str(name),
-        lags,
-        auto,
-        pairs,
-        null_var,
-        cross_lags,
-        cross,
-        cross_pairs,
-        q,
-        np.full(n_y, np.nan),
-        n_used,
-        n_excl,
-        grid,
-        h,
-        perm_r,
-    )
-    return run, jobs
+            for j in range(n_y)
+            if live[a + j]
+        ]
+        cross, cross_pairs = cross_rows(a, n_y, n_u, m)
+        run = RunResiduals(
+            name,
+            np.arange(m + 1),
+            auto[rows, : m + 1],
+            npairs[rows, : m + 1],
+            null_var[rows, : m + 1],
+            np.arange(-m, m + 1),
+            cross,
+            cross_pairs,
+            q,
+            np.full(n_y, np.nan),
+            n[rows],
+            ok_r.sum(axis=0) - n[rows],
+            grid,
+            h,
+            perm_r,
+        )
+        results.append((run, jobs))
+    return results
+
+
+def _cross_correlations(runs, first, g, occ, c0, live, m_max, width):
+    """A function (first row, n_y, n_u, M) -> (cross-correlations (n_y, n_u, 2M + 1),
+    their pair counts (n_y, 2M + 1)) of each run's residual rows with its inputs, every
+    (output, input) pair of every run in one stacked pass of the lagged sums."""
+    u_rows, u_ok, u_slots, owner = [], [], [], []
+    for k, (_, grid, e_r, _, u, *_rest) in enumerate(runs):
+        if u is None:
+            continue
+        for col in u.T:
+            u_rows.append(col)
+            u_ok.append(np.isfinite(col))
+            u_slots.append(grid.slots)
+            owner.append(k)
+    lags = np.arange(-m_max, m_max + 1)
+    pairs_g, pairs_u, where = [], [], {}
+    if u_rows:
+        n_max = max(x.size for x in u_rows)
+        uv = np.zeros((len(u_rows), n_max))
+        uo = np.zeros((len(u_rows), n_max), dtype=bool)
+        for i, (x, o) in enumerate(zip(u_rows, u_ok)):
+            uv[i, : x.size], uo[i, : x.size] = x, o
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(uo, uv, 0.0).sum(axis=1) / uo.sum(axis=1)
+        ug, uocc = _on_grids(np.where(uo, uv - mean[:, None], 0.0), uo, u_slots, width)
+        cu = np.einsum("st,st->s", ug, ug) / np.maximum(uocc.sum(axis=1), 1)
+        col_of = {}
+        for i, k in enumerate(owner):
+            col_of.setdefault(k, []).append(i)
+        for k, cols in col_of.items():
+            n_y = runs[k][2].shape[1]
+            for j in range(n_y):
+                if not live[first[k] + j]:
+                    continue
+                for l, i in enumerate(cols):
+                    if cu[i] > 0:
+                        where[(first[k] + j, l)] = len(pairs_g)
+                        pairs_g.append(first[k] + j)
+                        pairs_u.append(i)
+    if pairs_g:
+        pg, pu = np.asarray(pairs_g), np.asarray(pairs_u)
+        s = lag_products(g[pg], ug[pu], lags)
+        npair = lag_products(occ[pg].astype(float), uocc[pu].astype(float), lags)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            corr = (
+                np.where(npair > 0, s / np.maximum(npair, 1), np.nan)
+                / np.sqrt(c0[pg] * cu[pu])[:, None]
+            )
+
+    def rows_of(a, n_y, n_u, m):
+        cross = np.full((n_y, n_u, 2 * m + 1), np.nan)
+        cross_pairs = np.zeros((n_y, 2 * m + 1))
+        band = slice(m_max - m, m_max + m + 1)
+        for j in range(n_y):
+            for l in range(n_u):
+                i = where.get((a + j, l))
+                if i is not None:  # the last usable input's pair counts, as one pass each gave
+                    cross[j, l] = corr[i, band]
+                    cross_pairs[j] = npair[i, band]
+        return cross, cross_pairs
+
+    return rows_of
 
 
 # --------------------------------------------------------------------------- all runs
@@ -811,10 +911,9 @@ def analyse_many(
             m = int(max(1, min(MAX_LAG, shortest // 4))) if m is None else m
             h = int(max(1, min(TEST_LAG, shortest // 5))) if h is None else h
         m, h = int(m), int(min(h, m))
-        parts = [
-            _run_pending(*r, m, h, permutations, (seed, i)) for i, r in enumerate(runs)
-        ]
-        pending.append(parts)
+        pending.append([(*r, m, h, (seed, i)) for i, r in enumerate(runs)])
+    done_runs = iter(_pending_runs([spec for specs in pending for spec in specs], permutations))
+    pending = [[next(done_runs) for _ in specs] for specs in pending]
     _permuted_autocorrelation(
         [j for parts in pending for _, jobs in parts for j in jobs], permutations
     )
@@ -885,8 +984,8 @@ def _analysis(per_run, null_var, output_names, p) -> ResidualAnalysis:
     outside = tuple(
         tuple(int(k) for k in lags[1:][np.abs(auto[j, 1:]) > band[j, 1:]]) for j in range(n_y)
     )
-    with np.errstate(divide="ignore"):
-        cband = z / np.sqrt(cross_pairs)
+    root = np.sqrt(cross_pairs)
+    cband = np.divide(z, root, out=np.full_like(root, np.inf), where=root > 0)
     cross_out = tuple(
         tuple(tuple(int(k) for k in cross_lags[np.abs(cross[j, l]) > cband[j]]) for l in range(n_u))
         for j in range(n_y)

@@ -1208,21 +1208,25 @@ class HACMeat:
     dof_factor: float = 1.0
 
 
-def _andrews_bandwidth(grids, active) -> tuple[int, np.ndarray]:
-    """Andrews' (1991) AR(1) plug-in bandwidth for the Bartlett kernel, pooled over runs."""
-    p = grids[0].shape[1]
-    num, den = np.zeros(p), np.zeros(p)
-    for gg in grids:
-        num += np.sum(gg[1:] * gg[:-1], axis=0)
-        den += np.sum(gg[:-1] ** 2, axis=0)
+def _andrews_bandwidth(v, lengths, active) -> tuple[int, np.ndarray]:
+    """Andrews' (1991) AR(1) plug-in bandwidth for the Bartlett kernel, pooled over runs:
+    `v` (R, W, P) the runs' components on their grids, zero beyond each run's `lengths`."""
+    num = np.einsum("rtp,rtp->p", v[:, 1:], v[:, :-1])
+    before_last = np.arange(v.shape[1] - 1)[None, :] < (lengths - 1)[:, None]
+    den = np.einsum("rtp,rt->p", v[:, :-1] ** 2, before_last.astype(float))
     rho = np.clip(np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0), -0.97, 0.97)
-    t_mean = float(np.mean([gg.shape[0] for gg in grids]))
+    t_mean = float(np.mean(lengths))
     r = rho[active]
     s4 = (1.0 - r**2) ** 2  # innovation variance^2 of a unit-variance AR(1)
     a_num = np.sum(4 * r**2 * s4 / ((1 - r) ** 6 * (1 + r) ** 2))
     a_den = np.sum(s4 / (1 - r) ** 4)
     alpha = a_num / a_den if a_den > 0 else 0.0
     return int(np.floor(1.1447 * (alpha * t_mean) ** (1.0 / 3.0))), rho
+
+
+def _cross_sum(x, y) -> np.ndarray:
+    """sum over runs r and slots t of x[r, t]^T y[r, t]: (P, Q), one matrix product."""
+    return x.reshape(-1, x.shape[-1]).T @ y.reshape(-1, y.shape[-1])
 
 
 def hac_meat(
@@ -1237,40 +1241,44 @@ def hac_meat(
 
     `bandwidth`: Bartlett bandwidth in frames (default: Andrews' plug-in); `prewhiten`:
     Andrews-Monahan VAR(1) prewhitening and recolouring; `n_readings`, `n_fitted`: the
-    degrees-of-freedom factor n / (n - k) (none when `n_readings` is None).
+    degrees-of-freedom factor n / (n - k) (none when `n_readings` is None). The runs are
+    stacked on their frame grids, zero-padded to the longest (every sum over runs and slots
+    is one matrix product; the padding adds nothing).
     """
-    grids = []
-    for t_s, g in runs:
-        fg = FrameGrid.build(t_s)
+    frame_grids = [FrameGrid.build(t_s) for t_s, _ in runs]
+    lengths = np.array([fg.n_slots for fg in frame_grids])
+    p = np.asarray(runs[0][1]).reshape(np.size(runs[0][0]), -1).shape[1]
+    grids = np.zeros((len(runs), int(lengths.max()), p))
+    for k, (fg, (t_s, g)) in enumerate(zip(frame_grids, runs)):
         g = np.asarray(g, dtype=float).reshape(np.size(t_s), -1)
-        gg, _ = fg.place(g, np.ones_like(g, dtype=bool))
-        grids.append(gg)
-    p = grids[0].shape[1]
-    active = np.any([np.any(gg != 0, axis=0) for gg in grids], axis=0)
+        grids[k, fg.slots] = np.where(np.isfinite(g), g, 0.0)
+    inside = (np.arange(grids.shape[1])[None, :] < lengths[:, None])[..., None]
+    active = np.any(grids != 0, axis=(0, 1))
     # each component to unit RMS, so that the VAR, its cap and the pseudo-inverse do not
     # depend on the parameters' units or scales (the meat is scaled back at the end)
-    rms = np.sqrt(sum(np.sum(gg**2, axis=0) for gg in grids) / sum(gg.shape[0] for gg in grids))
+    rms = np.sqrt(np.sum(grids**2, axis=(0, 1)) / lengths.sum())
     unit = np.where(rms > 0, rms, 1.0)
-    grids = [gg / unit for gg in grids]
+    grids = grids / unit
     a = np.zeros((p, p))
     if prewhiten and active.any():
         idx = np.ix_(active, active)
-        sxx = sum(gg[:-1, active].T @ gg[:-1, active] for gg in grids)
-        syx = sum(gg[1:, active].T @ gg[:-1, active] for gg in grids)
+        lagged = grids[:, :-1, active] * inside[:, 1:]  # g_(t-1), for t inside each run
+        sxx = _cross_sum(lagged, lagged)
+        syx = _cross_sum(grids[:, 1:, active], lagged)
         u, sv, vt = np.linalg.svd(syx @ np.linalg.pinv(sxx))
         a[idx] = (u * np.minimum(sv, AM_CAP)) @ vt
-        grids = [np.vstack([gg[:1], gg[1:] - gg[:-1] @ a.T]) for gg in grids]
-    plug_in, rho = _andrews_bandwidth(grids, active)
-    t_mean = float(np.mean([gg.shape[0] for gg in grids]))
+        whitened = grids.copy()
+        whitened[:, 1:] -= grids[:, :-1] @ a.T
+        grids = whitened * inside  # nothing beyond a run's end
+    plug_in, rho = _andrews_bandwidth(grids, lengths, active)
+    t_mean = float(np.mean(lengths))
     bandwidth = plug_in if bandwidth is None else int(bandwidth)
     bandwidth = int(max(0, min(bandwidth, int(t_mean // 2))))
-    omega = np.zeros((p, p))
-    for gg in grids:
-        omega += gg.T @ gg
-        for lag in range(1, min(bandwidth, gg.shape[0] - 1) + 1):
-            w = 1.0 - lag / (bandwidth + 1.0)
-            gam = gg[lag:].T @ gg[:-lag]
-            omega += w * (gam + gam.T)
+    omega = _cross_sum(grids, grids)
+    for lag in range(1, min(bandwidth, grids.shape[1] - 1) + 1):
+        w = 1.0 - lag / (bandwidth + 1.0)
+        gam = _cross_sum(grids[:, lag:], grids[:, :-lag])  # zero beyond a run's own length
+        omega += w * (gam + gam.T)
     recolour = np.linalg.inv(np.eye(p) - a)
     meat = unit[:, None] * (recolour @ omega @ recolour.T) * unit[None, :]
     factor = 1.0

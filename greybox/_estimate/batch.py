@@ -218,8 +218,10 @@ def _fitted_models(prepared, members, raws, chunk) -> dict:
         raw = jnp.asarray(np.stack([raws[i] for i in padded]))
         models = jax.device_get(_models_many(stacked, group.static, raw))
         leaves, tree = jtu.tree_flatten(models)
+        # each leaf split once into its members' rows (views), not indexed per member
+        rows = [list(x) if isinstance(x, np.ndarray) else [x] * chunk for x in leaves]
         for k, i in enumerate(part):
-            out[i] = jtu.tree_unflatten(tree, [x[k] if eqx.is_array(x) else x for x in leaves])
+            out[i] = jtu.tree_unflatten(tree, [r[k] for r in rows])
     return out
 
 

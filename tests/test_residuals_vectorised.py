@@ -172,3 +172,29 @@ def test_stacked_outlier_screen_is_the_median_rule_row_by_row():
                 want &= np.abs(e[i] - med) <= _residuals.OUTLIER_SCALES * scale
         np.testing.assert_array_equal(got[i], want, err_msg=f"row {i}")
     assert not got[8, :5].any() and got[:8][valid[:8]].all()
+
+
+def test_shuffle_blocks_in_threads_give_the_same_p_values(monkeypatch):
+    """On a machine with cores to spare the shuffle blocks run in threads
+    (`shuffle_threads`); every statistic and p-value is the one the serial loop gives."""
+    rng = np.random.default_rng(12)
+    fits = []
+    for _ in range(6):
+        runs = []
+        for i in range(3):
+            n = int(rng.integers(40, 90))
+            t = np.cumsum(np.where(rng.random(n) < 0.05, 2.0, 1.0)) / 30.0
+            e = rng.normal(size=(n, 1))
+            e[1:] += 0.3 * e[:-1]
+            runs.append((f"r{i}", t, e, rng.random((n, 1)) > 0.05, rng.normal(size=(n, 1))))
+        fits.append(runs)
+    monkeypatch.setattr(_residuals, "LAG_BLOCK", 4096)  # many blocks
+    monkeypatch.setattr(_residuals, "shuffle_threads", lambda: 1)
+    serial = _residuals.analyse_many(fits, permutations=199)
+    monkeypatch.setattr(_residuals, "shuffle_threads", lambda: 4)
+    threaded = _residuals.analyse_many(fits, permutations=199)
+    for a, b in zip(serial, threaded):
+        np.testing.assert_array_equal(a.p_value, b.p_value)
+        np.testing.assert_array_equal(a.q, b.q)
+        for ra, rb in zip(a.runs, b.runs):
+            np.testing.assert_array_equal(ra.p_value, rb.p_value)

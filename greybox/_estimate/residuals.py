@@ -55,7 +55,10 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import itertools
+import os
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from statistics import NormalDist
 
 import numpy as np
@@ -160,6 +163,7 @@ def _frame_grid(t_bytes: bytes) -> FrameGrid:
 
 LAG_BLOCK = 1 << 18  # elements of one block of rows of `_permuted_autocorrelation` (2 MB:
 # it stays in cache; 32 MB blocks were 25 % slower on a batch of 128 devices x 6 runs)
+SHUFFLE_THREADS_MAX = 8  # the block products are memory-bound: more threads add little
 MAX_SLICES = 64  # a shuffled row with more runs of occupied slots is scattered column-wise
 CORRELATE_MAX = 4096  # 1-D series up to this length: all lags from one np.correlate call
 
@@ -399,50 +403,94 @@ def _permuted_autocorrelation(jobs, permutations: int) -> None:
     devices of a batch) go through one product per lag and block (row-wise dot products of
     each row with its lagged self; a row is zero-padded to its block's longest grid, and
     zeros add nothing); blocks bound memory, and a job's shuffles are one stream whatever
-    the blocking and the other jobs."""
+    the blocking and the other jobs. Blocks are independent (each writes its own rows of its
+    jobs' `out`) and numpy's copies and products release the interpreter, so on a machine
+    with cores to spare (`shuffle_threads`) they run side by side, a bounded window of
+    blocks at a time; the numbers do not depend on it."""
     if not jobs:
         return
     h = max(job.npairs.size for job in jobs)
-    buffer = np.empty(0)
-    for block, size, width in _blocks(_pieces(jobs, int(permutations))):
-        if buffer.size < size * width:  # one buffer for every block (no fresh pages each)
-            buffer = np.empty(size * width)
-        grid = buffer[: size * width].reshape(size, width)
-        grid.fill(0.0)
-        npairs = np.ones((size, h))
-        c0, bias = np.empty((size, 1)), np.empty((size, 1))
-        r = 0
-        for job, _, order in block:
-            if order is None:
-                grid[r, : job.g.size] = job.g
-                k = 1
-            else:
-                slots, first = job.runs_of_slots()
-                k = order.shape[0]
-                shuffled = job.g[slots][order]
-                if first.size > MAX_SLICES:
-                    grid[r : r + k, slots] = shuffled
-                else:
-                    for a, b in zip(first[:-1], first[1:]):
-                        grid[r : r + k, slots[a] : slots[a] + b - a] = shuffled[:, a:b]
-            npairs[r : r + k, : job.npairs.size] = np.maximum(job.npairs, 1)
-            c0[r : r + k], bias[r : r + k] = job.c0, 1.0 / (job.n - 1)
-            r += k
-        sums = np.empty((size, h))
-        for k in range(1, h + 1):  # row by row dot products: einsum is 2x a stacked matmul
-            if k < width:
-                np.einsum("ij,ij->i", grid[:, k:], grid[:, : width - k], out=sums[:, k - 1])
-            else:
-                sums[:, k - 1] = 0.0
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rk = sums / npairs / c0 + bias
-        r = 0
-        for job, first, order in block:
-            k = 1 if order is None else order.shape[0]
-            job.out[first : first + k] = rk[r : r + k, : job.npairs.size]
-            r += k
+    blocks = _blocks(_pieces(jobs, int(permutations)))
+    workers = shuffle_threads()
+    if workers == 1:
+        scratch = _Scratch()
+        for block in blocks:
+            _block_autocorrelation(*block, h, scratch)
+    else:
+        local = threading.local()
+
+        def run(block):
+            if not hasattr(local, "scratch"):
+                local.scratch = _Scratch()
+            _block_autocorrelation(*block, h, local.scratch)
+
+        with ThreadPoolExecutor(workers, thread_name_prefix="greybox-shuffles") as pool:
+            while window := list(itertools.islice(blocks, 4 * workers)):  # bounded memory
+                list(pool.map(run, window))
     for job in jobs:
         job.out[:, job.npairs == 0] = np.nan
+
+
+class _Scratch:
+    """One thread's reusable block buffer (no fresh pages for every block)."""
+
+    def __init__(self):
+        self.buffer = np.empty(0)
+
+    def grid(self, size: int, width: int) -> np.ndarray:
+        if self.buffer.size < size * width:
+            self.buffer = np.empty(size * width)
+        grid = self.buffer[: size * width].reshape(size, width)
+        grid.fill(0.0)
+        return grid
+
+
+def shuffle_threads() -> int:
+    """Threads for the shuffle blocks: the cores this process may use beyond one (which the
+    caller's own work, e.g. `fit_batch`'s compiled solves, keeps busy), at most
+    SHUFFLE_THREADS_MAX; 1 (no threads) on a two-core machine."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return int(max(1, min(SHUFFLE_THREADS_MAX, cores - 1 if cores > 2 else 1)))
+
+
+def _block_autocorrelation(block, size, width, h, scratch) -> None:
+    """One block of `_permuted_autocorrelation`: its rows placed, lag-multiplied, written."""
+    grid = scratch.grid(size, width)
+    npairs = np.ones((size, h))
+    c0, bias = np.empty((size, 1)), np.empty((size, 1))
+    r = 0
+    for job, _, order in block:
+        if order is None:
+            grid[r, : job.g.size] = job.g
+            k = 1
+        else:
+            slots, first = job.runs_of_slots()
+            k = order.shape[0]
+            shuffled = job.g[slots][order]
+            if first.size > MAX_SLICES:
+                grid[r : r + k, slots] = shuffled
+            else:
+                for a, b in zip(first[:-1], first[1:]):
+                    grid[r : r + k, slots[a] : slots[a] + b - a] = shuffled[:, a:b]
+        npairs[r : r + k, : job.npairs.size] = np.maximum(job.npairs, 1)
+        c0[r : r + k], bias[r : r + k] = job.c0, 1.0 / (job.n - 1)
+        r += k
+    sums = np.empty((size, h))
+    for k in range(1, h + 1):  # row by row dot products: einsum is 2x a stacked matmul
+        if k < width:
+            np.einsum("ij,ij->i", grid[:, k:], grid[:, : width - k], out=sums[:, k - 1])
+        else:
+            sums[:, k - 1] = 0.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rk = sums / npairs / c0 + bias
+    r = 0
+    for job, first, order in block:
+        k = 1 if order is None else order.shape[0]
+        job.out[first : first + k] = rk[r : r + k, : job.npairs.size]
+        r += k
 
 
 def _p_values(perm_r: np.ndarray, null_var: np.ndarray, dof: int) -> np.ndarray:

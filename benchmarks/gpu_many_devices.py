@@ -55,6 +55,16 @@ step count differing. The complete batch is bound by its host phases
 (prepare 2.8 s, residual tests 5.8 s, assembly 3.6 s of interpreter time for 1,024 devices,
 against 0.1 s of solving): 4,509 complete fits/min, not the 50,000 the issue asks for.
 
+Then (2026-11-27, H200 box, jax 0.11.2), the host work written as stacked passes over runs
+(residual tests, HAC, scoring), results without their shuffle matrices, shuffle blocks in
+threads. One call, `--devices 2048 --complete 2048 --check 4`, 31fecb3 against this work
+before the threads: complete fits 4,209 -> 6,320 /min (warm 29.2 -> 19.4 s; residual tests
+12.2 -> 8.6 s, assembly 11.0 -> 5.2 s, prepare 3.3 s in both). With the threads (a later
+call): 7,050 /min at 2,048 (residual tests 6.2 s) and 7,189 /min at 8,192 (warm 68 s: prepare
+12.2, residual tests 27.4, models 5.7, assembly 18.9, solves 0.9 s); the CPU's estimates to
+5.2e-15; 8,192 solves 512,119 /min, all converged. Still host-bound, ~7 ms of interpreter
+work per device: 50,000 /min needs the assembly compiled and vmapped (issue 24, item 3).
+
 Usage: .venv/bin/python benchmarks/gpu_many_devices.py [--devices 32768] [--smoke]
 Last line: one JSON object.
 """

@@ -63,6 +63,13 @@ compiled alone 3.2-4.4 s, solve_share 0.66-0.71. After: 6.66 and 6.03 s (4,615 a
 fits/min), compiled alone 2.05-2.10 s, solve_share 0.33-0.40, batch_vs_fit_max_rel 0.0 (each
 solve is bit for bit `fit`'s). The batch is now the host thread's time (prepare ~1, residual
 tests ~2.7, assembly ~2.2 s), which is why solve_share fell as the solves got faster.
+Then (2026-11-27, alternating runs of 31fecb3 and this change, loads 1.1-1.4): the host work
+as stacked passes over runs (residual tests, HAC, scoring), results without their shuffle
+matrices. Before: 4,781 and 4,130 fits/min (6.43 and 7.44 s warm), solve_share 0.37 and
+0.33, residual tests 2.7-3.0 s, assembly 2.3-2.8 s, prepare 1.2 s, peak RSS 1,035 MB. After:
+6,881 and 5,524 fits/min (4.47 and 5.56 s), solve_share 0.44 and 0.47, residual tests
+1.9-2.3 s, assembly 1.4-2.0 s, prepare 0.9-1.0 s, peak RSS 828 MB, result_kb_per_device
+34.5 (was ~323); batch_vs_fit_max_rel 0.0 and the population z-scores unchanged.
 """
 
 from __future__ import annotations

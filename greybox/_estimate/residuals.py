@@ -584,12 +584,12 @@ def _robust_keep_rows(e: np.ndarray, valid: np.ndarray) -> np.ndarray:
     scales (1.4826 MAD) from the row's median; rows with fewer than 3 valid readings, or no
     spread, keep every valid reading."""
     count = valid.sum(axis=1)
-    med = _sorted_median(np.sort(np.where(valid, e, np.inf), axis=1), count)
-    dev = np.abs(e - med[:, None])
-    scale = 1.4826 * _sorted_median(np.sort(np.where(valid, dev, np.inf), axis=1), count)
-    robust = (count >= 3) & (scale > 0)
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", over="ignore"):  # unused readings may be inf or NaN
+        med = _sorted_median(np.sort(np.where(valid, e, np.inf), axis=1), count)
+        dev = np.abs(e - med[:, None])
+        scale = 1.4826 * _sorted_median(np.sort(np.where(valid, dev, np.inf), axis=1), count)
         near = dev <= OUTLIER_SCALES * scale[:, None]
+    robust = (count >= 3) & (scale > 0)
     return valid & (near | ~robust[:, None])
 
 
@@ -598,6 +598,8 @@ def _on_grids(values, ok, slots, width) -> tuple[np.ndarray, np.ndarray]:
     (zero where empty) and occupancy; `slots` per row, the slot of each of its frames."""
     s = values.shape[0]
     grid, occ = np.zeros((s, width)), np.zeros((s, width), dtype=bool)
+    if not s:
+        return grid, occ
     rows = np.concatenate([np.full(sl.size, i) for i, sl in enumerate(slots)])
     cols = np.concatenate(slots)
     frames = np.concatenate([np.arange(sl.size) for sl in slots])

@@ -130,17 +130,6 @@ class FrameGrid:
         key = t.tobytes()
         return _grids.get(key, lambda: _frame_grid(key), lambda g: 2 * len(key) + 200)
 
-    def place(self, values: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(grid values (n_slots, k) zero where empty, occupancy (n_slots, k))."""
-        values = np.asarray(values, dtype=float).reshape(self.slots.size, -1)
-        valid = np.asarray(valid, dtype=bool).reshape(values.shape)
-        grid = np.zeros((self.n_slots, values.shape[1]))
-        occ = np.zeros((self.n_slots, values.shape[1]), dtype=bool)
-        ok = valid & np.isfinite(values)
-        grid[self.slots] = np.where(ok, values, 0.0)
-        occ[self.slots] = ok
-        return grid, occ
-
 
 def _frame_grid(t_bytes: bytes) -> FrameGrid:
     """`FrameGrid.build` of the frame times in `t_bytes` (float64), cached (`_grids`): a
@@ -190,10 +179,10 @@ def lagged_sums(a, occ_a, b, occ_b, lags) -> tuple[np.ndarray, np.ndarray]:
     """For each lag k: (sum over slots t with both occupied of a[t] b[t - k], pair count).
 
     `a`, `b`: (S,) zero where unoccupied; negative lags pair a[t] with b[t + |k|]. The one
-    lagged-product kernel behind every correlation and portmanteau statistic in greybox
-    (this module, `greybox._estimate.stochastic_fit.ljung_box`, `greybox.blackbox.residual_test`).
-    Short series take every lag from one `np.correlate` (direct sums); long ones one
-    product per lag (`lag_products`)."""
+    lagged-product kernel of a single series (`ljung_box`, `greybox.blackbox.residual_test`);
+    the stacked residual analysis calls `lag_products` on all its rows at once. Short
+    series take every lag from one `np.correlate` (direct sums); long ones one product per
+    lag (`lag_products`)."""
     a = np.asarray(a, dtype=float).reshape(-1)
     b = np.asarray(b, dtype=float).reshape(-1)
     oa = np.asarray(occ_a, dtype=float).reshape(-1)
@@ -1180,18 +1169,14 @@ def _input_lags(t_s, grid: FrameGrid, inputs, n_frames: int, lags: int) -> np.nd
         return np.concatenate(cols, axis=1)
     u = np.asarray(inputs, dtype=float).reshape(n_frames, -1)
     back = np.maximum(grid.slots[:, None] - np.arange(lags)[None, :], 0)  # (N, lags) slots
-    if np.all(np.isfinite(u)):  # every frame's level known: a slot reads its latest frame's
-        latest = np.searchsorted(grid.slots, np.arange(grid.n_slots), side="right") - 1
-        return u[latest[back]].reshape(n_frames, -1)
     slot_u = np.full((grid.n_slots, u.shape[1]), np.nan)
     slot_u[grid.slots] = u
     # missing timestamps: hold the last known level (forward fill: each slot reads the latest
-    # slot at or before it that holds a finite level, per input)
+    # slot at or before it that holds a finite level, per input; one gather)
     known = np.isfinite(slot_u)
     last = np.maximum.accumulate(np.where(known, np.arange(grid.n_slots)[:, None], -1), axis=0)
-    filled = np.take_along_axis(slot_u, np.maximum(last, 0), axis=0)
-    slot_u = np.where((last >= 0) & np.isfinite(filled), filled, 0.0)
-    return slot_u[back].reshape(n_frames, -1)
+    filled = np.where(last >= 0, slot_u[np.maximum(last, 0), np.arange(u.shape[1])], 0.0)
+    return filled[back].reshape(n_frames, -1)
 
 
 def model_error_residuals(t_s, residuals, valid, inputs, lags: int) -> tuple[np.ndarray, int]:

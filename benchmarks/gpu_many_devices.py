@@ -65,7 +65,21 @@ call): 7,050 /min at 2,048 (residual tests 6.2 s) and 7,189 /min at 8,192 (warm 
 5.2e-15; 8,192 solves 512,119 /min, all converged. Still host-bound, ~7 ms of interpreter
 work per device: 50,000 /min needs the assembly compiled and vmapped (issue 24, item 3).
 
-Usage: .venv/bin/python benchmarks/gpu_many_devices.py [--devices 32768] [--smoke]
+With `--workers N` every one of the `--devices` is also fitted completely by
+`fit_distributed` on a local cluster of N worker processes (`--worker-platforms`: `default`,
+the GPU shared by all workers, and/or `cpu`), a first call and a second, warm
+(`workers_<platform>_fits_per_min`; `_first_s`; `_cpu_agreement_max_rel` against the CPU's
+`fit_batch` of the first `--check`). Measured (2026-11-27, H200 box, 16 cores, jax 0.11.2,
+`XLA_PYTHON_CLIENT_PREALLOCATE=false`, `--devices 32768 --complete 1024 --check 4 --workers
+15 --worker-platforms default,cpu --skip-qr`): the GPU shared by 15 workers, 32,768 complete
+fits at 14,006 /min warm (140.4 s; first call 144.2 s; chunks of 273; all valid; the CPU's
+estimates to 5.5e-15), against one process's 6,697 /min at 1,024 in the same call; 15
+CPU-only workers: 10,530 /min on their first call (186.7 s; the warm call was cut off by the
+device window). Fifteen independent processes running a warm `fit_batch` of 96 devices on
+that CPU gave 34,755 /min together (one alone 4,456): most of the gap is likely Dask's own
+work (not measured apart).
+
+Usage: .venv/bin/python benchmarks/gpu_many_devices.py [--devices 32768] [--workers 15] [--smoke]
 Last line: one JSON object.
 """
 
@@ -99,6 +113,7 @@ from greybox._model import householder  # noqa: E402
 SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
 NOISE_M = 0.05e-6
 DROP = 0.05
+FIRST_CALL_LIMIT_S = 150.0  # a distributed first call slower than this is not timed again
 
 
 def pool_devices(n_pool, seed=24):
@@ -169,10 +184,26 @@ def main(argv=None):
         help="also fit this many process-noise (Ornstein-Uhlenbeck) devices with fit_batch(..., "
         "noise=...) and compare the first --check with the CPU (0: skip; not in --smoke)",
     )
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        help="also fit all --devices completely with fit_distributed on a local cluster of "
+        "this many worker processes sharing this machine (0: skip; needs the extra "
+        "`distributed`)",
+    )
+    ap.add_argument(
+        "--worker-platforms",
+        default="default",
+        help="comma-separated JAX platforms of those workers, each timed: default (JAX's "
+        "choice: the GPU, shared), cpu",
+    )
+    ap.add_argument("--skip-qr", action="store_true", help="skip the step-QR comparison")
     ap.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
     args = ap.parse_args(argv)
     if args.smoke:
         args.devices, args.pool, args.complete, args.check = 16, 4, 2, 2
+        args.workers = 0
     say = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
     t_start = time.perf_counter()
     out = {"backend": jax.default_backend(), "device": str(jax.devices()[0].device_kind)}
@@ -256,22 +287,81 @@ def main(argv=None):
         worst = max(worst, float(np.max(np.abs(va - vb) / np.maximum(np.abs(vb), 1e-300))))
 
     partial(cpu_agreement_max_rel=worst, cpu_check_devices=len(check))
+    if args.workers:
+        every = [_device_from_rows(pool, cleans, k, rows, noisy) for k in range(args.devices)]
+        for platform in args.worker_platforms.split(","):
+            figures = distributed_batch(every, free, args.workers, platform, cpu, say)
+            partial(**figures)
+        del every
     if args.process:
         partial(**process_batch(args.process, args.check, say))
 
-    # last (it clears the compiled functions): one chunk, warm, with this backend's step QR
-    # and with LAPACK's (`lx.QR`, what every backend used before)
-    head_s = {}
-    for name, solver in (("default", None), ("lapack", lx.QR)):
-        head_s[name] = _warm_chunk_s(group, head, raw[:chunk], sig[:chunk], chunk, opts, solver)
+    if not args.skip_qr:
+        # last (it clears the compiled functions): one chunk, warm, with this backend's step
+        # QR and with LAPACK's (`lx.QR`, what every backend used before)
+        head_s = {}
+        for name, solver in (("default", None), ("lapack", lx.QR)):
+            head_s[name] = _warm_chunk_s(group, head, raw[:chunk], sig[:chunk], chunk, opts, solver)
+        out.update(
+            solve_chunk_warm_s=round(head_s["default"], 3),
+            solve_chunk_lapack_qr_s=round(head_s["lapack"], 3),
+            step_qr_speedup=round(head_s["lapack"] / head_s["default"], 2),
+        )
     out.update(
-        solve_chunk_warm_s=round(head_s["default"], 3),
-        solve_chunk_lapack_qr_s=round(head_s["lapack"], 3),
-        step_qr_speedup=round(head_s["lapack"] / head_s["default"], 2),
         total_s=round(time.perf_counter() - t_start, 1),
         load_average=round(os.getloadavg()[0], 2),
     )
     print(json.dumps(out))
+
+
+def distributed_batch(devices, free, n_workers, platform, cpu, say) -> dict:
+    """Complete fits of every device by `fit_distributed` on a local cluster of `n_workers`
+    processes whose JAX uses `platform` ("default": JAX's choice, so the GPU, shared), the
+    first call (worker start-up and compiles) and a second, warm, on the same cluster; the
+    estimates of the devices in `cpu` (the CPU's `fit_batch`) compared."""
+    from greybox._estimate import distributed as dist
+
+    plat = None if platform == "default" else platform
+    key = f"workers_{platform}"
+    t0 = time.perf_counter()
+    client, cluster = dist.start_client("local", n_workers, platform=plat)
+    start_s = time.perf_counter() - t0
+    quiet = lambda _m: None  # noqa: E731
+    try:
+        times = []
+        for _ in range(2):
+            t0 = time.perf_counter()
+            res = dist.fit_distributed(
+                devices,
+                free,
+                client=client,
+                n_workers=n_workers,
+                worker_platform=plat or jax.default_backend(),
+                progress=quiet,
+            )
+            times.append(time.perf_counter() - t0)
+            say(f"{key}: {len(devices)} complete fits in {times[-1]:.1f} s")
+            if times[0] > FIRST_CALL_LIMIT_S:  # too slow to time twice in one device window
+                break
+    finally:
+        client.close()
+        cluster.close()
+    worst = 0.0
+    for name, r in cpu.results.items():
+        va = np.array([p.value for p in res[name].parameters])
+        vb = np.array([p.value for p in r.parameters])
+        worst = max(worst, float(np.max(np.abs(va - vb) / np.maximum(np.abs(vb), 1e-300))))
+    return {
+        f"{key}_devices": len(devices),
+        f"{key}_n": n_workers,
+        f"{key}_fits_per_min": round(60.0 * len(devices) / times[-1], 1),
+        f"{key}_warm_s": round(times[1], 2) if len(times) > 1 else None,
+        f"{key}_first_s": round(times[0], 2),
+        f"{key}_cluster_start_s": round(start_s, 2),
+        f"{key}_chunk": res.chunk_size,
+        f"{key}_valid": int(sum(r.valid for r in res.results.values())),
+        f"{key}_cpu_agreement_max_rel": worst,
+    }
 
 
 def process_batch(n, n_check, say) -> dict:

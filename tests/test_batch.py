@@ -107,6 +107,34 @@ def test_chunk_size_respects_memory_budget(batch):
     assert chunk_size_for(b, 256 * b, 1000, 256) == 250
 
 
+def test_distributed_chunks_fill_the_worker_budget_only_on_an_accelerator(batch):
+    from greybox._estimate import batch as _batch
+    from greybox._estimate.distributed import plan
+
+    devices = batch[0] * 200  # 2,800 devices over 4 workers, 1 GiB each
+    free = SPEC.free_parameters()
+    cpu = plan(devices, free, n_workers=4)
+    gpu = plan(devices, free, n_workers=4, accelerator=True)
+    b = gpu[2]
+    # one solve after another on a CPU: chunks of at most 64, evened out over the 350
+    # devices a task holds (two tasks per worker); a vmapped chunk on a shared accelerator:
+    # as many solves as the worker's 1 GiB holds
+    assert cpu[0] == chunk_size_for(b, 1024**3, 350, _batch.MAX_CHUNK) == 59
+    assert gpu[0] == chunk_size_for(b, 1024**3, 350, _batch.MAX_CHUNK_ACCELERATOR) == 350
+    assert gpu[0] * b <= 1024**3 and gpu[1] % gpu[0] == 0
+
+
+def test_local_workers_share_an_accelerator_without_taking_its_memory(monkeypatch):
+    from greybox._estimate.distributed import worker_environment
+
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE", raising=False)
+    monkeypatch.delenv("JAX_PLATFORMS", raising=False)
+    assert worker_environment() == {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+    assert worker_environment("cpu")["JAX_PLATFORMS"] == "cpu"
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_PREALLOCATE", "true")  # the user's own setting wins
+    assert worker_environment() == {}
+
+
 def test_population_recovers_median_spread_and_flags_outlier(batch):
     devices, truth, out, _ = batch
     kinds = {"absorptance": "random", "thermal.tau_s": "random"}
@@ -154,9 +182,12 @@ def test_dask_worker_killed_mid_batch_loses_and_duplicates_nothing(tmp_path):
 
     client, cluster = start_client("local", n_workers=2)
     try:
+        preallocate = client.run(lambda: os.environ.get("XLA_PYTHON_CLIENT_PREALLOCATE"))
         out = run_tasks(task, [(str(marker), v) for v in range(5)], client=client, retries=1)
     finally:
         client.close()
         cluster.close()
+    if "XLA_PYTHON_CLIENT_PREALLOCATE" not in os.environ:  # workers got `worker_environment`
+        assert set(preallocate.values()) == {"false"}
     assert marker.exists()  # a worker really died
     assert out == [0, 2, 4, 6, 8]  # every task exactly once, in order

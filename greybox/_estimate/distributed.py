@@ -15,6 +15,11 @@ a Dask cluster and gathers one `FitResult` per device:
 - memory: the chunk size (solves per compiled call) is chosen from `memory_budget_bytes`
   per worker with `greybox._estimate.batch.bytes_per_item` (frames x runs x states x parameters x
   Jacobian), unless `chunk_size` is given;
+- one machine with an accelerator: the local cluster's workers share it (each takes only
+  the memory its chunks need, `worker_environment`) and each does its devices' host work
+  (problem building, residual tests, assembly: interpreter work, one core per worker) on a
+  core of its own, which a single process cannot (`fit_batch`'s host work is one thread);
+  `worker_platform="cpu"` keeps them on the CPU;
 - device files loaded by the registry (built-in `models/`, a user's device file) are
   registered on the worker from the same folder before the devices are unpickled (a
   cluster's workers must see that folder at the same path);
@@ -28,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import sys
 import types
 from collections.abc import Callable, Sequence
@@ -35,6 +41,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from greybox._estimate import batch as _batch
+from greybox._platform import on_accelerator
 
 DEFAULT_WORKER_BUDGET = 1 * 1024**3  # bytes one worker's compiled call may allocate
 
@@ -129,8 +136,8 @@ def check_scheduler(scheduler: str, timeout_s: float = 5.0) -> None:
     import socket
     from urllib.parse import urlsplit
 
-    from greybox._model.errors import InputError
     from greybox._extras import require_extra
+    from greybox._model.errors import InputError
 
     require_extra("distributed", field="--scheduler", what="--scheduler")
     if scheduler == "local":
@@ -155,9 +162,27 @@ def check_scheduler(scheduler: str, timeout_s: float = 5.0) -> None:
         ) from None
 
 
-def start_client(scheduler: str | None = "local", n_workers: int = 2, memory_limit="auto"):
+def worker_environment(platform: str | None = None) -> dict:
+    """Environment of a local cluster's worker processes (those already set here win):
+
+    - `XLA_PYTHON_CLIENT_PREALLOCATE=false`: on an accelerator, JAX's default is to take 75 %
+      of its memory at the first computation, so the second of several workers sharing one
+      GPU would fail; each worker takes what its chunks need (a chunk is sized by the
+      per-worker `memory_budget_bytes`);
+    - `platform="cpu"`: `JAX_PLATFORMS=cpu`, workers that leave the accelerator alone."""
+    env = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+    if platform is not None:
+        env["JAX_PLATFORMS"] = str(platform)
+    return {k: v for k, v in env.items() if k not in os.environ}
+
+
+def start_client(
+    scheduler: str | None = "local", n_workers: int = 2, memory_limit="auto", platform=None
+):
     """(client, cluster or None): a `LocalCluster` of `n_workers` one-thread worker processes
-    for "local"/None, else a client of the scheduler at that address."""
+    for "local"/None (their JAX on `platform`, default JAX's own choice, which on a GPU
+    machine is the GPU they then share: `worker_environment`), else a client of the
+    scheduler at that address."""
     from greybox._log import route_dask_logs
 
     distributed = _require_distributed()
@@ -170,16 +195,29 @@ def start_client(scheduler: str | None = "local", n_workers: int = 2, memory_lim
             memory_limit=memory_limit,
             dashboard_address=None,
             silence_logs=logging.ERROR,
+            env=worker_environment(platform),
         )
         return distributed.Client(cluster), cluster
     return distributed.Client(scheduler, timeout="10s"), None
 
 
-def plan(devices, free, *, n_workers: int, chunk_size=None, memory_budget_bytes=None, **kw):
+def plan(
+    devices,
+    free,
+    *,
+    n_workers: int,
+    chunk_size=None,
+    memory_budget_bytes=None,
+    accelerator: bool = False,
+    **kw,
+):
     """(chunk size, devices per task, estimated bytes per solve) for a distributed batch.
 
     Each task holds whole chunks; there are at least two tasks per worker when the devices
-    allow, so a dead worker costs little and the load balances."""
+    allow, so a dead worker costs little and the load balances. Workers on an
+    `accelerator` take chunks as large as their memory budget allows (a vmapped chunk is one
+    set of kernels: small chunks pay the per-call and per-step launches many times); on a
+    CPU, at most `_batch.MAX_CHUNK`."""
     budget = DEFAULT_WORKER_BUDGET if memory_budget_bytes is None else memory_budget_bytes
     prepared, groups = _batch._prepare(
         devices[:1],
@@ -201,7 +239,8 @@ def plan(devices, free, *, n_workers: int, chunk_size=None, memory_budget_bytes=
     starts = len(prepared[0].starts)
     per_worker = math.ceil(len(devices) / max(int(n_workers), 1))
     if chunk_size is None:
-        chunk_size = _batch.chunk_size_for(b, budget, max(per_worker // 2, 1) * starts)
+        most = _batch.MAX_CHUNK_ACCELERATOR if accelerator else _batch.MAX_CHUNK
+        chunk_size = _batch.chunk_size_for(b, budget, max(per_worker // 2, 1) * starts, most)
     chunk_devices = max(1, int(chunk_size) // starts)
     n_tasks = max(1, math.ceil(len(devices) / chunk_devices))
     n_tasks = max(n_tasks, min(len(devices), 2 * int(n_workers)))
@@ -217,6 +256,7 @@ def fit_distributed(
     scheduler: str | None = "local",
     n_workers: int = 2,
     client=None,
+    worker_platform: str | None = None,
     chunk_size: int | None = None,
     memory_budget_bytes: float | None = None,
     retries: int = 2,
@@ -226,8 +266,12 @@ def fit_distributed(
     """`greybox._estimate.batch.fit_batch` on a Dask cluster: the same arguments and result.
 
     **Other arguments:** `scheduler` ("local" or an address), `n_workers` (local cluster),
-    `client` (an existing Client; then `scheduler` is ignored), `chunk_size` /
-    `memory_budget_bytes` (per worker, default 1 GiB), `retries` per task, `progress`.
+    `client` (an existing Client; then `scheduler` is ignored), `worker_platform` (the JAX
+    platform of the workers: None, JAX's choice, which on a machine with a GPU is that GPU,
+    shared by the local cluster's workers while each runs its own host work on its own core;
+    "cpu" keeps them off it; a cluster given by `client` or an address is taken to be of
+    CPUs unless this says otherwise), `chunk_size` / `memory_budget_bytes` (per worker,
+    default 1 GiB), `retries` per task, `progress`.
     """
     devices = list(devices)
     free = tuple(free)
@@ -235,12 +279,19 @@ def fit_distributed(
     names = [d.name for d in devices]
     if len(set(names)) != len(names):
         raise ValueError("devices: two devices share a name; names must be unique")
+    own = client is None
+    local = own and scheduler in (None, "local")
+    if worker_platform is not None:
+        accelerator = worker_platform != "cpu"
+    else:  # a local cluster's workers see this machine's devices
+        accelerator = local and on_accelerator()
     chunk, per_task, b = plan(
         devices,
         free,
         n_workers=n_workers,
         chunk_size=chunk_size,
         memory_budget_bytes=memory_budget_bytes,
+        accelerator=accelerator,
         **fit_kwargs,
     )
     tasks = [devices[i : i + per_task] for i in range(0, len(devices), per_task)]
@@ -248,10 +299,9 @@ def fit_distributed(
         f"{len(devices)} devices in {len(tasks)} tasks of up to {per_task}, chunks of "
         f"{chunk} solves (~{chunk * b / 1e6:.0f} MB per worker)"
     )
-    own = client is None
     cluster = None
     if own:
-        client, cluster = start_client(scheduler, n_workers)
+        client, cluster = start_client(scheduler, n_workers, platform=worker_platform)
     try:
         import cloudpickle
 

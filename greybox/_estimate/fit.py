@@ -1039,11 +1039,10 @@ def _predictions(best, experiments) -> list:
 
 def _residual_runs(experiments, predictions) -> list:
     """(name, t_s, residual, valid, inputs at the frames) per run, for `_residuals.analyse`."""
-    out = []
-    for e, z in zip(experiments, predictions):
-        u = np.asarray(e.inputs(e.t_s), dtype=float).reshape(e.n_frames, -1)
-        out.append((e.name, e.t_s, e.y - z, e.mask, u))
-    return out
+    return [
+        (e.name, e.t_s, e.y - z, e.mask, e.frame_inputs())
+        for e, z in zip(experiments, predictions)
+    ]
 
 
 def _scores(
@@ -1060,7 +1059,7 @@ def _scores(
     left, fitted = np.zeros_like(r3), 0  # what the model-error model leaves, per run
     for i, e in enumerate(experiments):
         n = e.n_frames
-        u = np.asarray(e.inputs(e.t_s), dtype=float).reshape(n, -1)  # levels at the frames
+        u = e.frame_inputs()
         left[i, :n], k = model_error_residuals(e.t_s, r3[i, :n], w3[i, :n], u, lags)
         fitted += k
     g = np.einsum("efyp,efy->efp", j4, left)  # every run's scores in one product

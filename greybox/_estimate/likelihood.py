@@ -757,7 +757,8 @@ def assemble(su: Setup, runs, say):
     sigma = np.asarray([float(v) for v in base.measurement.values])
     measured_free = any(p.path.startswith("measurement.") for p in free)
     innovations = [
-        (e.name, e.t_s, e.y - d.y_one_step, e.mask, _levels(e)) for e, d in zip(experiments, diags)
+        (e.name, e.t_s, e.y - d.y_one_step, e.mask, e.frame_inputs())
+        for e, d in zip(experiments, diags)
     ]
     report_cov = np.asarray(report.covariance_raw)
     return _fit.FitResult(
@@ -815,10 +816,6 @@ def assemble(su: Setup, runs, say):
         whiteness={d.name: d.whiteness for d in diags},
         runs=diags,
     )
-
-
-def _levels(e) -> np.ndarray:
-    return np.asarray(e.inputs(e.t_s), dtype=float).reshape(e.n_frames, -1)
 
 
 def _scored_readings(e, score_first: bool) -> int:

@@ -150,3 +150,7 @@ class Experiment:
     @property
     def mask(self) -> np.ndarray:
         return np.isfinite(self.y)
+
+    def frame_inputs(self) -> np.ndarray:
+        """The input levels at the frames, (N, n_u) in the inputs' SI units."""
+        return np.asarray(self.inputs(self.t_s), dtype=float).reshape(self.n_frames, -1)

@@ -1558,12 +1558,13 @@ def _scored_runs(experiments, preds, sigma) -> tuple:
     z = _padded([np.asarray(zi, dtype=float) for zi in preds], np.nan)
     s = _padded(s_frames, 1.0)
     with np.errstate(invalid="ignore"):
-        flagged = (np.abs((y - z) / s) > OUTLIER_SIGMAS) & np.isfinite(y)
+        scaled_all = (y - z) / s
+        flagged = (np.abs(scaled_all) > OUTLIER_SIGMAS) & np.isfinite(y)
     clean = np.where(flagged, np.nan, y)
     fits, robust = fit_percent_per_output(y, z), fit_percent_per_output(clean, z)
     outliers, ceilings = flagged.sum(axis=(1, 2)), noise_ceiling_per_output(clean, s)
     names = [e.name for e in experiments]
-    scaled = [(e.y - zi) / sf for e, zi, sf in zip(experiments, preds, s_frames)]
+    scaled = [scaled_all[k, : e.n_frames] for k, e in enumerate(experiments)]
     return (
         dict(zip(names, fits)),
         dict(zip(names, robust)),

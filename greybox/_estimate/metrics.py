@@ -77,13 +77,20 @@ def fit_percent_per_output(y, y_hat) -> np.ndarray:
     if y.ndim <= 2:
         y, y_hat = y.reshape(y.shape[0], -1), y_hat.reshape(y.shape[0], -1)
     ok = np.isfinite(y) & np.isfinite(y_hat)
-    n = ok.sum(axis=-2)
-    mean = np.where(ok, y, 0.0).sum(axis=-2) / np.maximum(n, 1)
-    spread = np.sqrt(np.sum(np.where(ok, y - mean[..., None, :], 0.0) ** 2, axis=-2))
+    n, centred = _centred_squares(y, ok)
+    spread = np.sqrt(centred)
     error = np.sqrt(np.sum(np.where(ok, y - y_hat, 0.0) ** 2, axis=-2))
     with np.errstate(divide="ignore", invalid="ignore"):
         out = 100.0 * (1.0 - error / spread)
     return np.where((n > 1) & (spread > 0), out, np.nan)
+
+
+def _centred_squares(y, ok) -> tuple[np.ndarray, np.ndarray]:
+    """(count, sum of squared deviations from the mean) of each column of `y` (..., N, n_y)
+    over its `ok` samples: the spread both fit % and the noise ceiling measure against."""
+    n = ok.sum(axis=-2)
+    mean = np.where(ok, y, 0.0).sum(axis=-2) / np.maximum(n, 1)
+    return n, np.sum(np.where(ok, y - mean[..., None, :], 0.0) ** 2, axis=-2)
 
 
 def noise_ceiling_per_output(y, sigma) -> np.ndarray:
@@ -92,10 +99,9 @@ def noise_ceiling_per_output(y, sigma) -> np.ndarray:
     y = np.asarray(y, dtype=float)
     s = np.broadcast_to(np.asarray(sigma, dtype=float), y.shape)
     ok = np.isfinite(y) & np.isfinite(s)
-    n = ok.sum(axis=-2)
+    n, centred = _centred_squares(y, ok)
     m = np.maximum(n, 1)
-    mean = np.where(ok, y, 0.0).sum(axis=-2) / m
-    spread = np.sqrt(np.sum(np.where(ok, y - mean[..., None, :], 0.0) ** 2, axis=-2) / m)
+    spread = np.sqrt(centred / m)
     level = np.sqrt(np.sum(np.where(ok, s, 0.0) ** 2, axis=-2) / m)
     with np.errstate(divide="ignore", invalid="ignore"):
         out = 100.0 * (1.0 - level / spread)

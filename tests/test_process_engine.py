@@ -237,6 +237,44 @@ def test_at_bound_judged_in_log_space():
     assert lag.bound_hit(float(lag.to_raw(0.99995)), 0.0) == "upper"
 
 
+@pytest.mark.parametrize("minimum", [0.5, -0.5])
+def test_a_vanished_intensity_is_restarted_only_where_zero_is_no_minimum(minimum):
+    """`likelihood.revive` on a closed-form cost in one intensity q >= 0 (start 1):
+    -log L = (q - minimum)^2 + 7. A solve that ended with q vanished (1e-9) at a minimum of 0.5
+    sits where the cost still falls as q rises (dc/dq = -1 at zero, hidden in log coordinates
+    by the factor q): it is restarted from q = 1 and ends at 0.5, 0.25 lower. At -0.5 zero is
+    the bound-constrained minimum (dc/dq = +1): nothing is solved again."""
+    from greybox._estimate import likelihood as lik
+
+    p = greybox.FreeParameter("process.q", lower=0.0)
+    raw0 = np.array([float(p.to_raw(1.0))])
+
+    def cost(q):
+        return (q - minimum) ** 2 + 7.0
+
+    def totals(_item, raws):
+        return np.array([cost(float(p.to_value(r[0]))) for r in raws])
+
+    solved = []
+
+    def solve(items):  # the solve from each start ends at the interior minimum (or zero)
+        solved.extend(float(p.to_value(r[0])) for _, r in items)
+        q = max(minimum, 1e-12)
+        return [{"raw": np.array([float(p.to_raw(q))]), "cost": cost(q), "steps": 5}] * len(items)
+
+    vanished = {"raw": np.array([float(p.to_raw(1e-9))]), "cost": cost(1e-9), "steps": 40}
+    said = []
+    out = lik.revive([vanished], [[p]], [raw0], solve, totals, said.append, ["start 1/1"])[0]
+    if minimum > 0:
+        assert solved == pytest.approx([1.0])  # restarted from its start value
+        assert float(p.to_value(out["raw"][0])) == pytest.approx(0.5)
+        assert vanished["cost"] - out["cost"] == pytest.approx(0.25, rel=1e-6)
+        assert out["steps"] == 45 and "process.q had vanished" in said[0]
+    else:
+        assert solved == [] and said == []
+        assert out["cost"] == vanished["cost"] and out["steps"] == 40
+
+
 def test_process_noise_not_needed_leaves_fit_valid(data):
     """Data without envelope process noise: that intensity goes to zero, "not needed", and the
     fit is still valid."""

@@ -106,6 +106,9 @@ def fit_likelihood_batch(named_setups, *, chunk_size=None, progress=None) -> tup
             flats,
             raw0s,
             lambda pairs: solve([(items[i][0], r) for i, r in pairs]),
+            lambda i, raws: jax.device_get(
+                _lik._totals_jit(sus[items[i][0]].obj, jnp.asarray(raws))
+            ),
             say,
             names,
         )

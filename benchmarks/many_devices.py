@@ -70,6 +70,10 @@ matrices. Before: 4,781 and 4,130 fits/min (6.43 and 7.44 s warm), solve_share 0
 6,881 and 5,524 fits/min (4.47 and 5.56 s), solve_share 0.44 and 0.47, residual tests
 1.9-2.3 s, assembly 1.4-2.0 s, prepare 0.9-1.0 s, peak RSS 828 MB, result_kb_per_device
 34.5 (was ~323); batch_vs_fit_max_rel 0.0 and the population z-scores unchanged.
+Then (2026-11-27, quiet: load 0.98, main at 3576b88): loop 39.4 fits/s (first fit 2.36 s),
+batch of 512 7,793 fits/min (3.94 s warm), solve 1.45 + models 0.44 s: solve_share 0.48;
+host phases prepare 0.76, residual tests 1.59, assembly 1.27 s (1.57 s of them overlapped).
+The wall time is the host's interpreter work; 0.8 still needs it compiled.
 """
 
 from __future__ import annotations

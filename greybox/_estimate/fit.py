@@ -57,6 +57,7 @@ from greybox._estimate.residuals import (
     goodness_of_fit,
     hac_meat,
     model_error_residuals,
+    padded_stack,
 )
 from greybox._estimate.residuals import analyse as analyse_residuals
 from greybox._simulate.simulate import (
@@ -1531,15 +1532,6 @@ def _validation_scores(experiments, preds, sigma, known: bool, n_params: int):
     )
 
 
-def _padded(arrays, fill: float) -> np.ndarray:
-    """(R, longest N, n_y) stack of per-run (N, n_y) arrays, shorter runs padded with `fill`."""
-    n = max(a.shape[0] for a in arrays)
-    out = np.full((len(arrays), n, arrays[0].shape[1]), fill)
-    for k, a in enumerate(arrays):
-        out[k, : a.shape[0]] = a
-    return out
-
-
 def _scored_runs(experiments, preds, sigma) -> tuple:
     """Per run {name: value}: (simulation fit % per output (n_y,) on every valid frame, fit %
     without the readings more than OUTLIER_SIGMAS from the model, the number of such readings
@@ -1554,9 +1546,9 @@ def _scored_runs(experiments, preds, sigma) -> tuple:
     the second figure.
     """
     s_frames = [np.broadcast_to(_frame_sigma(e, sigma), e.y.shape) for e in experiments]
-    y = _padded([e.y for e in experiments], np.nan)
-    z = _padded([np.asarray(zi, dtype=float) for zi in preds], np.nan)
-    s = _padded(s_frames, 1.0)
+    y = padded_stack([e.y for e in experiments], np.nan)
+    z = padded_stack([np.asarray(zi, dtype=float) for zi in preds], np.nan)
+    s = padded_stack(s_frames, 1.0)
     with np.errstate(invalid="ignore"):
         scaled_all = (y - z) / s
         flagged = (np.abs(scaled_all) > OUTLIER_SIGMAS) & np.isfinite(y)

@@ -597,6 +597,16 @@ def _on_grids(values, ok, slots, width) -> tuple[np.ndarray, np.ndarray]:
     return grid, occ
 
 
+def padded_stack(arrays, fill, dtype=float) -> np.ndarray:
+    """(len(arrays), longest N, ...) stack of arrays (N_i, ...) of one trailing shape, the
+    shorter ones padded with `fill` (runs of different lengths as one array)."""
+    n = max((np.shape(a)[0] for a in arrays), default=0)
+    out = np.full((len(arrays), n, *np.shape(arrays[0])[1:]), fill, dtype=dtype)
+    for k, a in enumerate(arrays):
+        out[k, : np.shape(a)[0]] = a
+    return out
+
+
 def _pending_runs(specs, permutations) -> list:
     """`analyse_run` without its shuffles, for many runs at once: per run (its
     `RunResiduals`, p-values not yet set; the `_Shuffled` jobs that fill its
@@ -633,16 +643,11 @@ def _pending_group(runs, permutations) -> list:
     """`_pending_runs` of runs of similar grid lengths (one stacked pass)."""
     n_rows = [r[2].shape[1] for r in runs]
     first = np.concatenate([[0], np.cumsum(n_rows)])
-    s_total, n_max = int(first[-1]), max(r[2].shape[0] for r in runs)
     width = max(r[1].n_slots for r in runs)
     m_max = max(r[5] for r in runs)
-    e = np.full((s_total, n_max), np.nan)
-    ok = np.zeros((s_total, n_max), dtype=bool)
-    slots = []
-    for (_, grid, e_r, ok_r, *_rest), a in zip(runs, first):
-        e[a : a + e_r.shape[1], : e_r.shape[0]] = e_r.T
-        ok[a : a + e_r.shape[1], : e_r.shape[0]] = ok_r.T
-        slots += [grid.slots] * e_r.shape[1]
+    e = padded_stack([row for r in runs for row in r[2].T], np.nan)  # one row per output
+    ok = padded_stack([row for r in runs for row in r[3].T], False, dtype=bool)
+    slots = [r[1].slots for r in runs for _ in range(r[2].shape[1])]
     keep = _robust_keep_rows(e, ok)
     n = keep.sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -723,11 +728,7 @@ def _cross_correlations(runs, first, g, occ, c0, live, m_max, width):
     lags = np.arange(-m_max, m_max + 1)
     pairs_g, pairs_u, where = [], [], {}
     if u_rows:
-        n_max = max(x.size for x in u_rows)
-        uv = np.zeros((len(u_rows), n_max))
-        uo = np.zeros((len(u_rows), n_max), dtype=bool)
-        for i, (x, o) in enumerate(zip(u_rows, u_ok)):
-            uv[i, : x.size], uo[i, : x.size] = x, o
+        uv, uo = padded_stack(u_rows, 0.0), padded_stack(u_ok, False, dtype=bool)
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = np.where(uo, uv, 0.0).sum(axis=1) / uo.sum(axis=1)
         ug, uocc = _on_grids(np.where(uo, uv - mean[:, None], 0.0), uo, u_slots, width)

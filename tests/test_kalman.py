@@ -24,6 +24,7 @@ from greybox.stochastic._kalman import (
     FilterGrid,
     LinearGaussianSDE,
     discretise,
+    discretise_steps,
     free_run,
     kalman_filter,
     log_likelihood,
@@ -206,6 +207,29 @@ def test_grid_steps_through_every_switch_and_frame():
         FilterGrid(t, t0_s=2.0)
     with pytest.raises(ValueError, match="expected"):
         LinearGaussianSDE(A2, B2, QC2, C2, np.eye(3), X02, P02)
+
+
+def test_steps_are_discretised_once_per_distinct_length():
+    """A sampled record (frames every 0.5 s from t0, two dropped, inputs switching on and off
+    the frames) has 6 distinct step lengths among its 21 steps (0 at t0, 0.2, 0.25, 0.3, 0.5
+    and 1 s): `discretise_steps` computes 8 (6 rounded up to a power of two) and gives every
+    step the discretisation of its own length, each equal to the stiff 2x2 case's
+    quadrature. A jittered record keeps one per step."""
+    t = np.delete(np.arange(0.0, 10.5, 0.5), [7, 13])
+    g = FilterGrid(t, [0.25, 4.0, 8.2], [1.0, 2.0, 3.0], t0_s=0.0)
+    assert g.dt_s.size == 21 and np.unique(g.dt_s).size == 6 and g.dt_distinct.size == 8
+    np.testing.assert_array_equal(g.dt_distinct[g.dt_index], g.dt_s)
+    A = np.array([[-50.0, 40.0], [0.3, -0.1]])
+    Ad, Bd, Qd = discretise_steps(A, B2, QC2, g, jnp.float64)
+    assert Ad.shape == (21, 2, 2) and Bd.shape == (21, 2, 1)
+    for k, h in enumerate(g.dt_s):
+        Bd_ref, Qd_ref = quadrature(h, A)
+        np.testing.assert_allclose(Ad[k], sla.expm(A * h), rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(Bd[k], Bd_ref, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(Qd[k], Qd_ref, rtol=1e-12, atol=1e-15)
+    jitter = np.random.default_rng(0).uniform(0.0, 1e-3, t.size)
+    jittered = FilterGrid(t + jitter, t0_s=0.0)  # every length new
+    assert jittered.dt_distinct.size == jittered.dt_s.size == t.size
 
 
 # ---------------------------------------------------------------------------------------------

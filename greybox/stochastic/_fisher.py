@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from greybox._model.freeparams import apply_raw
-from greybox.stochastic._kalman import FilterGrid, discretise
+from greybox.stochastic._kalman import FilterGrid, discretise_steps
 from greybox.stochastic._sde_device import StochasticDevice, _readout_terms
 
 
@@ -39,8 +39,7 @@ def reading_moments(model: StochasticDevice, grid: FilterGrid, t_s, t0):
         )
     dtype = jnp.result_type(float)
     sde = model.linear_sde(dtype)
-    dt = jnp.asarray(grid.dt_s, dtype)
-    Ad, Bd, Qd = discretise(sde.A, sde.B, sde.Qc, dt)
+    Ad, Bd, Qd = discretise_steps(sde.A, sde.B, sde.Qc, grid, dtype)
     n_frames = t_s.shape[0]
     n = sde.A.shape[0]
 

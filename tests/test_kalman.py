@@ -210,21 +210,22 @@ def test_grid_steps_through_every_switch_and_frame():
 
 
 def test_steps_are_discretised_once_per_distinct_length():
-    """A sampled record (frames every 0.5 s from t0, two dropped, inputs switching on and off
-    the frames) has 6 distinct step lengths among its 21 steps (0 at t0, 0.2, 0.25, 0.3, 0.5
-    and 1 s): `discretise_steps` computes 8 (6 rounded up to a power of two) and gives every
-    step the discretisation of its own length, each equal to the stiff 2x2 case's
-    quadrature. A jittered record keeps one per step."""
-    t = np.delete(np.arange(0.0, 10.5, 0.5), [7, 13])
+    """A sampled record (frames every 0.5 s from t0 for 40 s, three dropped, inputs switching
+    on and off the frames) has 6 distinct step lengths among its 80 steps (0 at t0, 0.2,
+    0.25, 0.3, 0.5 and 1 s): `discretise_steps` computes 8 (6 rounded up to a power of two)
+    and gives every step the discretisation of its own length, each equal to the stiff 2x2
+    case's quadrature. A jittered record keeps one per step (no gather)."""
+    t = np.delete(np.arange(0.0, 40.5, 0.5), [7, 13, 50])
     g = FilterGrid(t, [0.25, 4.0, 8.2], [1.0, 2.0, 3.0], t0_s=0.0)
-    assert g.dt_s.size == 21 and np.unique(g.dt_s).size == 6 and g.dt_distinct.size == 8
+    assert g.dt_s.size == 80 and np.unique(g.dt_s).size == 6 and g.dt_distinct.size == 8
     np.testing.assert_array_equal(g.dt_distinct[g.dt_index], g.dt_s)
     A = np.array([[-50.0, 40.0], [0.3, -0.1]])
     Ad, Bd, Qd = discretise_steps(A, B2, QC2, g, jnp.float64)
-    assert Ad.shape == (21, 2, 2) and Bd.shape == (21, 2, 1)
+    assert Ad.shape == (80, 2, 2) and Bd.shape == (80, 2, 1)
+    refs = {h: (sla.expm(A * h), *quadrature(h, A)) for h in np.unique(g.dt_s)}
     for k, h in enumerate(g.dt_s):
-        Bd_ref, Qd_ref = quadrature(h, A)
-        np.testing.assert_allclose(Ad[k], sla.expm(A * h), rtol=1e-12, atol=1e-15)
+        Ad_ref, Bd_ref, Qd_ref = refs[h]
+        np.testing.assert_allclose(Ad[k], Ad_ref, rtol=1e-12, atol=1e-15)
         np.testing.assert_allclose(Bd[k], Bd_ref, rtol=1e-12, atol=1e-15)
         np.testing.assert_allclose(Qd[k], Qd_ref, rtol=1e-12, atol=1e-15)
     jitter = np.random.default_rng(0).uniform(0.0, 1e-3, t.size)

@@ -599,8 +599,8 @@ def _on_grids(values, ok, slots, width) -> tuple[np.ndarray, np.ndarray]:
 
 def padded_stack(arrays, fill, dtype=float) -> np.ndarray:
     """(len(arrays), longest N, ...) stack of arrays (N_i, ...) of one trailing shape, the
-    shorter ones padded with `fill` (runs of different lengths as one array)."""
-    n = max((np.shape(a)[0] for a in arrays), default=0)
+    shorter ones padded with `fill` (runs of different lengths as one array; at least one)."""
+    n = max(np.shape(a)[0] for a in arrays)
     out = np.full((len(arrays), n, *np.shape(arrays[0])[1:]), fill, dtype=dtype)
     for k, a in enumerate(arrays):
         out[k, : np.shape(a)[0]] = a

@@ -294,6 +294,8 @@ def discretise_steps(A, B, Qc, grid, dtype):
     the RC3 test record's 1,827 steps have 61, and the likelihood's gradient took half the
     time)."""
     distinct = discretise(A, B, Qc, jnp.asarray(grid.dt_distinct, dtype))
+    if grid.dt_distinct.shape == grid.dt_s.shape:  # every step its own: no gather
+        return distinct
     index = jnp.asarray(grid.dt_index)
     return tuple(X[index] for X in distinct)
 
@@ -312,9 +314,10 @@ class FilterGrid(eqx.Module):
     (L, p) the level held on each step, `frame` (L,) the frame observed at the end of each step
     (-1: none), `step` (N,) the step that ends at each frame, `u_frame` (N, p) the level at
     each frame (right-continuous). A frame at `t0_s` gets a zero-length first step.
-    `dt_distinct` (K,) the distinct step lengths (K rounded up to a power of two, at most L,
-    by repeating the last: records of similar sampling share one shape) and `dt_index` (L,)
-    each step's among them: a linear device is discretised once per distinct length
+    `dt_distinct` (K,) the distinct step lengths (K rounded up to a power of two by
+    repeating the last, so records of similar sampling share one shape; K = L, the steps
+    themselves, where that is more than a quarter of them) and `dt_index` (L,) each step's
+    among them: a linear device's fit discretises once per distinct length
     (`discretise_steps`), a few dozen for a sampled record instead of every step.
     """
 
@@ -360,9 +363,13 @@ class FilterGrid(eqx.Module):
         self.t_s = t
         self.dt_s = ends - starts
         distinct, index = np.unique(self.dt_s, return_inverse=True)
-        k = min(self.dt_s.size, 1 << max(distinct.size - 1, 0).bit_length())
-        self.dt_distinct = np.concatenate([distinct, np.full(k - distinct.size, distinct[-1])])
-        self.dt_index = index.reshape(-1).astype(np.int32)
+        k = 1 << max(distinct.size - 1, 0).bit_length()
+        if 4 * k <= self.dt_s.size:  # worth a gather
+            self.dt_distinct = np.concatenate([distinct, np.full(k - distinct.size, distinct[-1])])
+            self.dt_index = index.reshape(-1).astype(np.int32)
+        else:  # every step its own (a jittered record)
+            self.dt_distinct = self.dt_s
+            self.dt_index = np.arange(self.dt_s.size, dtype=np.int32)
         self.u = _level(bt, lv, starts)
         pos = np.searchsorted(t, ends)
         is_frame = (pos < t.size) & (t[np.minimum(pos, t.size - 1)] == ends)

@@ -58,7 +58,6 @@ from greybox.stochastic._kalman import (
     FilterGrid,
     LinearGaussianSDE,
     discretise,
-    discretise_steps,
     kalman_filter,
     measurement_update,
 )
@@ -608,7 +607,9 @@ def _k_step_arrays(model, grid, mf, Pf, plan, n_loop, R):
 
     else:
         sde = model.linear_sde(dtype)
-        Ad, Bd, Qd = discretise_steps(sde.A, sde.B, sde.Qc, grid, dtype)
+        # every step, not `discretise_steps`: run once per record, and so one compiled
+        # program serves records of one length whatever their distinct step lengths
+        Ad, Bd, Qd = discretise(sde.A, sde.B, sde.Qc, dt_all)
 
         def advance(s, m, P):
             return Ad[s] @ m + Bd[s] @ u_steps[s], Ad[s] @ P @ Ad[s].T + Qd[s]
@@ -737,7 +738,7 @@ def _paths_jit(model: StochasticDevice, grid: FilterGrid, t_s, t0, keys, meas: b
     L0 = chol(model.initial_cov(dtype))
     if not model.use_ekf:
         sde = model.linear_sde(dtype)
-        Ad, Bd, Qd = discretise_steps(sde.A, sde.B, sde.Qc, grid, dtype)
+        Ad, Bd, Qd = discretise(sde.A, sde.B, sde.Qc, dt_all)  # every step (see above)
         Ld = jax.lax.map(chol, Qd)
 
         def one(eps):

@@ -320,8 +320,12 @@ def _newton(obj: _Objective, raw0, max_steps):
 
 @eqx.filter_jit
 def _totals_jit(obj: _Objective, raws):
-    """-log L + priors at each row of `raws`."""
     return jax.vmap(obj.total)(raws)
+
+
+def totals_at(obj: _Objective, raws) -> np.ndarray:
+    """-log L + priors of `obj` at each row of `raws` (what `revive` probes zero with)."""
+    return np.asarray(jax.device_get(_totals_jit(obj, jnp.asarray(raws))))
 
 
 @eqx.filter_jit
@@ -684,15 +688,18 @@ def fit_likelihood(
             for _, r in items
         ]
 
-    def totals(_item, raws):
-        return jax.device_get(_totals_jit(su.obj, jnp.asarray(raws)))
-
     runs = []
     n = len(su.starts)
     for i, s in enumerate(su.starts):
         say(f"start {i + 1}/{n}: {su.label}")
         out = revive(
-            solve([(0, s)]), [su.flat], [su.raw0], solve, totals, say, [f"start {i + 1}/{n}"]
+            solve([(0, s)]),
+            [su.flat],
+            [su.raw0],
+            solve,
+            lambda _item, raws: totals_at(su.obj, raws),
+            say,
+            [f"start {i + 1}/{n}"],
         )[0]
         runs.append(out)
         say(

@@ -106,9 +106,7 @@ def fit_likelihood_batch(named_setups, *, chunk_size=None, progress=None) -> tup
             flats,
             raw0s,
             lambda pairs: solve([(items[i][0], r) for i, r in pairs]),
-            lambda i, raws: jax.device_get(
-                _lik._totals_jit(sus[items[i][0]].obj, jnp.asarray(raws))
-            ),
+            lambda i, raws: _lik.totals_at(sus[items[i][0]].obj, raws),
             say,
             names,
         )

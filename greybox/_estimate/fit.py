@@ -357,8 +357,7 @@ class _Problem(eqx.Module):
         leaves (a batch stacks many problems before one transfer)."""
         sched = padded
         if sched is None:
-            sched = pad_schedules(schedules_for(model, experiments), on_device=on_device)
-        put = jnp.asarray if on_device else np.asarray
+            sched = pad_schedules(schedules_for(model, experiments), on_device=False)
         n_exp = len(experiments)
         n_frames = sched["t_s"].shape[1]
         n_y = experiments[0].y.shape[1]
@@ -373,13 +372,13 @@ class _Problem(eqx.Module):
             if e.sigma is not None:
                 noise[i, : e.n_frames] = np.where(e.mask, e.sigma, 1.0)
         setting_paths, settings = _problem.settings_matrix(model, experiments, free)
-        return _Problem(
-            model=as_arrays(model, put),
+        problem = _Problem(
+            model=as_arrays(model, on_device=False),
             sched=sched,
-            y=put(y),
-            w=put(w),
-            noise=put(noise),
-            settings=put(settings),
+            y=y,
+            w=w,
+            noise=noise,
+            settings=np.asarray(settings),
             setting_paths=setting_paths,
             shared=_problem.split(free)[0],
             per_exp=_problem.split(free)[1],
@@ -394,6 +393,10 @@ class _Problem(eqx.Module):
                 ("max_steps", int(max_steps)),
             ),
         )
+        if not on_device:
+            return problem
+        arrays, rest = eqx.partition(problem, eqx.is_array)  # one transfer, not one per leaf
+        return eqx.combine(jax.device_put(arrays), rest)
 
     @property
     def n_data(self) -> int:

@@ -169,8 +169,7 @@ def pad_schedules(schedules: Sequence[Schedule], *, on_device: bool = True) -> d
         out["jump_ts"][i, :n_j], out["jump_ts"][i, n_j:] = s.jump_ts, t_end + 1.0 + np.arange(
             n_jumps - n_j
         )
-    to = jnp.asarray if on_device else np.asarray
-    return {k: to(v) for k, v in out.items()}
+    return jax.device_put(out) if on_device else out
 
 
 _EXPM_MAX_SQUARINGS = 24  # handles |A h| up to ~4e6: far beyond any RC time-constant ratio
@@ -447,15 +446,18 @@ def simulate(
     return z[:, 0] if z.shape[1] == 1 else z
 
 
-def as_arrays(model, put=jnp.asarray):
-    """Turn Python-number leaves into float arrays, so new values never trigger a recompile
-    (`put`: jnp.asarray, on the device, or np.asarray, kept on the host)."""
-    return jax.tree.map(
-        lambda x: (
-            put(x, dtype=float) if isinstance(x, (float, int)) and not isinstance(x, bool) else x
-        ),
-        model,
-    )
+def as_arrays(model, on_device: bool = True):
+    """Turn Python-number leaves into float arrays, so new values never trigger a recompile:
+    on the device (all in one `jax.device_put`: one dispatch per leaf cost about a millisecond
+    of every chevron fit), or kept on the host as numpy arrays."""
+    leaves, treedef = jax.tree.flatten(model)
+    numbers = [
+        i for i, x in enumerate(leaves) if isinstance(x, (float, int)) and not isinstance(x, bool)
+    ]
+    values = [np.asarray(leaves[i], dtype=float) for i in numbers]
+    for i, v in zip(numbers, jax.device_put(values) if on_device else values):
+        leaves[i] = v
+    return jax.tree.unflatten(treedef, leaves)
 
 
 @eqx.filter_jit

@@ -24,6 +24,12 @@ stretch: warm ZOH fit 65.7 and 62.8 ms before, 60.7, 42.9, 44.8 and 52.2 ms afte
 Then (2026-11-27, a full run with scipy at load 1.0, main at 3576b88): compile 2.96 s, warm
 ZOH fit 46 ms, adaptive fit 0.685 s against scipy's 75.0 s: 109.5x. The three targets of
 issue 24 (compile <= 3 s, ZOH <= 50 ms, >= 100x scipy) held in one run.
+Then (2026-11-27, `--skip-scipy`, alternating runs of 39c54ed and this change, loads 1.4-1.6):
+greybox's compiled functions built with XLA's older CPU fusion emitters (`greybox/_compile.py`):
+compile 2.73 and 2.53 s -> 1.58 and 1.76 s, warm ZOH fit 55 and 39 ms -> 51 and 50 ms (the
+Levenberg-Marquardt solve runs 10-20 % slower compiled this way: 8.0-8.3 -> 8.9-11.6 ms a
+solve over 20 fits), adaptive fit 0.70 and 0.70 -> 0.64 and 0.67 s, its compile 7.2-9.0 s
+either way.
 """
 
 from __future__ import annotations

@@ -74,6 +74,15 @@ Then (2026-11-27, quiet: load 0.98, main at 3576b88): loop 39.4 fits/s (first fi
 batch of 512 7,793 fits/min (3.94 s warm), solve 1.45 + models 0.44 s: solve_share 0.48;
 host phases prepare 0.76, residual tests 1.59, assembly 1.27 s (1.57 s of them overlapped).
 The wall time is the host's interpreter work; 0.8 still needs it compiled.
+Then (2026-11-27, alternating runs of 39c54ed and this change, loads 1.1-1.4): the library's
+compiled functions built for a fast compile (`greybox/_compile.py`), the batch solver with
+XLA's default code generation (compiled fast, its solves ran 18-33 % slower): batch of 512
+6,210 and 6,791 -> 6,207 and 6,444 fits/min, its compiled calls alone the same (256 devices,
+four calls each: 0.80-1.02 s before, 0.80-1.06 s after), the first fit 2.4-3.1 -> 1.6-2.1 s
+(a loop of 12 new devices: ~20 ms a fit either way); `batch_vs_fit_max_rel` 9.6e-14 (was
+0.0: a single fit's solver and the batch's are now compiled with different options, so they
+agree to rounding, no longer bit for bit; the batch's own independence of its size is
+unchanged, tests/test_batch_independence.py).
 """
 
 from __future__ import annotations

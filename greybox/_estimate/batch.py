@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
+from greybox._compile import jit
 from greybox._estimate import fit as _fit
 from greybox._estimate.blas import small_blas
 from greybox._estimate.problem import best_start
@@ -185,7 +186,7 @@ def chunk_size_for(bytes_item: int, budget: float, n_items: int, max_chunk=MAX_C
     return int(math.ceil(max(int(n_items), 1) / n_chunks))
 
 
-@eqx.filter_jit
+@jit(fast_compile=False)
 def _solve_many(dynamic, static, raw, sigma, rtol, atol, max_steps):
     """`_fit._solve` over a stacked chunk of problems (one compiled function; vmapped on an
     accelerator, one solve after another on a CPU: `map_over_items`)."""
@@ -196,7 +197,7 @@ def _solve_many(dynamic, static, raw, sigma, rtol, atol, max_steps):
     return map_over_items(one, dynamic, raw, sigma)
 
 
-@eqx.filter_jit
+@jit
 def _models_many(dynamic, static, raw):
     """`_fit._fitted_models` vmapped over a stacked chunk of problems and raw vectors."""
 

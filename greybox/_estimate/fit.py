@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from greybox._compile import jit
 from greybox._estimate import problem as _problem
 from greybox._estimate.problem import DECREMENT_TOL
 from greybox._estimate.blas import small_blas
@@ -511,7 +512,7 @@ def _block_predictions(problem: _Problem, raw):
     return predict(raw)
 
 
-@eqx.filter_jit
+@jit
 def _solve(
     problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_steps: int, raw_ref=None
 ):
@@ -604,7 +605,7 @@ def _stall_reason(best) -> str | None:
     )
 
 
-@eqx.filter_jit
+@jit
 def _response(problem: _Problem, raw):
     """Predictions (E, N, n_y), success flags (E,) and d predictions / d raw (E, N, n_y,
     n_raw) of `problem` at `raw`: one compiled simulation with its sensitivities."""
@@ -617,7 +618,7 @@ def _response(problem: _Problem, raw):
     return z, ok, jac
 
 
-@eqx.filter_jit
+@jit
 def _fitted_models(problem: _Problem, raw):
     """(shared model, per-run models) at `raw`: one compiled call, not a chain of eager
     updates per run (most of a batch's per-device host time before)."""

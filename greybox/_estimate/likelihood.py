@@ -42,6 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from greybox._compile import jit
 from greybox._estimate import problem as _problem
 from greybox._model.freeparams import apply_raw
 from greybox._estimate.identifiability import analyse
@@ -202,7 +203,7 @@ def _newton_direction(g, H):
     return _cap(-V @ ((V.T @ g) / wabs))
 
 
-@eqx.filter_jit
+@jit
 def _newton(obj: _Objective, raw0, max_steps):
     """Maximise the likelihood from `raw0`; one compiled program for every start.
 
@@ -318,7 +319,7 @@ def _newton(obj: _Objective, raw0, max_steps):
     )
 
 
-@eqx.filter_jit
+@jit
 def _totals_jit(obj: _Objective, raws):
     return jax.vmap(obj.total)(raws)
 
@@ -328,7 +329,7 @@ def totals_at(obj: _Objective, raws) -> np.ndarray:
     return np.asarray(jax.device_get(_totals_jit(obj, jnp.asarray(raws))))
 
 
-@eqx.filter_jit
+@jit
 def _data_nll_jit(obj: _Objective, raw):
     return obj.data_nll(raw)
 

@@ -31,13 +31,14 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
+from greybox._compile import jit
 from greybox._estimate import likelihood as _lik
 from greybox._platform import map_over_items
 
 MAX_CHUNK = 64  # likelihood solves per compiled call (each carries its own Hessian work)
 
 
-@eqx.filter_jit
+@jit
 def _newton_many(dynamic, static, raws, budget):
     """`likelihood._newton` over a chunk of stacked objectives and start points (vmapped on
     an accelerator, one after another on a CPU: `map_over_items`)."""

@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from greybox._compile import jax_jit
 from greybox._model.device import check_method
 from greybox._model.freeparams import apply_raw
 from greybox._simulate.simulate import (
@@ -194,7 +195,7 @@ def prediction_band(
     def observe(r):
         return observe_schedule(with_shared(base, shared, r), row, method=method)
 
-    @jax.jit
+    @jax_jit
     def response_and_jacobian(r):
         z, ok = observe(r)
         jac = jax.jacfwd(lambda rr: observe(rr)[0])(r) if n_shared else None
@@ -276,7 +277,7 @@ def propagate(fn, model, free, raw, covariance_raw, n: int, *, seed: int = 0) ->
     """
     draws = jnp.asarray(raw_draws(raw, covariance_raw, free, n, seed=seed))
     base = as_arrays(model)
-    return np.asarray(jax.jit(jax.vmap(lambda r: fn(with_shared(base, free, r))))(draws))
+    return np.asarray(jax_jit(jax.vmap(lambda r: fn(with_shared(base, free, r))))(draws))
 
 
 def delta_method(fn, model, free, raw, covariance_raw) -> tuple[np.ndarray, np.ndarray]:
@@ -294,7 +295,7 @@ def delta_method(fn, model, free, raw, covariance_raw) -> tuple[np.ndarray, np.n
             "not identifiable); the delta method needs a finite covariance"
         )
     base = as_arrays(model)
-    of_raw = jax.jit(lambda r: jnp.atleast_1d(fn(with_shared(base, free, r))))
+    of_raw = jax_jit(lambda r: jnp.atleast_1d(fn(with_shared(base, free, r))))
     r0 = jnp.asarray(raw, dtype=float)[:n_shared]
     jac = np.asarray(jax.jacfwd(of_raw)(r0)).reshape(-1, n_shared)
     return np.asarray(of_raw(r0)), jac @ cov @ jac.T

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from greybox._compile import jit
 from greybox._estimate.fit import ParameterEstimate, correlation, parameter_estimates
 from greybox._model.freeparams import FreeParameter, apply_raw, levenberg_marquardt
 from greybox._estimate.identifiability import IdentifiabilityReport, analyse
@@ -57,7 +58,7 @@ class _TableProblem(eqx.Module):
         return jnp.concatenate([r, jnp.stack(priors)]) if priors else r
 
 
-@eqx.filter_jit
+@jit
 def _solve(problem: _TableProblem, raw0, sigma, rtol: float, atol: float, max_steps: int):
     raw, ok, steps, _ = levenberg_marquardt(  # no stall stop: a table fit is cheap
         problem.residuals, raw0, sigma, rtol=rtol, atol=atol, max_steps=max_steps,

@@ -20,11 +20,11 @@ Everything is pure, jit- and vmap-able, and differentiable in the model paramete
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from greybox._compile import jit
 from greybox._model.device import AbstractStateAffineDevice
 from greybox._simulate.simulate import as_arrays, require_x64, zoh_matrices
 
@@ -176,7 +176,7 @@ def _response_one(model, amplitude, frequency_Hz, duty, low, n_steps, method):
     )
 
 
-@eqx.filter_jit
+@jit
 def _response_jit(model, amplitude, frequency_Hz, duty, low, n_steps, method):
     return jax.vmap(lambda a, f: _response_one(model, a, f, duty, low, n_steps, method))(
         amplitude, frequency_Hz

@@ -24,11 +24,11 @@ import math
 from collections.abc import Sequence
 
 import diffrax as dfx
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from greybox._compile import jit
 from greybox._model.data import check_times
 from greybox._model.device import METHODS, AbstractDevice, AbstractSteppedDevice, check_method
 from greybox._model.waveforms import PiecewiseConstant
@@ -460,7 +460,7 @@ def as_arrays(model, on_device: bool = True):
     return jax.tree.unflatten(treedef, leaves)
 
 
-@eqx.filter_jit
+@jit
 def _observe_jit(model, row, method, rtol, atol, max_steps, zoh_scan="auto"):
     return observe_schedule(
         model, row, method=method, rtol=rtol, atol=atol, max_steps=max_steps, zoh_scan=zoh_scan

@@ -10,6 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from greybox._compile import jax_jit
+
 from ._arx import _check_rows, arx_regressors, fit_arx
 from ._data import UniformData, as_experiments
 from ._pem import _lm_solve, ar_filter, covariance_direct, pad_experiments, stable_poly
@@ -119,7 +121,7 @@ def _armax_resid(theta, args):
     return (e * mask).ravel()
 
 
-@jax.jit
+@jax_jit
 def _solve_armax(theta0, phi, yv, mask):
     pab = phi.shape[-1]
 

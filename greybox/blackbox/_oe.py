@@ -11,6 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from greybox._compile import jax_jit
+
 from ._arx import fit_arx
 from ._data import UniformData, as_experiments
 from ._pem import _lm_solve, ar_filter, covariance_direct, pad_experiments, stable_poly
@@ -95,7 +97,7 @@ def _oe_resid(theta, args, nb, nk, nf):
     return ((yv - w) * mask).ravel()
 
 
-@ft.partial(jax.jit, static_argnames=("nb", "nk", "nf"))
+@jax_jit(static_argnames=("nb", "nk", "nf"))
 def _solve_oe(theta0, ulag, yv, mask, hist0, nb, nk, nf):
     pb = sum(nb)
 

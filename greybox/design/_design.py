@@ -59,11 +59,11 @@ import dataclasses
 import math
 from collections.abc import Sequence
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from greybox._compile import jax_jit, jit
 from greybox._model.device import check_method, with_camera
 from greybox._model.freeparams import FreeParameter
 from greybox._estimate.identifiability import TINY, WEAK_SD
@@ -356,7 +356,7 @@ def log_criterion(m, kind: str = "D"):
     raise ValueError(f"criterion: {kind!r} is unknown; use one of {CRITERIA}")
 
 
-@eqx.filter_jit
+@jit
 def _batch_information(model, shared, per_run, raw_shared, raw_per, sched, weight, sigma, method):
     """(R, ns, ns) marginal information of a batch of padded runs at one parameter point."""
     ns = len(shared)
@@ -928,7 +928,7 @@ def _design_multilevel(problem, c: LabConstraints, kind, hold_s, n_iter, seed, s
 
         return jnp.mean(jax.vmap(at)(jnp.asarray(points)))
 
-    value_and_grad = jax.jit(jax.value_and_grad(objective))
+    value_and_grad = jax_jit(jax.value_and_grad(objective))
     rng = np.random.default_rng(seed)
     lo, hi = c.power_min_W, c.power_max_W
     if starts is None:  # random binary levels at full power
@@ -1212,7 +1212,7 @@ def _track_response(levels, model, row, seg_pad, n):
     return z[:n, 0]
 
 
-@eqx.filter_jit
+@jit
 def _track_value_and_grad(levels, model, row, seg_pad, w, wt, tgt, stroke, tolerance, n):
     """Tracking loss and its gradient in the levels (module level: compiled once per shape)."""
 

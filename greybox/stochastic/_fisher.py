@@ -21,10 +21,10 @@ I(y_2..N | y_1) = I(y) - I(y_1)). Nonlinear devices (the EKF) are refused.
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from greybox._compile import jit
 from greybox._model.freeparams import apply_raw
 from greybox.stochastic._kalman import FilterGrid, discretise_steps
 from greybox.stochastic._sde_device import StochasticDevice, _readout_terms
@@ -84,7 +84,7 @@ def _gaussian_information(dmu, dsig, sig):
     return dmu.T @ a + 0.5 * jnp.einsum("iab,jba->ij", W, W)
 
 
-@eqx.filter_jit
+@jit
 def _information(model, free, raw, grid, t_s, t0):
     def moments(r):
         return reading_moments(apply_raw(model, free, r), grid, t_s, t0)

@@ -49,6 +49,8 @@ import jax.scipy.linalg as jsl
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from greybox._compile import jax_jit, jit
+
 __all__ = [
     "FilterGrid",
     "FilterResult",
@@ -229,7 +231,7 @@ def _pow2_scale(X, h):
     return jax.lax.stop_gradient(2.0**-k)
 
 
-@jax.jit
+@jax_jit
 def discretise(A, B, Qc, dt_s):
     """Exact ZOH discretisation over steps of length `dt_s` [s] (Van Loan's method).
 
@@ -527,7 +529,7 @@ def _run(model: LinearGaussianSDE, grid: FilterGrid, y, keep_path: bool):
     return ll, path, Ad, y
 
 
-@eqx.filter_jit
+@jit
 def log_likelihood(model: LinearGaussianSDE, grid: FilterGrid, y) -> Float[Array, ""]:
     """Exact Gaussian log-likelihood log p(y) of one record (extended for a nonlinear output).
 
@@ -542,7 +544,7 @@ def log_likelihood(model: LinearGaussianSDE, grid: FilterGrid, y) -> Float[Array
     return _run(model, grid, y, keep_path=False)[0]
 
 
-@eqx.filter_jit
+@jit
 def kalman_filter(model: LinearGaussianSDE, grid: FilterGrid, y) -> FilterResult:
     """Continuous-discrete Kalman filter at the frame times; see `FilterResult`.
 
@@ -565,7 +567,7 @@ def kalman_filter(model: LinearGaussianSDE, grid: FilterGrid, y) -> FilterResult
     )
 
 
-@eqx.filter_jit
+@jit
 def rts_smoother(model: LinearGaussianSDE, grid: FilterGrid, y) -> SmootherResult:
     """Rauch-Tung-Striebel smoother: state moments at each frame given the whole record.
 

@@ -51,6 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from greybox._compile import jit
 from greybox._model.data import Experiment
 from greybox._model.device import AbstractLinearDevice, AbstractODEDevice
 from greybox._model.freeparams import FreeParameter, apply_raw
@@ -569,7 +570,7 @@ def _k_step_plan(grid: FilterGrid, k: int):
     return start.astype(np.int32), first.astype(np.int32), step.astype(np.int32), max(n, 1)
 
 
-@eqx.filter_jit
+@jit
 def _filter_arrays(model: StochasticDevice, grid: FilterGrid, t_s, t0, y, plan, n_loop: int):
     """One run: log L, one-step prediction and sd, simulation and sd, filtered means,
     k-step prediction and sd (every prediction in reading units, readout terms added)."""
@@ -682,7 +683,7 @@ def device_log_likelihood(model: StochasticDevice, experiment: Experiment) -> fl
     return float(_loglik_jit(m, _grid(e), jnp.asarray(e.t_s), _t0(e), jnp.asarray(e.y)))
 
 
-@eqx.filter_jit
+@jit
 def _loglik_jit(model, grid, t_s, t0, y):
     return _record_loglik(model, grid, t_s, t0, y)
 
@@ -715,7 +716,7 @@ def sample_paths(
     return np.asarray(z)
 
 
-@eqx.filter_jit
+@jit
 def _paths_jit(model: StochasticDevice, grid: FilterGrid, t_s, t0, keys, meas: bool):
     dtype = jnp.result_type(float)
     Qc = model.diffusion(dtype)
@@ -830,7 +831,7 @@ def unread_run(model, inputs, t_s, t_start_s: float = 0.0) -> Experiment:
     )
 
 
-@eqx.filter_jit
+@jit
 def _draw_jit(model, free, draws, grid, t_s, t0, keys, meas):
     def one(args):
         raw, key = args

@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import itertools
 import os
 import threading
@@ -154,6 +155,12 @@ LAG_BLOCK = 1 << 18  # elements of one block of rows of `_permuted_autocorrelati
 # it stays in cache; 32 MB blocks were 25 % slower on a batch of 128 devices x 6 runs)
 SHUFFLE_THREADS_MAX = 8  # the block products are memory-bound: more threads add little
 MAX_SLICES = 64  # a shuffled row with more runs of occupied slots is scattered column-wise
+# The shuffles multiply in single precision: half the memory traffic, twice the speed on long
+# runs (the chevron fit's 6 runs of ~330 frames: the residual analysis 19-21 -> 10 ms). A
+# p-value counts shuffles whose Q reaches the observed one (double precision, as are the
+# reported correlations and Q); a shuffle's rounding, ~1e-6 of its Q, could move it across
+# only within ~1e-6 of a tie, far inside the 1 / (B + 1) resolution.
+SHUFFLE_DTYPE = np.float32
 CORRELATE_MAX = 4096  # 1-D series up to this length: all lags from one np.correlate call
 
 
@@ -328,8 +335,9 @@ def _shuffle_orders(key: tuple, n: int, b: int) -> np.ndarray | None:
 @dataclasses.dataclass
 class _Shuffled:
     """One run and output to test by shuffles: residuals `g` on the grid (`occ` occupied, zero
-    elsewhere), pair counts `npairs` at lags 1..h, readings `n`, variance `c0`, stream `key`;
-    `out` (B + 1, h) receives its r(1..h), observed (row 0) and shuffled."""
+    elsewhere), pair counts `npairs` at lags 1..h, readings `n`, variance `c0`, stream `key`,
+    its r(1..h) `observed` (double precision); `out` (B + 1, h) receives r(1..h), observed
+    (row 0) and shuffled."""
 
     g: np.ndarray
     occ: np.ndarray
@@ -337,7 +345,15 @@ class _Shuffled:
     n: int
     c0: float
     key: tuple
+    observed: np.ndarray
     out: np.ndarray
+
+    @functools.cached_property
+    def unit(self) -> np.ndarray:
+        """`g` / sqrt(c0) in SHUFFLE_DTYPE: what the shuffle pass multiplies (r(k) does not
+        depend on the scale, and unit variance keeps any unit's squares far from single
+        precision's underflow and overflow)."""
+        return (self.g / np.sqrt(self.c0)).astype(SHUFFLE_DTYPE)
 
     def runs_of_slots(self) -> tuple[np.ndarray, np.ndarray]:
         """(the occupied slots in order, the index in them where each stretch of consecutive
@@ -350,11 +366,10 @@ class _Shuffled:
 
 
 def _pieces(jobs, b: int):
-    """(job, first row of `out`, None for the observed row or the order rows of shuffles)
-    in blocks of at most LAG_BLOCK / n_slots shuffles, lazily: slices of the cached orders
-    or, for long runs, the same stream drawn block by block."""
+    """(job, first row of `out`, the order rows of shuffles) in blocks of at most LAG_BLOCK /
+    n_slots shuffles, lazily: slices of the cached orders or, for long runs, the same stream
+    drawn block by block."""
     for job in jobs:
-        yield job, 0, None
         if not b:
             continue
         slots_n = int(job.occ.sum())
@@ -374,7 +389,7 @@ def _blocks(pieces):
     grid; a single larger piece is a block of its own)."""
     block, size, width = [], 0, 0
     for piece in pieces:
-        rows = 1 if piece[2] is None else piece[2].shape[0]
+        rows = piece[2].shape[0]
         w = max(width, piece[0].g.size)
         if block and (size + rows) * w > LAG_BLOCK:
             yield block, size, width
@@ -386,9 +401,9 @@ def _blocks(pieces):
 
 
 def _permuted_autocorrelation(jobs, permutations: int) -> None:
-    """Fill each job's `out` (B + 1, h) with the bias-corrected r(1..h): row 0 of its
-    residuals as placed on the grid, rows 1.. of B shuffles of the values among the occupied
-    slots (the gaps stay where they are). The rows of every job (all runs of a fit, all
+    """Fill each job's `out` (B + 1, h) with the bias-corrected r(1..h): row 0 its observed
+    one, rows 1.. those of B shuffles of the values among the occupied slots (the gaps stay
+    where they are; single precision, `SHUFFLE_DTYPE`). The rows of every job (all runs of a fit, all
     devices of a batch) go through one product per lag and block (row-wise dot products of
     each row with its lagged self; a row is zero-padded to its block's longest grid, and
     zeros add nothing); blocks bound memory, and a job's shuffles are one stream whatever
@@ -417,6 +432,7 @@ def _permuted_autocorrelation(jobs, permutations: int) -> None:
             while window := list(itertools.islice(blocks, 4 * workers)):  # bounded memory
                 list(pool.map(run, window))
     for job in jobs:
+        job.out[0] = job.observed
         job.out[:, job.npairs == 0] = np.nan
 
 
@@ -428,7 +444,7 @@ class _Scratch:
 
     def grid(self, size: int, width: int) -> np.ndarray:
         if self.buffer.size < size * width:
-            self.buffer = np.empty(size * width)
+            self.buffer = np.empty(size * width, dtype=SHUFFLE_DTYPE)
         grid = self.buffer[: size * width].reshape(size, width)
         grid.fill(0.0)
         return grid
@@ -449,35 +465,31 @@ def _block_autocorrelation(block, size, width, h, scratch) -> None:
     """One block of `_permuted_autocorrelation`: its rows placed, lag-multiplied, written."""
     grid = scratch.grid(size, width)
     npairs = np.ones((size, h))
-    c0, bias = np.empty((size, 1)), np.empty((size, 1))
+    bias = np.empty((size, 1))
     r = 0
     for job, _, order in block:
-        if order is None:
-            grid[r, : job.g.size] = job.g
-            k = 1
+        slots, first = job.runs_of_slots()
+        k = order.shape[0]
+        shuffled = job.unit[slots][order]
+        if first.size > MAX_SLICES:
+            grid[r : r + k, slots] = shuffled
         else:
-            slots, first = job.runs_of_slots()
-            k = order.shape[0]
-            shuffled = job.g[slots][order]
-            if first.size > MAX_SLICES:
-                grid[r : r + k, slots] = shuffled
-            else:
-                for a, b in zip(first[:-1], first[1:]):
-                    grid[r : r + k, slots[a] : slots[a] + b - a] = shuffled[:, a:b]
+            for a, b in zip(first[:-1], first[1:]):
+                grid[r : r + k, slots[a] : slots[a] + b - a] = shuffled[:, a:b]
         npairs[r : r + k, : job.npairs.size] = np.maximum(job.npairs, 1)
-        c0[r : r + k], bias[r : r + k] = job.c0, 1.0 / (job.n - 1)
+        bias[r : r + k] = 1.0 / (job.n - 1)
         r += k
-    sums = np.empty((size, h))
+    sums = np.empty((size, h), dtype=SHUFFLE_DTYPE)
     for k in range(1, h + 1):  # row by row dot products: einsum is 2x a stacked matmul
         if k < width:
             np.einsum("ij,ij->i", grid[:, k:], grid[:, : width - k], out=sums[:, k - 1])
         else:
             sums[:, k - 1] = 0.0
     with np.errstate(invalid="ignore", divide="ignore"):
-        rk = sums / npairs / c0 + bias
+        rk = sums / npairs + bias  # the values have unit variance: c0 = 1
     r = 0
     for job, first, order in block:
-        k = 1 if order is None else order.shape[0]
+        k = order.shape[0]
         job.out[first : first + k] = rk[r : r + k, : job.npairs.size]
         r += k
 
@@ -685,6 +697,7 @@ def _pending_group(runs, permutations) -> list:
                 int(n[a + j]),
                 float(c0[a + j]),
                 (*(int(x) for x in np.atleast_1d(seed)), j),
+                auto[a + j, 1 : h + 1],
                 perm_r[j],
             )
             for j in range(n_y)

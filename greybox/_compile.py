@@ -4,8 +4,8 @@ with the XLA options that keep compile time down.
 Compiling is most of a first fit's time, of a `greybox compare` of new structures and of the
 test suite. XLA's CPU back end emits its fused loops through its newer MLIR "fusion
 emitters" by default; its older LLVM emitters compile greybox's programs in a little over
-half the time (the chevron fit: XLA compile 2.3-2.9 -> 1.3-1.6 s, the first fit 2.4-2.9 ->
-1.6-1.9 s), and the compiled code runs about as fast (the Kalman likelihood's gradient and
+half the time (the chevron fit: XLA compile 2.3-2.9 -> 1.3-1.6 s, the first fit 2.5-2.9 ->
+1.6-2.0 s), and the compiled code runs about as fast (the Kalman likelihood's gradient and
 ARMAX a little faster, the Levenberg-Marquardt solve 10-20 % slower; the batch solver, which
 runs long once compiled, keeps the default: `jit(fast_compile=False)`). The option is one of
 XLA's per-compilation options, not a process-wide setting, and an XLA that does not know it

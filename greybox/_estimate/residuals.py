@@ -407,10 +407,10 @@ def _permuted_autocorrelation(jobs, permutations: int) -> None:
     fit, all devices of a batch) go through one product per lag and block (row-wise dot
     products of each row with its lagged self; a row is zero-padded to its block's longest
     grid, and zeros add nothing); blocks bound memory, and a job's shuffles are one stream
-    whatever the blocking and the other jobs. Blocks are independent (each writes its own rows of its
-    jobs' `out`) and numpy's copies and products release the interpreter, so on a machine
-    with cores to spare (`shuffle_threads`) they run side by side, a bounded window of
-    blocks at a time; the numbers do not depend on it."""
+    whatever the blocking and the other jobs. Blocks are independent (each writes its own
+    rows of its jobs' `out`) and numpy's copies and products release the interpreter, so on a
+    machine with cores to spare (`shuffle_threads`) they run side by side, a bounded window
+    of blocks at a time; the numbers do not depend on it."""
     if not jobs:
         return
     h = max(job.npairs.size for job in jobs)

@@ -36,6 +36,10 @@ those of the run with the stall stop alone to 1e-12. What changed:
 On a quiet machine (load 0.9 at the start, after the squarings became a cond in a loop of fixed
 length so that reverse mode works): 103 s wall, 177 s processor time; 5 s, 16 s, 42 s, 39 s
 per candidate; same preference and verdicts.
+Then (2026-11-27, back to back, loads 0.95 and 1.36 at the start): greybox's compiled functions
+built for a fast compile (`greybox/_compile.py`) and the residual shuffles in single precision:
+111.5 s wall, 148 s processor time (39c54ed) -> 89.5 s, 113 s; per candidate 6.5, 19.7, 45.3,
+37.5 s -> 4.3, 12.2, 36.6, 34.4 s; every AIC and verdict identical.
 
 Run: .venv/bin/python benchmarks/compare.py [--smoke]
 --smoke: two candidates, one start of 5 steps each, on the first 1.6 s of one estimation run

@@ -115,6 +115,52 @@ def test_analyse_many_is_one_analyse_per_fit():
     assert len({a.test_lag for a in together}) > 1  # the fits really had different lags
 
 
+def test_pooled_correlations_are_the_pair_weighted_means_of_the_runs():
+    """Pooled over runs (two outputs, two inputs, gaps, missing input levels): each lag's
+    autocorrelation and cross-correlation is the mean of the runs' with their pair counts
+    as weights (runs where it is undefined left out), the null variance
+    sum w^2 v / (sum w)^2, the statistic Q = sum over lags 1..h of r^2 / v; a loop per
+    output, input, lag and run from those definitions."""
+    rng = np.random.default_rng(21)
+    runs = []
+    for i, n in enumerate([70, 48, 90]):
+        t = np.cumsum(np.where(rng.random(n) < 0.08, 2.0, 1.0)) / 30.0
+        e = rng.normal(size=(n, 2))
+        e[1:, 0] += 0.4 * e[:-1, 0]
+        valid = rng.random((n, 2)) > 0.1
+        u = rng.normal(size=(n, 2))
+        u[::7, 1] = np.nan  # a missing input level
+        runs.append((f"r{i}", t, e, valid, u))
+    a = analyse(runs, permutations=19)
+    m, h = a.max_lag, a.test_lag
+    for j in range(2):
+        for k in range(m + 1):
+            w = [r.pairs[j, k] for r in a.runs if np.isfinite(r.autocorrelation[j, k])]
+            x = [r.autocorrelation[j, k] for r in a.runs if np.isfinite(r.autocorrelation[j, k])]
+            v = [r.null_var[j, k] for r in a.runs if np.isfinite(r.autocorrelation[j, k])]
+            tot = sum(w)
+            assert a.autocorrelation[j, k] == pytest.approx(
+                sum(wi * xi for wi, xi in zip(w, x)) / tot, rel=1e-12, abs=1e-15
+            )
+            if k > 0:
+                assert a.null_var[j, k] == pytest.approx(
+                    sum(wi**2 * vi for wi, vi in zip(w, v)) / tot**2, rel=1e-12
+                )
+        for k in range(2 * m + 1):
+            assert a.cross_pairs[j, k] == sum(r.cross_pairs[j, k] for r in a.runs)
+            for l in range(2):
+                terms = [
+                    (r.cross_pairs[j, k], r.cross_correlation[j, l, k])
+                    for r in a.runs
+                    if np.isfinite(r.cross_correlation[j, l, k])
+                ]
+                want = sum(w * c for w, c in terms) / sum(w for w, _ in terms)
+                assert a.cross_correlation[j, l, k] == pytest.approx(want, rel=1e-12, abs=1e-15)
+        q = sum(a.autocorrelation[j, k] ** 2 / a.null_var[j, k] for k in range(1, h + 1))
+        assert a.q[j] == pytest.approx(q, rel=1e-12)
+    assert np.isfinite(a.cross_correlation).all() and np.isfinite(a.q).all()
+
+
 def test_pooled_analysis_is_reproducible_for_a_seed():
     rng = np.random.default_rng(8)
     runs = [

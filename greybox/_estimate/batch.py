@@ -42,7 +42,6 @@ from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
@@ -215,8 +214,9 @@ def _fitted_models(prepared, members, raws, chunk) -> dict:
     for c in range(0, len(members), chunk):
         part = members[c : c + chunk]
         padded = part + [part[-1]] * (chunk - len(part))
-        stacked = group.rows([prepared[i].row for i in padded])
-        raw = jnp.asarray(np.stack([raws[i] for i in padded]))
+        stacked, raw = group.rows(
+            [prepared[i].row for i in padded], np.stack([raws[i] for i in padded])
+        )
         models = jax.device_get(_models_many(stacked, group.static, raw))
         leaves, tree = jtu.tree_flatten(models)
         # each leaf split once into its members' rows (views), not indexed per member
@@ -235,10 +235,26 @@ class _Group:
     static: object
     stacked: object
 
-    def rows(self, positions) -> object:
-        """The stacked leaves of members at `positions`, on the device (one transfer)."""
+    def rows(self, positions, *extra) -> object:
+        """The stacked leaves of members at `positions`, and `extra` arrays, on the device in
+        one transfer (a `jax.device_put` of the whole tree, not one per leaf)."""
         idx = np.asarray(positions)
-        return jtu.tree_map(lambda x: jnp.asarray(np.take(x, idx, axis=0)), self.stacked)
+        rows = jtu.tree_map(lambda x: np.take(x, idx, axis=0), self.stacked)
+        return jax.device_put((rows, *extra))
+
+    def member(self, row: int) -> object:
+        """The problem of the member at stack position `row` (numpy views of its rows): one
+        unflatten of the group's flattened problem, its array leaves indexed."""
+        leaves, tree, is_array = self._flat
+        return jtu.tree_unflatten(tree, [x[row] if a else x for x, a in zip(leaves, is_array)])
+
+    @functools.cached_property
+    def _flat(self) -> tuple:
+        """(leaves of the whole problem, its tree, which leaves are stacked arrays)."""
+        combined = eqx.combine(self.stacked, self.static)
+        leaves, tree = jtu.tree_flatten(combined)
+        stacked = {id(x) for x in jtu.tree_leaves(self.stacked)}
+        return leaves, tree, [id(x) in stacked for x in leaves]
 
 
 @dataclasses.dataclass
@@ -255,9 +271,7 @@ class _Prepared:
     @functools.cached_property
     def problem(self):
         """This device's `_fit._Problem` (padded to its group's shapes; numpy views)."""
-        return eqx.combine(
-            jtu.tree_map(lambda x: x[self.row], self.group.stacked), self.group.static
-        )
+        return self.group.member(self.row)
 
 
 def _check(device: Device, free, method):
@@ -428,9 +442,11 @@ def _run_items(prepared, items, chunk, rtol, atol, max_steps, say, label, counte
     for c in range(n_chunks):
         part = items[c * chunk : (c + 1) * chunk]
         padded = part + [part[-1]] * (chunk - len(part))
-        stacked = group.rows([prepared[i].row for i, _, _ in padded])
-        raw = jnp.asarray(np.stack([r for _, r, _ in padded]))
-        sig = jnp.asarray(np.stack([s for _, _, s in padded]))
+        stacked, raw, sig = group.rows(
+            [prepared[i].row for i, _, _ in padded],
+            np.stack([r for _, r, _ in padded]),
+            np.stack([s for _, _, s in padded]),
+        )
         out = jax.device_get(_solve_many(stacked, group.static, raw, sig, rtol, atol, max_steps))
         counter[0] += 1
         for j in range(len(part)):
@@ -597,9 +613,8 @@ def _solve_wave(prepared, wave, chunk, opts, say, label, counter) -> tuple:
         best_of[i] = (bi, runs[bi], prepared[i].sigma0, int(runs[bi]["steps"]))
         p = prepared[i]
         if p.source == "estimated" and np.all(np.isfinite(runs[bi]["raw"])):
-            sig = _fit._robust_sigma(
-                np.asarray(runs[bi]["data_residuals"]), p.problem.w, p.sigma0
-            )
+            w = p.group.stacked.w[p.row]  # its weights, without building its problem here
+            sig = _fit._robust_sigma(np.asarray(runs[bi]["data_residuals"]), w, p.sigma0)
             refit.append((i, np.asarray(runs[bi]["raw"]), sig))
     if refit:
         outs = _run_items(prepared, refit, chunk, *opts, say, f"{label} refit", counter)

@@ -970,7 +970,7 @@ def analyse_many(
     _permuted_autocorrelation(
         [j for parts in pending for _, jobs in parts for j in jobs], permutations
     )
-    pooled = [_pooled([run for run, _ in parts], permutations) for parts in pending]
+    pooled = [_pooled([run for run, _ in parts]) for parts in pending]
     p = _p_values_of([(perm, v[:, 1 : h + 1], h) for perm, v, h in pooled])
     done = iter(_finished([run for parts in pending for run, _ in parts]))
     return [
@@ -979,24 +979,20 @@ def analyse_many(
     ]
 
 
-def _pooled(per_run, permutations) -> tuple:
+def _pooled(per_run) -> tuple:
     """(pooled shuffled r(1..h) (n_y, B + 1, h), pooled null variances (n_y, M + 1), h):
     each output's runs pooled with their pair counts as weights, the shuffles the same way
-    as the observed autocorrelation."""
-    n_y, m, h = per_run[0].autocorrelation.shape[0], per_run[0].max_lag, per_run[0].test_lag
-    pooled_perm = np.full((n_y, int(permutations) + 1, h), np.nan)
-    null_var = np.full((n_y, m + 1), np.nan)
-    for j in range(n_y):
-        w = np.stack(
-            [np.where(np.isfinite(r.autocorrelation[j]), r.pairs[j], 0.0) for r in per_run]
-        )
-        vv = np.stack([np.nan_to_num(r.null_var[j]) for r in per_run])
-        tot = w.sum(axis=0)
-        wk = w[:, 1 : h + 1]  # (R, h): the same pair weights for every shuffle
-        rk = np.stack([np.nan_to_num(r.permuted_autocorrelation[j]) for r in per_run])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            null_var[j] = np.where(tot > 0, (w**2 * vv).sum(axis=0) / tot**2, np.nan)
-            pooled_perm[j] = np.einsum("rk,rbk->bk", wk, rk) / tot[1 : h + 1]
+    as the observed autocorrelation (every output of every run in one stacked pass)."""
+    h = per_run[0].test_lag
+    auto = np.stack([r.autocorrelation for r in per_run])  # (R, n_y, M + 1)
+    w = np.where(np.isfinite(auto), np.stack([r.pairs for r in per_run]), 0.0)
+    vv = np.nan_to_num(np.stack([r.null_var for r in per_run]))
+    rk = np.nan_to_num(np.stack([r.permuted_autocorrelation for r in per_run]))
+    tot = w.sum(axis=0)  # (n_y, M + 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        null_var = np.where(tot > 0, (w**2 * vv).sum(axis=0) / tot**2, np.nan)
+        # the same pair weights for every shuffle
+        pooled_perm = np.einsum("rjk,rjbk->jbk", w[:, :, 1 : h + 1], rk) / tot[:, None, 1 : h + 1]
     return pooled_perm, null_var, h
 
 
@@ -1004,33 +1000,24 @@ def _analysis(per_run, null_var, output_names, p) -> ResidualAnalysis:
     """The runs' correlations and tests pooled per output (see the module docstring), with
     the pooled null variances `null_var` (n_y, M + 1) and p-values `p` (n_y,) (`_pooled`)."""
     n_y = per_run[0].autocorrelation.shape[0]
-    m, h = per_run[0].max_lag, per_run[0].test_lag
+    h = per_run[0].test_lag
     lags, cross_lags = per_run[0].lags, per_run[0].cross_lags
-    n_u = per_run[0].cross_correlation.shape[1]
-    auto = np.full((n_y, m + 1), np.nan)
-    cross = np.full((n_y, n_u, 2 * m + 1), np.nan)
-    cross_pairs = np.zeros((n_y, 2 * m + 1))
-    q = np.full(n_y, np.nan)
-    for j in range(n_y):
-        w = np.stack(
-            [np.where(np.isfinite(r.autocorrelation[j]), r.pairs[j], 0.0) for r in per_run]
-        )
-        rr = np.stack([np.nan_to_num(r.autocorrelation[j]) for r in per_run])
-        tot = w.sum(axis=0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            auto[j] = np.where(tot > 0, (w * rr).sum(axis=0) / tot, np.nan)
-        a_h, v_h = auto[j, 1 : h + 1], null_var[j, 1 : h + 1]
-        if np.any(np.isfinite(a_h) & (v_h > 0)):
-            q[j] = float(portmanteau(a_h, v_h))
-        cw = np.stack([r.cross_pairs[j] for r in per_run])  # (R, 2M+1)
-        ctot = cw.sum(axis=0)
-        cross_pairs[j] = ctot
-        for l in range(n_u):
-            cr = np.stack([r.cross_correlation[j, l] for r in per_run])
-            wl = np.where(np.isfinite(cr), cw, 0.0)
-            tl = wl.sum(axis=0)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                cross[j, l] = np.where(tl > 0, (wl * np.nan_to_num(cr)).sum(axis=0) / tl, np.nan)
+    # every output (and input) of every run pooled in one stacked pass, runs first
+    ra = np.stack([r.autocorrelation for r in per_run])  # (R, n_y, M + 1)
+    w = np.where(np.isfinite(ra), np.stack([r.pairs for r in per_run]), 0.0)
+    tot = w.sum(axis=0)
+    cw = np.stack([r.cross_pairs for r in per_run])[:, :, None, :]  # (R, n_y, 1, 2M + 1)
+    cr = np.stack([r.cross_correlation for r in per_run])  # (R, n_y, n_u, 2M + 1)
+    wl = np.where(np.isfinite(cr), cw, 0.0)
+    tl = wl.sum(axis=0)
+    cross_pairs = cw.sum(axis=0)[:, 0]
+    n_u = cr.shape[2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        auto = np.where(tot > 0, (w * np.nan_to_num(ra)).sum(axis=0) / tot, np.nan)
+        cross = np.where(tl > 0, (wl * np.nan_to_num(cr)).sum(axis=0) / tl, np.nan)
+    a_h, v_h = auto[:, 1 : h + 1], null_var[:, 1 : h + 1]
+    testable = np.any(np.isfinite(a_h) & (v_h > 0), axis=1)
+    q = np.where(testable, portmanteau(a_h, v_h), np.nan)
     white = ~(p < ALPHA / n_y)
     z = NormalDist().inv_cdf(0.5 + CONFIDENCE / 2)
     band = z * np.sqrt(null_var)

@@ -31,7 +31,10 @@ _OWN_CACHE = "GREYBOX_TEST_JAX_CACHE" not in os.environ and "PYTEST_XDIST_WORKER
 if _OWN_CACHE:  # the controlling process: the workers inherit this variable
     os.environ["GREYBOX_TEST_JAX_CACHE"] = tempfile.mkdtemp(prefix="greybox-jax-cache-")
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.environ["GREYBOX_TEST_JAX_CACHE"])
-os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.3")
+# every program, however quick to compile: the many small ones (observation maps, filters)
+# are what the subprocesses, notebook kernels and the other worker compile again (suite on a
+# quiet 2-core machine: 316 and 318 s with 0.3 s here, 303 s with 0)
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 import jax  # noqa: E402
 

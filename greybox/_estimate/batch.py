@@ -342,17 +342,21 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
         built.append((d, prob, f, source, sig_d, raw0))
 
     # group by structure (static fields), each group's array leaves stacked once
+    # (one flatten per device: its tree and where its array leaves sit are its structure)
     groups: dict = {}
-    parts = [eqx.partition(prob, eqx.is_array) for _, prob, *_rest in built]
-    for i, (dyn, static) in enumerate(parts):
-        key = (jtu.tree_structure(static), jtu.tree_structure(dyn))
+    flat = [jtu.tree_flatten(prob) for _, prob, *_rest in built]
+    for i, (leaves, tree) in enumerate(flat):
+        key = (tree, tuple(eqx.is_array(x) for x in leaves))
         groups.setdefault(key, []).append(i)
     prepared: list = [None] * len(built)
     out_groups = []
-    for members in groups.values():
-        dyns = [parts[i][0] for i in members]
-        static = parts[members[0]][1]
-        stacked = jtu.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *dyns)
+    for (_, is_array), members in groups.items():
+        dyn, static = eqx.partition(built[members[0]][1], eqx.is_array)
+        columns = [k for k, a in enumerate(is_array) if a]  # dyn's leaves, in flatten order
+        stacked = jtu.tree_unflatten(
+            jtu.tree_structure(dyn),
+            [np.stack([np.asarray(flat[i][0][k]) for i in members]) for k in columns],
+        )
         group = _Group(list(members), static, stacked)
         out_groups.append(group)
         for row, i in enumerate(members):

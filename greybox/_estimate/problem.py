@@ -61,11 +61,11 @@ def settings_matrix(model, experiments, free) -> tuple:
     """(paths, (E, K) matrix) of the known per-run values; a path both fitted and given as a
     setting is an error."""
     paths = tuple(sorted({k for e in experiments for k in e.settings}))
+    # the model's own value where a run does not set it (looked up once per path; the lookup
+    # also rejects a path the model does not have)
+    default = {k: np.asarray(get_value(model, k), dtype=float) for k in paths}
     matrix = np.array(
-        [
-            [e.settings.get(k, np.asarray(get_value(model, k), dtype=float)) for k in paths]
-            for e in experiments
-        ],
+        [[e.settings.get(k, default[k]) for k in paths] for e in experiments],
         dtype=float,
     ).reshape(len(experiments), len(paths))
     clash = {p.path for p in free} & set(paths)

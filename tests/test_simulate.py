@@ -8,7 +8,15 @@ import pytest
 
 import greybox
 from greybox._model.parameters import set_values
-from greybox._simulate.simulate import as_arrays, observe_schedule, pad_schedules, schedule_for, simulate
+from greybox._simulate.simulate import (
+    COMPARE_ALL_MAX_BREAKS,
+    as_arrays,
+    input_at,
+    observe_schedule,
+    pad_schedules,
+    schedule_for,
+    simulate,
+)
 from greybox._model.waveforms import PiecewiseConstant, PulseTrain
 from greybox.blocks._mechanics import ChevronLinear
 
@@ -191,3 +199,18 @@ def test_batched_expm_matches_scipy_and_its_derivative():
     assert float(jax.jacfwd(f)(h)) == pytest.approx(fd, rel=1e-7)
     # reverse mode too (a user's jax.grad through a multi-node simulation reaches it)
     assert float(jax.grad(f)(h)) == pytest.approx(fd, rel=1e-7)
+
+
+@pytest.mark.parametrize("n", [5, COMPARE_ALL_MAX_BREAKS, COMPARE_ALL_MAX_BREAKS + 1, 2000])
+def test_input_lookup_is_the_right_continuous_level_on_both_sides_of_the_method_switch(n):
+    """`input_at` (all-at-once comparison up to COMPARE_ALL_MAX_BREAKS breakpoints, binary
+    search above) against numpy's searchsorted, with repeated breakpoints, times on them,
+    before the first and after the last, vmapped and under jit as the adaptive solver uses it."""
+    rng = np.random.default_rng(n)
+    breaks = np.sort(np.round(rng.uniform(0.0, 10.0, n), 2))  # rounding repeats some
+    levels = rng.normal(size=(n, 2))
+    t = np.concatenate([rng.uniform(-1.0, 11.0, 300), breaks[:: max(1, n // 50)], [-5.0, 20.0]])
+    idx = np.searchsorted(breaks, t, side="right") - 1
+    want = np.where((idx >= 0)[:, None], levels[np.clip(idx, 0, None)], 0.0)
+    got = jax.jit(jax.vmap(input_at, in_axes=(None, None, 0)))(breaks, levels, t)
+    np.testing.assert_array_equal(np.asarray(got), want)

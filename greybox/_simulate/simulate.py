@@ -283,9 +283,17 @@ def _zoh_grid_states(model: AbstractDevice, x0, dt, u_grid, scan: str = "auto"):
     return jnp.concatenate([x0[None], xs]), jnp.array(True)
 
 
+# Up to this many breakpoints, `input_at` compares t with all of them at once instead of a
+# binary search: inside the adaptive solver (a vmapped, differentiated while loop) the search
+# is a nested loop; the chevron benchmark's adaptive fit (128 breakpoints a run) took 0.561 ->
+# 0.485 s, with 256 and 512 breakpoints 7 % and 2 % less time (same estimates, bit for bit).
+COMPARE_ALL_MAX_BREAKS = 512
+
+
 def input_at(breaks, levels, t):
     """Right-continuous piecewise-constant lookup (0 before the first breakpoint)."""
-    idx = jnp.searchsorted(breaks, t, side="right") - 1
+    method = "compare_all" if breaks.shape[-1] <= COMPARE_ALL_MAX_BREAKS else "scan"
+    idx = jnp.searchsorted(breaks, t, side="right", method=method) - 1
     return jnp.where(idx >= 0, levels[jnp.clip(idx, 0)], 0.0)
 
 

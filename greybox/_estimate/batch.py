@@ -250,11 +250,10 @@ class _Group:
 
     @functools.cached_property
     def _flat(self) -> tuple:
-        """(leaves of the whole problem, its tree, which leaves are stacked arrays)."""
-        combined = eqx.combine(self.stacked, self.static)
-        leaves, tree = jtu.tree_flatten(combined)
-        stacked = {id(x) for x in jtu.tree_leaves(self.stacked)}
-        return leaves, tree, [id(x) in stacked for x in leaves]
+        """(leaves of the whole problem, its tree, which leaves are stacked arrays: all its
+        arrays, as `_prepare` partitioned them)."""
+        leaves, tree = jtu.tree_flatten(eqx.combine(self.stacked, self.static))
+        return leaves, tree, [eqx.is_array(x) for x in leaves]
 
 
 @dataclasses.dataclass

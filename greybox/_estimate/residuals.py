@@ -971,41 +971,41 @@ def analyse_many(
         [j for parts in pending for _, jobs in parts for j in jobs], permutations
     )
     pooled = [_pooled([run for run, _ in parts]) for parts in pending]
-    p = _p_values_of([(perm, v[:, 1 : h + 1], h) for perm, v, h in pooled])
+    p = _p_values_of([(perm, v[:, 1 : h + 1], h) for perm, _, v, h in pooled])
     done = iter(_finished([run for parts in pending for run, _ in parts]))
     return [
-        _analysis(tuple(next(done) for _ in parts), null_var, output_names, pj)
-        for parts, (_, null_var, _), pj in zip(pending, pooled, p)
+        _analysis(tuple(next(done) for _ in parts), auto, null_var, output_names, pj)
+        for parts, (_, auto, null_var, _), pj in zip(pending, pooled, p)
     ]
 
 
 def _pooled(per_run) -> tuple:
-    """(pooled shuffled r(1..h) (n_y, B + 1, h), pooled null variances (n_y, M + 1), h):
-    each output's runs pooled with their pair counts as weights, the shuffles the same way
-    as the observed autocorrelation (every output of every run in one stacked pass)."""
+    """(pooled shuffled r(1..h) (n_y, B + 1, h), pooled autocorrelation (n_y, M + 1), pooled
+    null variances (n_y, M + 1), h): each output's runs pooled with their pair counts as
+    weights (a run where r(k) is undefined left out), the shuffles the same way as the
+    observed autocorrelation (every output of every run in one stacked pass)."""
     h = per_run[0].test_lag
-    auto = np.stack([r.autocorrelation for r in per_run])  # (R, n_y, M + 1)
-    w = np.where(np.isfinite(auto), np.stack([r.pairs for r in per_run]), 0.0)
+    ra = np.stack([r.autocorrelation for r in per_run])  # (R, n_y, M + 1)
+    w = np.where(np.isfinite(ra), np.stack([r.pairs for r in per_run]), 0.0)
     vv = np.nan_to_num(np.stack([r.null_var for r in per_run]))
     rk = np.nan_to_num(np.stack([r.permuted_autocorrelation for r in per_run]))
     tot = w.sum(axis=0)  # (n_y, M + 1)
     with np.errstate(invalid="ignore", divide="ignore"):
+        auto = np.where(tot > 0, (w * np.nan_to_num(ra)).sum(axis=0) / tot, np.nan)
         null_var = np.where(tot > 0, (w**2 * vv).sum(axis=0) / tot**2, np.nan)
         # the same pair weights for every shuffle
         pooled_perm = np.einsum("rjk,rjbk->jbk", w[:, :, 1 : h + 1], rk) / tot[:, None, 1 : h + 1]
-    return pooled_perm, null_var, h
+    return pooled_perm, auto, null_var, h
 
 
-def _analysis(per_run, null_var, output_names, p) -> ResidualAnalysis:
+def _analysis(per_run, auto, null_var, output_names, p) -> ResidualAnalysis:
     """The runs' correlations and tests pooled per output (see the module docstring), with
-    the pooled null variances `null_var` (n_y, M + 1) and p-values `p` (n_y,) (`_pooled`)."""
+    the pooled autocorrelation `auto` and null variances `null_var` (n_y, M + 1) and
+    p-values `p` (n_y,) (`_pooled`)."""
     n_y = per_run[0].autocorrelation.shape[0]
     h = per_run[0].test_lag
     lags, cross_lags = per_run[0].lags, per_run[0].cross_lags
-    # every output (and input) of every run pooled in one stacked pass, runs first
-    ra = np.stack([r.autocorrelation for r in per_run])  # (R, n_y, M + 1)
-    w = np.where(np.isfinite(ra), np.stack([r.pairs for r in per_run]), 0.0)
-    tot = w.sum(axis=0)
+    # every output and input of every run pooled in one stacked pass, runs first
     cw = np.stack([r.cross_pairs for r in per_run])[:, :, None, :]  # (R, n_y, 1, 2M + 1)
     cr = np.stack([r.cross_correlation for r in per_run])  # (R, n_y, n_u, 2M + 1)
     wl = np.where(np.isfinite(cr), cw, 0.0)
@@ -1013,7 +1013,6 @@ def _analysis(per_run, null_var, output_names, p) -> ResidualAnalysis:
     cross_pairs = cw.sum(axis=0)[:, 0]
     n_u = cr.shape[2]
     with np.errstate(invalid="ignore", divide="ignore"):
-        auto = np.where(tot > 0, (w * np.nan_to_num(ra)).sum(axis=0) / tot, np.nan)
         cross = np.where(tl > 0, (wl * np.nan_to_num(cr)).sum(axis=0) / tl, np.nan)
     a_h, v_h = auto[:, 1 : h + 1], null_var[:, 1 : h + 1]
     testable = np.any(np.isfinite(a_h) & (v_h > 0), axis=1)

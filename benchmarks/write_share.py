@@ -10,6 +10,14 @@ backend compile) before and after the "writing" line. `write_share` = write time
 fit + write) time (Python start-up and imports left out, so the share is, if anything, an
 overestimate of the command's); `compiles_after_fit` should be 0.
 
+Measured (2-core CPU, quiet): 0.407 -> 0.111 when the writer stopped re-simulating (the fit
+then took ~60 s). Since, the fit got ~8x faster (7.5 s, compiling included) while writing stayed
+the figures' matplotlib work, so the share rose to 0.183 (writing 1.87 s, no compilation).
+Drawing the residual tests' correlations as line collections instead of bars and PNGs at zlib
+level 1 (2026-11-27): writing 1.87 -> 1.68 s, write_share 0.183 -> 0.167 (three alternating
+runs each). What is left is matplotlib: its import (~0.3 s), the constrained layout and tick
+text of six figures, and 200 dpi rasters.
+
 Run: .venv/bin/python benchmarks/write_share.py [--smoke] [--folder DIR]
 
 `--smoke`: the same command on a 60-reading cut of both runs with a small solver budget

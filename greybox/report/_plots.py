@@ -15,6 +15,9 @@ from greybox._estimate.fit import OUTLIER_SIGMAS
 from greybox.plots import _label
 
 DPI = 200  # raster figures (png); svg and pdf are vector
+# zlib level of the PNGs (the same pixels): level 1 instead of Pillow's 6 writes the six
+# figures of the TCLab two-heater result ~0.1 s faster (of 1.8 s), in files 18 % larger
+PNG_COMPRESS_LEVEL = 1
 
 
 def save_figure(fig, path, fmt: str | None = None):
@@ -23,7 +26,9 @@ def save_figure(fig, path, fmt: str | None = None):
     path = Path(path)
     if fmt is not None:
         path = path.with_suffix("." + fmt)
-    fig.savefig(path, dpi=DPI, format=path.suffix.lstrip(".") or "png")
+    fmt = path.suffix.lstrip(".") or "png"
+    extra = {"pil_kwargs": {"compress_level": PNG_COMPRESS_LEVEL}} if fmt == "png" else {}
+    fig.savefig(path, dpi=DPI, format=fmt, **extra)
     return path
 
 

@@ -26,9 +26,9 @@ def save_figure(fig, path, fmt: str | None = None):
     path = Path(path)
     if fmt is not None:
         path = path.with_suffix("." + fmt)
-    fmt = path.suffix.lstrip(".") or "png"
-    extra = {"pil_kwargs": {"compress_level": PNG_COMPRESS_LEVEL}} if fmt == "png" else {}
-    fig.savefig(path, dpi=DPI, format=fmt, **extra)
+    kind = path.suffix.lstrip(".") or "png"
+    extra = {"pil_kwargs": {"compress_level": PNG_COMPRESS_LEVEL}} if kind == "png" else {}
+    fig.savefig(path, dpi=DPI, format=kind, **extra)
     return path
 
 

@@ -52,6 +52,7 @@ KEYS = {
     },
     "memory.py": {"sizes", "within_30_percent", "worst_ratio"},
     "microrobot.py": {"detailed_1000_cycles_s", "play_1000_cycles_s"},
+    "shuffle_pass.py": {"numpy_s", "compiled_s", "compiled_speedup", "max_abs_diff", "backend"},
     "tclab.py": {"greybox_sae_val", "arx_sae_val", "greybox_structure", "horizon"},
     "track.py": {"frames_per_s", "baseline_frames_per_s", "speedup"},
     "whiteness.py": {"replicates"},

@@ -38,12 +38,12 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 # the tests check numbers, not speed: XLA's CPU back end compiles with LLVM at optimisation
 # level 0, the same programs (same HLO passes, no fast math at any level) in less time, and
-# what the suite compiles outweighs what it runs (on a quiet 2-core machine: 311 -> 267-276 s,
-# CPU 568 -> 504 s; a long-running solve runs ~1.5x slower, a microrobot fit 3.5 -> 5.2 s
-# warm). Results differ from an optimised build by rounding only (the demo folder's estimates
-# by 7e-16 relative, the TCLab one-heater fit's by 7e-11, the micro-robot's prior-dominated
-# friction and stiffness by up to 4e-9, as their solves amplify it), which every test's tolerance
-# allows. A level already in XLA_FLAGS is left as it is.
+# what the suite compiles outweighs what it runs (on a quiet 2-core machine: 311 -> 267-290
+# s, CPU 568 -> 504-528 s; a long-running solve runs ~1.5x slower, a micro-robot fit 3.5 ->
+# 5.2 s warm). Results differ from an optimised build by rounding only (the demo folder's
+# estimates by 7e-16 relative, the TCLab one-heater fit's by 7e-11, the micro-robot's
+# prior-dominated friction and stiffness by up to 4e-9, as their solves amplify it), which
+# every test's tolerance allows. A level already in XLA_FLAGS is left as it is.
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (
         os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"

@@ -248,11 +248,17 @@ def _fit_group(members, args, say) -> dict:
     return dict(out.results)
 
 
-def write_device(folder: Path, fs, result, validation, figures: bool, fmt: str = "png") -> None:
+def write_device(
+    folder: Path, fs, result, validation, figures: bool, fmt: str = "png", defer=None
+) -> None:
+    """A device's result folder; its figures drawn here, or added to `defer` (a list, drawn
+    later by `greybox.io._results.draw_many`)."""
     from greybox.io._results import write_fit_files
 
     folder.mkdir(parents=True)
-    write_fit_files(folder, fs, result, validation, figures=figures, tables=False, fmt=fmt)
+    write_fit_files(
+        folder, fs, result, validation, figures=figures, tables=False, fmt=fmt, defer=defer
+    )
 
 
 def batch_csv(rows) -> str:
@@ -427,6 +433,7 @@ def _run(args, say) -> int:
     say(f"writing {out}")
     with atomic_output_dir(out, kind="fit-many", force=args.force) as tmp:
         usual_permissions(tmp)
+        deferred = []  # the devices' figures, drawn side by side once every folder is written
         for name, r in results.items():
             fs = sets[name]
             validation = None
@@ -441,7 +448,13 @@ def _run(args, say) -> int:
                 validation,
                 not args.no_device_figures,
                 args.figure_format,
+                deferred,
             )
+        if deferred:
+            from greybox.io._results import draw_many
+
+            say(f"drawing the figures of {len(deferred)} devices")
+            draw_many(deferred)
         rows = batch_table(results) + [
             {"device": k, "status": "failed", "valid": False, "error": v} for k, v in failed.items()
         ]

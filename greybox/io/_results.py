@@ -252,25 +252,21 @@ def write_validation_runs(path: Path, fs, runs, per_run_paths) -> None:
     path.write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
 
 
-def write_figures(
-    folder: Path, fs, runs, sigma, fit_percent, *, result=None, fmt: str = "png"
-) -> list[str]:
-    """figures/fit_<run>.<fmt> (`fmt`: png, svg or pdf; measured vs simulation, inputs beneath), one residuals figure
-    per output (simulation residuals against the simulation's noise scale `sigma`), for a
+def figure_jobs(fs, runs, sigma, fit_percent, *, result=None, fmt: str = "png") -> list:
+    """The figures of a result folder, as (relative path, `greybox.report._plots` function
+    name, positional arguments, keyword arguments), plain data only (arrays, waveforms,
+    labels, the residual analysis), so that another process can draw them: figures/fit_<run>
+    (`fmt`: png, svg or pdf; measured vs simulation, inputs beneath), one residuals figure per
+    output (simulation residuals against the simulation's noise scale `sigma`), for a
     process-noise fit one innovations figure per output (against the innovation sd), and,
     with `result` (a least-squares fit), the residual tests and parameter correlation.
-    `fit_percent`: {run: simulation fit % per output}. Returns the relative paths."""
-    from greybox.report import _plots as plots
-
+    `fit_percent`: {run: simulation fit % per output}."""
     outputs = tuple((c.description or c.name, c.si_unit) for c in fs.spec.outputs)
     inputs = tuple((c.description or c.name, c.si_unit) for c in fs.spec.inputs)
-    (folder / "figures").mkdir()
-    names = []
+    jobs = []
     for run in runs:
         e = run.experiment
-        name = f"figures/fit_{e.name}.{fmt}"
-        plots.run_figure(
-            folder / name,
+        kwargs = dict(
             name=e.name,
             role=run.role,
             t_s=e.t_s,
@@ -282,45 +278,105 @@ def write_figures(
             outputs=outputs,
             input_labels=inputs,
         )
-        names.append(name)
+        jobs.append((f"figures/fit_{e.name}.{fmt}", "run_figure", (), kwargs))
     one = len(outputs) == 1
     for j, (ch, out) in enumerate(zip(fs.spec.outputs, outputs)):
         name = f"figures/residuals.{fmt}" if one else f"figures/residuals_{ch.name}.{fmt}"
-        plots.residuals_figure(
-            folder / name,
-            [(r.name, r.role, r.experiment.t_s, r.experiment.y[:, j], r.simulation[:, j]) for r in runs],
-            sigma=float(np.atleast_1d(sigma)[j]),
-            output=out,
-        )
-        names.append(name)
+        series = [
+            (r.name, r.role, r.experiment.t_s, r.experiment.y[:, j], r.simulation[:, j])
+            for r in runs
+        ]
+        kwargs = dict(sigma=float(np.atleast_1d(sigma)[j]), output=out)
+        jobs.append((name, "residuals_figure", (series,), kwargs))
         if runs and ONE_STEP in runs[0].horizons:
-            name = f"figures/innovations_{ch.name}.{fmt}"
             scale = [np.asarray(r.sd.get(ONE_STEP))[:, j] for r in runs if ONE_STEP in r.sd]
             scale = float(np.nanmedian(np.concatenate(scale))) if scale else float(sigma[j])
-            plots.residuals_figure(
-                folder / name,
-                [
-                    (r.name, r.role, r.experiment.t_s, r.experiment.y[:, j], r.horizons[ONE_STEP][:, j])
-                    for r in runs
-                ],
-                sigma=scale,
-                output=(f"{out[0]}, one-step prediction (innovations; sigma: innovation sd)", out[1]),
-            )
-            names.append(name)
+            series = [
+                (r.name, r.role, r.experiment.t_s, r.experiment.y[:, j], r.horizons[ONE_STEP][:, j])
+                for r in runs
+            ]
+            label = (f"{out[0]}, one-step prediction (innovations; sigma: innovation sd)", out[1])
+            kwargs = dict(sigma=scale, output=label)
+            name = f"figures/innovations_{ch.name}.{fmt}"
+            jobs.append((name, "residuals_figure", (series,), kwargs))
     if result is not None:
-        plots.residual_correlation_figure(
-            folder / f"figures/residual_tests.{fmt}",
-            result.residuals,
+        kwargs = dict(
             outputs=tuple(c.name for c in fs.spec.outputs),
             input_labels=tuple(c.name for c in fs.spec.inputs),
         )
-        plots.correlation_figure(
-            folder / f"figures/correlation.{fmt}",
-            [p.name for p in result.parameters],
-            result.correlation,
-        )
-        names += [f"figures/residual_tests.{fmt}", f"figures/correlation.{fmt}"]
-    return names
+        name = f"figures/residual_tests.{fmt}"
+        jobs.append((name, "residual_correlation_figure", (result.residuals,), kwargs))
+        args = ([p.name for p in result.parameters], np.asarray(result.correlation))
+        jobs.append((f"figures/correlation.{fmt}", "correlation_figure", args, {}))
+    return jobs
+
+
+def draw_figures(folder, jobs) -> None:
+    """Draw `figure_jobs` into `folder` (its figures/ made here)."""
+    from greybox.report import _plots as plots
+
+    folder = Path(folder)
+    (folder / "figures").mkdir(exist_ok=True)
+    for rel, function, args, kwargs in jobs:
+        getattr(plots, function)(folder / rel, *args, **kwargs)
+
+
+FIGURE_PROCESSES_MAX = 8  # processes drawing result folders' figures (~250 MB each)
+FIGURE_PROCESSES_FROM = 3  # folders below which the figures are drawn here: a process's
+# start (its imports, ~1-2 s) would cost more than it saves
+
+
+def draw_many(deferred) -> None:
+    """Draw the figures of many result folders (`deferred`: the (folder, `figure_jobs`) pairs
+    of `write_fit_files(defer=...)`), a folder per task, in processes side by side on the
+    cores this process may use: matplotlib holds the interpreter while it draws, so threads
+    would take turns (`greybox fit-many` of 8 chevrons: its writing was 86 % of the
+    command's time). The same files either way. Drawn here instead: with one core or few
+    folders, when a job cannot be sent to another process, and a folder whose process
+    failed (so a drawing error is raised here, as without processes)."""
+    workers = min(_cores(), FIGURE_PROCESSES_MAX, len(deferred))
+    payloads = None
+    if workers >= 2 and len(deferred) >= FIGURE_PROCESSES_FROM:
+        payloads = _payloads(deferred)
+    if payloads is None:
+        for folder, jobs in deferred:
+            draw_figures(folder, jobs)
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    # spawned, never forked: this process runs JAX's threads
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
+    try:
+        futures = [pool.submit(_draw_payload, p) for p in payloads]
+        for (folder, jobs), future in zip(deferred, futures):
+            if future.exception() is not None:
+                draw_figures(folder, jobs)
+    finally:  # an error or an interrupt: the folders not started are not drawn
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _payloads(deferred) -> list | None:
+    """Each folder's jobs pickled for another process, or None when one cannot be."""
+    import pickle
+
+    try:
+        return [pickle.dumps((Path(folder), jobs)) for folder, jobs in deferred]
+    except Exception:  # noqa: BLE001 (e.g. a waveform class defined inside a function)
+        return None
+
+
+def _draw_payload(payload: bytes) -> None:
+    import pickle
+
+    draw_figures(*pickle.loads(payload))
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 # --------------------------------------------------------------------------------------------
@@ -502,9 +558,12 @@ def write_fit_files(
     figures: bool = True,
     tables: bool = True,
     fmt: str = "png",
+    defer: list | None = None,
 ) -> WrittenFit:
     """Write a fit's files into the existing `folder`: params.json and report.md, with
-    `figures` figures/ (in `fmt`: png, svg or pdf), with `tables` predictions/, metrics.csv and validation_runs.json."""
+    `figures` figures/ (in `fmt`: png, svg or pdf), with `tables` predictions/, metrics.csv
+    and validation_runs.json. `defer`: a list that receives (folder, `figure_jobs`) instead
+    of the figures being drawn here (report.md names them all the same)."""
     from greybox.io._params_file import params_document, write_params
 
     folder = Path(folder)
@@ -527,9 +586,13 @@ def write_fit_files(
             fit_percent.update(validation.fit_percent)
     names = []
     if figures:
-        names = write_figures(
-            folder, fs, runs, sigma, fit_percent, result=None if process else result, fmt=fmt
-        )
+        fitted = None if process else result
+        jobs = figure_jobs(fs, runs, sigma, fit_percent, result=fitted, fmt=fmt)
+        names = [rel for rel, *_ in jobs]
+        if defer is None:
+            draw_figures(folder, jobs)
+        else:  # the caller draws them (`draw_many`: many devices' figures side by side)
+            defer.append((folder, jobs))
     write_params(folder / "params.json", document)
     copy_device_file(folder, fs.device)
     (folder / "report.md").write_text(report_text(fs, result, validation, names, metrics))

@@ -1,0 +1,103 @@
+"""Result figures drawn in worker processes (`greybox.io._results.draw_many`, what `greybox
+fit-many` does with its devices' figures) are the files drawn in this process, byte for byte:
+the jobs carry plain data only (arrays, waveforms, labels, the residual analysis) and Agg draws
+deterministically. A job that cannot be sent to another process is drawn here instead."""
+
+import numpy as np
+import pytest
+
+import greybox
+from greybox._estimate.residuals import analyse
+from greybox.io import _results
+
+
+def _jobs(seed: int) -> list:
+    """A run figure, a residuals figure, the residual tests and a correlation matrix."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(120) / 30.0
+    wave = greybox.PiecewiseConstant([0.0, 1.0, 2.5], [0.0, 0.02, 0.0], 4.0)
+    model = 1e-6 * np.tanh(t)
+    y = model + 2e-8 * rng.standard_normal(t.size)
+    run = dict(
+        name="e1",
+        role="estimation",
+        t_s=t,
+        y=y,
+        y_model=model,
+        inputs=wave,
+        sigma=2e-8,
+        fit_percent=91.0,
+        outputs=(("shuttle displacement", "m"),),
+        input_labels=(("laser power", "W"),),
+    )
+    residuals = [("e1", "estimation", t, y, model)]
+    tests = analyse([("e1", t, (y - model)[:, None], np.ones((t.size, 1), bool), None)])
+    corr = np.array([[1.0, -0.3], [-0.3, 1.0]])
+    return [
+        ("figures/fit_e1.png", "run_figure", (), run),
+        ("figures/residuals.png", "residuals_figure", (residuals,), {"sigma": 2e-8}),
+        ("figures/residual_tests.png", "residual_correlation_figure", (tests,), {}),
+        ("figures/correlation.png", "correlation_figure", (["a", "b"], corr), {}),
+    ]
+
+
+def _files(folder) -> dict:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*.png")}
+
+
+def test_figures_drawn_in_processes_equal_those_drawn_here(tmp_path, monkeypatch):
+    monkeypatch.setattr(_results, "_cores", lambda: 2)  # processes even on a one-core runner
+    jobs = [_jobs(seed) for seed in range(3)]
+    here = [tmp_path / "here" / f"d{k}" for k in range(3)]
+    there = [tmp_path / "there" / f"d{k}" for k in range(3)]
+    for folder, j in zip(here, jobs):
+        folder.mkdir(parents=True)
+        _results.draw_figures(folder, j)
+    for folder in there:
+        folder.mkdir(parents=True)
+    drawn_here = []  # folders drawn in this process (the workers import the module afresh)
+    draw = _results.draw_figures
+    monkeypatch.setattr(
+        _results, "draw_figures", lambda folder, j: drawn_here.append(folder) or draw(folder, j)
+    )
+    _results.draw_many(list(zip(there, jobs)))
+    assert not drawn_here
+    for a, b in zip(here, there):
+        drawn, sent = _files(a), _files(b)
+        assert sorted(drawn) == sorted(j[0] for j in jobs[0])
+        assert drawn == sent
+
+
+def test_a_job_that_cannot_be_sent_is_drawn_here(tmp_path, monkeypatch):
+    monkeypatch.setattr(_results, "_cores", lambda: 2)
+    jobs = [_jobs(seed) for seed in range(3)]
+
+    # a waveform of a class defined inside a function cannot be pickled: drawn in this process
+    class LocalWave(greybox.PiecewiseConstant):
+        pass
+
+    jobs[1][0][3]["inputs"] = LocalWave([0.0, 1.0], [0.0, 0.02], 4.0)
+    folders = [tmp_path / f"d{k}" for k in range(3)]
+    for folder in folders:
+        folder.mkdir()
+    drawn_here = []
+    draw = _results.draw_figures
+    monkeypatch.setattr(
+        _results, "draw_figures", lambda folder, j: drawn_here.append(folder) or draw(folder, j)
+    )
+    _results.draw_many(list(zip(folders, jobs)))
+    assert drawn_here == folders
+    for folder in folders:
+        assert len(_files(folder)) == 4
+
+
+def test_a_drawing_error_is_raised_here_as_without_processes(tmp_path, monkeypatch):
+    monkeypatch.setattr(_results, "_cores", lambda: 2)
+    jobs = [_jobs(seed) for seed in range(3)]
+    jobs[2].append(("figures/broken.png", "no_such_figure", (), {}))
+    folders = [tmp_path / f"d{k}" for k in range(3)]
+    for folder in folders:
+        folder.mkdir()
+    with pytest.raises(AttributeError, match="no_such_figure"):
+        _results.draw_many(list(zip(folders, jobs)))
+    assert len(_files(folders[0])) == 4 and len(_files(folders[1])) == 4

@@ -1,7 +1,8 @@
 """Result figures drawn in worker processes (`greybox.io._results.draw_many`, what `greybox
 fit-many` does with its devices' figures) are the files drawn in this process, byte for byte:
 the jobs carry plain data only (arrays, waveforms, labels, the residual analysis) and Agg draws
-deterministically. A job that cannot be sent to another process is drawn here instead."""
+deterministically. A job that cannot be sent to another process is drawn here instead, and a
+drawing error in a worker is raised here, as it is without processes."""
 
 import numpy as np
 import pytest

@@ -7,7 +7,17 @@ choices (JAX keys its compiled functions on that setting, so the two never mix).
 
 from __future__ import annotations
 
+import os
+
 import jax
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity, where the system tells it)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 def default_device():

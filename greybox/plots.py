@@ -199,6 +199,8 @@ def plot_residual_tests(analysis, *, axes=None, outputs: Sequence = (), inputs: 
     """The residual tests of a fit (`FitResult.residuals`): per output, the residuals'
     autocorrelation and their cross-correlation with each input, each with the 99 % band of
     white noise. `axes`: a (n_outputs, 1 + n_inputs) grid, or None."""
+    from greybox._estimate.residuals import _seconds  # as the verdict's lags are shown
+
     a = analysis
     n_y, n_u = a.autocorrelation.shape[0], a.cross_correlation.shape[1]
     if axes is None:
@@ -242,14 +244,10 @@ def plot_residual_tests(analysis, *, axes=None, outputs: Sequence = (), inputs: 
     chars = max(40, int(16 * fig.get_figwidth()))
     fig.suptitle(
         textwrap.fill(f"Residuals: {a.verdict}", chars)
-        + f"\n(grey: 99 % band of white noise; frames of {_duration(a.frame_interval_s)})",
+        + f"\n(grey: 99 % band of white noise; frames of {_seconds(a.frame_interval_s)})",
         fontsize=8,
     )
     return fig
-
-
-def _duration(seconds: float) -> str:
-    return f"{seconds:.3g} s" if abs(seconds) >= 1 else f"{seconds * 1e3:.3g} ms"
 
 
 def plot_compare(scores: Sequence, *, ax=None, criterion: str = "aic"):

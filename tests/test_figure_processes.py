@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import greybox
+from greybox import _platform
 from greybox._estimate.residuals import analyse
 from greybox.io import _results
 
@@ -47,7 +48,7 @@ def _files(folder) -> dict:
 
 
 def test_figures_drawn_in_processes_equal_those_drawn_here(tmp_path, monkeypatch):
-    monkeypatch.setattr(_results, "_cores", lambda: 2)  # processes even on a one-core runner
+    monkeypatch.setattr(_platform, "usable_cores", lambda: 2)  # processes even on a one-core runner
     jobs = [_jobs(seed) for seed in range(3)]
     here = [tmp_path / "here" / f"d{k}" for k in range(3)]
     there = [tmp_path / "there" / f"d{k}" for k in range(3)]
@@ -70,7 +71,7 @@ def test_figures_drawn_in_processes_equal_those_drawn_here(tmp_path, monkeypatch
 
 
 def test_a_job_that_cannot_be_sent_is_drawn_here(tmp_path, monkeypatch):
-    monkeypatch.setattr(_results, "_cores", lambda: 2)
+    monkeypatch.setattr(_platform, "usable_cores", lambda: 2)
     jobs = [_jobs(seed) for seed in range(3)]
 
     # a waveform of a class defined inside a function cannot be pickled: drawn in this process
@@ -93,7 +94,7 @@ def test_a_job_that_cannot_be_sent_is_drawn_here(tmp_path, monkeypatch):
 
 
 def test_a_drawing_error_is_raised_here_as_without_processes(tmp_path, monkeypatch):
-    monkeypatch.setattr(_results, "_cores", lambda: 2)
+    monkeypatch.setattr(_platform, "usable_cores", lambda: 2)
     jobs = [_jobs(seed) for seed in range(3)]
     jobs[2].append(("figures/broken.png", "no_such_figure", (), {}))
     folders = [tmp_path / f"d{k}" for k in range(3)]

@@ -57,7 +57,6 @@ import collections
 import dataclasses
 import functools
 import itertools
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from statistics import NormalDist
@@ -454,10 +453,9 @@ def shuffle_threads() -> int:
     """Threads for the shuffle blocks: the cores this process may use beyond one (which the
     caller's own work, e.g. `fit_batch`'s compiled solves, keeps busy), at most
     SHUFFLE_THREADS_MAX; 1 (no threads) on a two-core machine."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
+    from greybox import _platform
+
+    cores = _platform.usable_cores()
     return int(max(1, min(SHUFFLE_THREADS_MAX, cores - 1 if cores > 2 else 1)))
 
 

@@ -334,7 +334,9 @@ def draw_many(deferred) -> None:
     command's time). The same files either way. Drawn here instead: with one core or few
     folders, when a job cannot be sent to another process, and a folder whose process
     failed (so a drawing error is raised here, as without processes)."""
-    workers = min(_cores(), FIGURE_PROCESSES_MAX, len(deferred))
+    from greybox import _platform
+
+    workers = min(_platform.usable_cores(), FIGURE_PROCESSES_MAX, len(deferred))
     payloads = None
     if workers >= 2 and len(deferred) >= FIGURE_PROCESSES_FROM:
         payloads = _payloads(deferred)
@@ -371,12 +373,6 @@ def _draw_payload(payload: bytes) -> None:
 
     draw_figures(*pickle.loads(payload))
 
-
-def _cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 # --------------------------------------------------------------------------------------------

@@ -317,8 +317,9 @@ def draw_figures(folder, jobs) -> None:
 
     folder = Path(folder)
     (folder / "figures").mkdir(exist_ok=True)
-    for rel, function, args, kwargs in jobs:
-        getattr(plots, function)(folder / rel, *args, **kwargs)
+    with plots.png_writes_in_background():
+        for rel, function, args, kwargs in jobs:
+            getattr(plots, function)(folder / rel, *args, **kwargs)
 
 
 FIGURE_PROCESSES_MAX = 8  # processes drawing result folders' figures (~250 MB each)

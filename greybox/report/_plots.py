@@ -7,6 +7,8 @@ the caller's matplotlib state. Every axis is labelled with its unit.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from pathlib import Path
 
 import numpy as np
@@ -20,16 +22,78 @@ DPI = 200  # raster figures (png); svg and pdf are vector
 PNG_COMPRESS_LEVEL = 1
 
 
+# (pool, futures) of `png_writes_in_background`, where one is open
+_PNG_WRITES = contextvars.ContextVar("greybox_png_writes", default=None)
+
+
 def save_figure(fig, path, fmt: str | None = None):
     """Save `fig` to `path` in `fmt` (png, svg, pdf; None: the path's suffix) and return the
-    path written (its suffix replaced by the format)."""
+    path written (its suffix replaced by the format). A PNG is drawn here and, inside
+    `png_writes_in_background`, compressed and written by a thread while the next figure
+    is drawn."""
     path = Path(path)
     if fmt is not None:
         path = path.with_suffix("." + fmt)
     kind = path.suffix.lstrip(".") or "png"
-    extra = {"pil_kwargs": {"compress_level": PNG_COMPRESS_LEVEL}} if kind == "png" else {}
-    fig.savefig(path, dpi=DPI, format=kind, **extra)
+    if kind != "png":
+        fig.savefig(path, dpi=DPI, format=kind)
+        return path
+    rgba = _render(fig)
+    writes = _PNG_WRITES.get()
+    if writes is None:
+        _write_png(path, rgba)
+    else:
+        pool, futures = writes
+        futures.append(pool.submit(_write_png, path, rgba))
     return path
+
+
+def _render(fig) -> np.ndarray:
+    """The figure's pixels at `DPI` (RGBA), as `fig.savefig` draws them (the caller's figure
+    keeps its own resolution and canvas)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    canvas, dpi = fig.canvas, fig.dpi
+    try:
+        fig.set_dpi(DPI)
+        agg = FigureCanvasAgg(fig)
+        agg.draw()
+        return np.array(agg.buffer_rgba())  # a copy: the figure can be drawn again
+    finally:
+        fig.set_canvas(canvas)
+        fig.set_dpi(dpi)
+
+
+def _write_png(path: Path, rgba: np.ndarray) -> None:
+    from matplotlib.image import imsave
+
+    # the arguments of matplotlib's own PNG writer (`print_png`): the same file as savefig's
+    imsave(
+        path,
+        rgba,
+        format="png",
+        origin="upper",
+        dpi=DPI,
+        pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL},
+    )
+
+
+@contextlib.contextmanager
+def png_writes_in_background():
+    """Within this block PNGs are compressed and written by one thread while the figures
+    after them are drawn (zlib lets go of the interpreter). Every file is written, and the
+    first error writing one raised, when the block ends."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="greybox-png") as pool:
+        futures = []
+        token = _PNG_WRITES.set((pool, futures))
+        try:
+            yield
+        finally:
+            _PNG_WRITES.reset(token)
+        for future in futures:
+            future.result()
 
 
 def axis_unit(channel, file_units=None) -> tuple:

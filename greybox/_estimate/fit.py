@@ -522,13 +522,23 @@ def _solve(
     judged from `raw_ref` (the fit's starting values; None: `raw_start`), as the result is.
 
     A single compiled function (the solve, the residuals, the Jacobian and the predictions)
-    keeps compile time to one trace of the model. Never throws: the result code says how the
+    from one trace of the model keeps compile time down. Never throws: the result code says how the
     solve ended.
     """
     ref = raw_start if raw_ref is None else raw_ref
     pinned = pinned_fn(problem.flat_free, ref)
+
+    def outputs(r, sig):  # one simulation gives the residuals and every output below
+        z, solved = problem.predictions(r)
+        d = problem.scaled_errors(z, solved, sig)
+        return problem.loss_residuals(d, r), d, z, solved
+
+    # the model traced once into one jaxpr: the solver and the end point below differentiate
+    # that jaxpr, so the simulation's derivative (`_block_predictions`) is traced once and
+    # reused, not traced again for the end point (an adaptive TCLab fit: 2.96 -> 2.24 s)
+    outputs = eqx.filter_closure_convert(outputs, raw_start, sigma)
     raw, ok, steps, stalled = levenberg_marquardt(
-        problem.residuals,
+        lambda r, sig: outputs(r, sig)[0],
         raw_start,
         sigma,
         rtol=rtol,
@@ -537,10 +547,8 @@ def _solve(
         pinned=pinned,
     )
 
-    def at_end(r):  # one simulation at the end point gives every output below
-        z, solved = problem.predictions(r)
-        d = problem.scaled_errors(z, solved, sigma)
-        res = problem.loss_residuals(d, r)
+    def at_end(r):
+        res, d, z, solved = outputs(r, sigma)
         return (res, z), (res, d, z, solved)
 
     (jac, jac_z), (res, d, z, solved) = jax.jacfwd(at_end, has_aux=True)(raw)

@@ -44,6 +44,12 @@ input lookup inside the solver as one comparison with every breakpoint instead o
 search (`simulate.COMPARE_ALL_MAX_BREAKS`; bit-identical fits): adaptive fit 0.561 -> 0.485 s
 (alternating); a full run (load 1.6): compile 1.29 s, ZOH 37.2 ms, adaptive 0.485 s, scipy
 49.1 s: 101.4x, at the line.
+Then (2026-11-27, `--skip-scipy`, five alternating runs of f64b357 and 75f843b, load ~1.1):
+`_solve` traces the model once (the solver and its end point differentiate one closure-
+converted jaxpr): compile 1.27-1.42 -> 1.24-1.38 s, ZOH 36.8-40.8 -> 38.0-40.5 ms, adaptive
+0.48-0.53 -> 0.47-0.53 s; the ZOH model traces quickly, so little changes here. The gain is
+in models whose trace is long: the first fit of experiments/tclab/one_heater (adaptive)
+5.03 -> 4.24 s (`_solve` traced in 2.96 -> 2.24 s).
 """
 
 from __future__ import annotations

@@ -19,6 +19,11 @@ runs each). PNGs compressed and written by a thread while the next figure is dra
 bytes): writing 1.76 -> 1.45 s, write_share 0.173 -> 0.145 (three alternating runs each,
 total 10.2 -> 10.0 s). What is left is matplotlib: its import (~0.3 s), the constrained layout
 and tick text of six figures (~1 s), and 200 dpi rasters.
+Then (2026-11-27, two alternating runs of f64b357 and 75f843b): the fit got faster (`_solve`
+traces the model once: fit 7.97-8.21 -> 7.16-7.31 s, total 10.2-10.6 -> 9.5-9.7 s) while
+writing stayed 1.44-1.55 s, so write_share rose from 0.141 to 0.160-0.163. Importing matplotlib in a thread during the fit moved ~0.2 s from the writing
+to the fit (write_share 0.135-0.144) but the total did not fall (9.17-9.60 against 9.31-9.40
+s: the import holds the interpreter while the fit traces), so it was not kept.
 
 Run: .venv/bin/python benchmarks/write_share.py [--smoke] [--folder DIR]
 

@@ -522,8 +522,8 @@ def _solve(
     judged from `raw_ref` (the fit's starting values; None: `raw_start`), as the result is.
 
     A single compiled function (the solve, the residuals, the Jacobian and the predictions)
-    from one trace of the model keeps compile time down. Never throws: the result code says how the
-    solve ended.
+    from one trace of the model keeps compile time down. Never throws: the result code says
+    how the solve ended.
     """
     ref = raw_start if raw_ref is None else raw_ref
     pinned = pinned_fn(problem.flat_free, ref)

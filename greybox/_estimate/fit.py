@@ -105,8 +105,8 @@ class ParameterEstimate:
 
     `verdict` is "identifiable", "weakly identified" (its 95 % interval spans more than a
     factor `greybox._estimate.verdict.WEAK_FACTOR`), "prior-dominated", "not identifiable" or
-    "at bound"; for the last two, `se` and the interval are NaN rather than a confident-looking number, and
-    `bound` says which bound ("lower" / "upper") the value sits on.
+    "at bound"; for the last two, `se` and the interval are NaN rather than a confident-looking
+    number, and `bound` says which bound ("lower" / "upper") the value sits on.
 
     `se` and `ci95` are the headline (`se_method`: "gauss-newton", or "hac" when the fit's
     residuals are not white); `se_gauss_newton` and `se_hac` (Newey-West sandwich) are both
@@ -158,9 +158,9 @@ class FitResult:
     - `noise`: the noise-model object of the fit (`OutputError` or `ProcessNoise`);
       `process_noise`: True for the likelihood back end.
     - `predictions`: {run: {horizon: (N, n_y) SI}}: "simulation" always, "one-step" and
-      "k-step" (`noise.k_step` frames ahead) with process noise; `prediction_sd` their sds (least squares: the
-      simulation's 95 % band sd from the parameters' covariance, computed with the fit's
-      solver settings, so writing a result simulates nothing again).
+      "k-step" (`noise.k_step` frames ahead) with process noise; `prediction_sd` their sds
+      (least squares: the simulation's 95 % band sd from the parameters' covariance, computed
+      with the fit's solver settings, so writing a result simulates nothing again).
     - process noise only (NaN / empty for least squares): `log_likelihood` (data term; the
       first frame conditioned on when the initial state is known), `aic`, `bic`,
       `whiteness` ({run: Ljung-Box per output of the standardised innovations}), `runs`

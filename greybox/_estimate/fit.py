@@ -445,16 +445,18 @@ class _Problem(eqx.Module):
         those (shared + per-run) and not of every other run's row as well."""
         return _block_predictions(self, raw)
 
-    def data_residuals(self, raw, sigma):
-        return self.scaled_errors(*self.predictions(raw), sigma)
-
     def scaled_errors(self, z, ok, sigma):
         """Data residuals (E, N, n_y) of the predictions `z` (success flags `ok`)."""
         r = (z - self.y) / (sigma * self.noise) * self.w
         return jnp.where(ok[:, None, None], r, FAILED_SOLVE_RESIDUAL * self.w)
 
     def residuals(self, raw, sigma):
-        return self.loss_residuals(self.data_residuals(raw, sigma), raw)
+        """(least-squares residual vector, data residuals (E, N, n_y), predictions (E, N, n_y),
+        success flags (E,)) at `raw`: one simulation gives the solver's residuals and every
+        output of the fit's end point."""
+        z, solved = self.predictions(raw)
+        d = self.scaled_errors(z, solved, sigma)
+        return self.loss_residuals(d, raw), d, z, solved
 
     def loss_residuals(self, data_residuals, raw):
         """The least-squares residual vector: robustified data residuals, then the priors."""
@@ -528,17 +530,12 @@ def _solve(
     ref = raw_start if raw_ref is None else raw_ref
     pinned = pinned_fn(problem.flat_free, ref)
 
-    def outputs(r, sig):  # one simulation gives the residuals and every output below
-        z, solved = problem.predictions(r)
-        d = problem.scaled_errors(z, solved, sig)
-        return problem.loss_residuals(d, r), d, z, solved
-
     # the model traced once into one jaxpr: the solver and the end point below differentiate
     # that jaxpr, so the simulation's derivative (`_block_predictions`) is traced once and
     # reused, not traced again for the end point (an adaptive TCLab fit: 2.96 -> 2.24 s)
-    outputs = eqx.filter_closure_convert(outputs, raw_start, sigma)
+    residuals = eqx.filter_closure_convert(problem.residuals, raw_start, sigma)
     raw, ok, steps, stalled = levenberg_marquardt(
-        lambda r, sig: outputs(r, sig)[0],
+        lambda r, sig: residuals(r, sig)[0],
         raw_start,
         sigma,
         rtol=rtol,
@@ -548,7 +545,7 @@ def _solve(
     )
 
     def at_end(r):
-        res, d, z, solved = outputs(r, sigma)
+        res, d, z, solved = residuals(r, sigma)
         return (res, z), (res, d, z, solved)
 
     (jac, jac_z), (res, d, z, solved) = jax.jacfwd(at_end, has_aux=True)(raw)

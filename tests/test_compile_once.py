@@ -69,3 +69,26 @@ def test_initial_is_not_part_of_the_identity():
     assert p == q and hash(p) == hash(q)
     assert p != FreeParameter("x", "m", lower=0.5, initial=1.0)  # bounds still count
     assert FreeParameter("y", scale=1.0) != FreeParameter("y", scale=2.0)  # and the scale
+
+
+def test_a_new_structure_traces_its_simulation_once_and_its_derivative_once(monkeypatch):
+    """Compiling a solver traces the model's simulation twice: once as it is (the residuals the
+    solver evaluates) and once with its tangents (their derivative); the end point's
+    Jacobian and predictions reuse that trace rather than tracing the model a third time
+    (which was a quarter of an adaptive model's compile). Truth: the simulation's own
+    Python code, counted each time JAX runs it to trace it."""
+    import greybox._estimate.fit as fit_module
+
+    traced = []
+    simulate = fit_module.observe_schedule
+
+    def counted(*args, **kwargs):
+        traced.append(1)
+        return simulate(*args, **kwargs)
+
+    monkeypatch.setattr(fit_module, "observe_schedule", counted)
+    d = _device(3)
+    # a Huber constant no other test uses: a structure compiled here, not found in a cache
+    res = greybox.fit(d.model, d.experiments, d.free, loss="huber", huber_c=1.2345)
+    assert res.converged
+    assert len(traced) == 2

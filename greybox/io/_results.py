@@ -375,7 +375,6 @@ def _draw_payload(payload: bytes) -> None:
     draw_figures(*pickle.loads(payload))
 
 
-
 # --------------------------------------------------------------------------------------------
 # From the fit's results to the runs of the result folder
 

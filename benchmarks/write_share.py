@@ -21,15 +21,22 @@ total 10.2 -> 10.0 s). What is left is matplotlib: its import (~0.3 s), the cons
 and tick text of six figures (~1 s), and 200 dpi rasters.
 Then (2026-11-27, two alternating runs of f64b357 and 75f843b): the fit got faster (`_solve`
 traces the model once: fit 7.97-8.21 -> 7.16-7.31 s, total 10.2-10.6 -> 9.5-9.7 s) while
-writing stayed 1.44-1.55 s, so write_share rose from 0.141 to 0.160-0.163. Importing matplotlib in a thread during the fit moved ~0.2 s from the writing
-to the fit (write_share 0.135-0.144) but the total did not fall (9.17-9.60 against 9.31-9.40
-s: the import holds the interpreter while the fit traces), so it was not kept.
+writing stayed 1.44-1.55 s, so write_share rose from 0.141 to 0.160-0.163. Importing
+matplotlib in a thread during the fit moved ~0.2 s from the writing to the fit (write_share
+0.135-0.144) but the total did not fall (9.17-9.60 against 9.31-9.40 s: the import holds the
+interpreter while the fit traces), so it was not kept.
+Then (2026-11-27, three alternating runs of 2c36d26 and this change, load 0.3-0.9): a process
+started before the fit (its imports on the idle core while the fit runs) draws half of the six
+figures while this process draws the other half (`greybox.io._drawing.drawing_process`, the
+same bytes): writing 1.44-1.62 -> 0.97-1.02 s, total 9.51-10.34 -> 9.17-9.47 s, fit unchanged
+(7.22-7.82 and 7.34-7.52 s), write_share 0.149-0.157 -> 0.105-0.109. On a busy machine (the
+1-minute load leaving under half a core idle) no process is started and the share is as before.
 
 Run: .venv/bin/python benchmarks/write_share.py [--smoke] [--folder DIR]
 
-`--smoke`: the same command on a 60-reading cut of both runs with a small solver budget
-(checks that the script still runs; the share is not meaningful there). Last line: one JSON
-object.
+`--smoke`: the same command on the demo's folder, experiments/chevron_laser (checks that the
+script still runs; the share is not meaningful there). `drawing_process`: whether the load left
+a core idle for the process that draws half the figures. Last line: one JSON object.
 """
 
 import jax
@@ -48,8 +55,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from greybox.cli._common import fit_experiment_dir  # noqa: E402
+from greybox.io._drawing import spare_core  # noqa: E402
 
 FOLDER = ROOT / "experiments" / "tclab" / "two_heaters"
+# the smoke run's folder: the demo's (a ZOH model that compiles in about a second, and the
+# folder the test suite fits most, so its compiled programs are often in the suite's cache)
+SMOKE_FOLDER = ROOT / "experiments" / "chevron_laser"
 SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
 COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
 
@@ -69,18 +80,6 @@ class Clock:
         return next((t, n) for m, t, n in self.marks if m.startswith(prefix))
 
 
-def smoke_folder(tmp: Path) -> Path:
-    """A copy of the two-heater folder with 60 readings per run."""
-    dest = tmp / "two_heaters_smoke"
-    dest.mkdir()
-    for f in FOLDER.glob("*.csv"):
-        lines = f.read_text().splitlines()
-        (dest / f.name).write_text("\n".join(lines[:61]) + "\n")
-    toml = (FOLDER / "experiment.toml").read_text()
-    (dest / "experiment.toml").write_text(toml)
-    return dest
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
@@ -94,7 +93,8 @@ def main(argv=None):
 
     jax.monitoring.register_event_duration_secs_listener(count)
     with tempfile.TemporaryDirectory() as tmp:
-        folder = smoke_folder(Path(tmp)) if args.smoke else Path(args.folder)
+        folder = SMOKE_FOLDER if args.smoke else Path(args.folder)
+        drawing_process = spare_core()  # what `fit_experiment_dir` decides, at the same load
         clock = Clock(compiles)
         t0 = time.perf_counter()
         fit_experiment_dir(folder, Path(tmp) / "result", clock)
@@ -115,6 +115,7 @@ def main(argv=None):
         "compiles_after_fit": n_end - n_write,
         "folder": str(folder.relative_to(ROOT)) if folder.is_relative_to(ROOT) else folder.name,
         "written": written,
+        "drawing_process": drawing_process,
         "smoke": bool(args.smoke),
     }
     print(

@@ -58,10 +58,17 @@ KEYS = {
     "whiteness.py": {"replicates"},
     "write_share.py": {"write_share", "compiles_after_fit", "write_s", "total_s"},
 }
-# the first process's scripts: the three that share gpu_many_devices.py's batch solve, and
-# write_share.py (about 42 s unloaded, as the other ten together); the rest run in the second
-FIRST = ("gpu_many_devices.py", "batch_independence.py", "many_devices.py", "write_share.py")
-TIMEOUT_S = 600  # per process (about 42 s unloaded), on a loaded machine
+# the first process's scripts: the three that share gpu_many_devices.py's batch solve,
+# write_share.py and memory.py (about 20 s unloaded, as the other ten together); the rest run
+# in the second
+FIRST = (
+    "gpu_many_devices.py",
+    "batch_independence.py",
+    "many_devices.py",
+    "write_share.py",
+    "memory.py",
+)
+TIMEOUT_S = 600  # per process (about 20 s unloaded), on a loaded machine
 RUNNER = ROOT / "tests" / "bench_smoke_runner.py"
 
 

@@ -1,8 +1,10 @@
-"""Result figures drawn in worker processes (`greybox.io._results.draw_many`, what `greybox
-fit-many` does with its devices' figures) are the files drawn in this process, byte for byte:
-the jobs carry plain data only (arrays, waveforms, labels, the residual analysis) and Agg draws
-deterministically. A job that cannot be sent to another process is drawn here instead, and a
-drawing error in a worker is raised here, as it is without processes."""
+"""Result figures drawn in other processes are the files drawn in this process, byte for
+byte: the jobs carry plain data only (arrays, waveforms, labels, the residual analysis) and
+Agg draws deterministically. Both ways are checked: `greybox.io._drawing.draw_many` (what
+`greybox fit-many` does with its devices' figures, a folder per process) and
+`drawing_process` (what `greybox fit` does: one process started before the fit draws half of
+its figures). A job that cannot be sent to another process is drawn here instead, and a
+drawing error in another process is raised here, as it is without processes."""
 
 import numpy as np
 import pytest
@@ -10,7 +12,7 @@ import pytest
 import greybox
 from greybox import _platform
 from greybox._estimate.residuals import analyse
-from greybox.io import _results
+from greybox.io import _drawing
 
 
 def _jobs(seed: int) -> list:
@@ -54,15 +56,15 @@ def test_figures_drawn_in_processes_equal_those_drawn_here(tmp_path, monkeypatch
     there = [tmp_path / "there" / f"d{k}" for k in range(3)]
     for folder, j in zip(here, jobs):
         folder.mkdir(parents=True)
-        _results.draw_figures(folder, j)
+        _drawing.draw_figures(folder, j)
     for folder in there:
         folder.mkdir(parents=True)
     drawn_here = []  # folders drawn in this process (the workers import the module afresh)
-    draw = _results.draw_figures
+    draw = _drawing.draw_figures
     monkeypatch.setattr(
-        _results, "draw_figures", lambda folder, j: drawn_here.append(folder) or draw(folder, j)
+        _drawing, "draw_figures", lambda folder, j: drawn_here.append(folder) or draw(folder, j)
     )
-    _results.draw_many(list(zip(there, jobs)))
+    _drawing.draw_many(list(zip(there, jobs)))
     assert not drawn_here
     for a, b in zip(here, there):
         drawn, sent = _files(a), _files(b)
@@ -83,11 +85,11 @@ def test_a_job_that_cannot_be_sent_is_drawn_here(tmp_path, monkeypatch):
     for folder in folders:
         folder.mkdir()
     drawn_here = []
-    draw = _results.draw_figures
+    draw = _drawing.draw_figures
     monkeypatch.setattr(
-        _results, "draw_figures", lambda folder, j: drawn_here.append(folder) or draw(folder, j)
+        _drawing, "draw_figures", lambda folder, j: drawn_here.append(folder) or draw(folder, j)
     )
-    _results.draw_many(list(zip(folders, jobs)))
+    _drawing.draw_many(list(zip(folders, jobs)))
     assert drawn_here == folders
     for folder in folders:
         assert len(_files(folder)) == 4
@@ -101,5 +103,43 @@ def test_a_drawing_error_is_raised_here_as_without_processes(tmp_path, monkeypat
     for folder in folders:
         folder.mkdir()
     with pytest.raises(AttributeError, match="no_such_figure"):
-        _results.draw_many(list(zip(folders, jobs)))
+        _drawing.draw_many(list(zip(folders, jobs)))
     assert len(_files(folders[0])) == 4 and len(_files(folders[1])) == 4
+
+
+def test_the_drawing_process_draws_half_the_figures_and_raises_here(tmp_path, monkeypatch):
+    """One process (its start is what costs): the same bytes as drawn here with half the jobs
+    drawn here, then a drawing error in the process's share raised here; the process ends
+    with the block."""
+    jobs = _jobs(0)
+    (tmp_path / "here").mkdir()
+    _drawing.draw_figures(tmp_path / "here", jobs)
+    monkeypatch.setattr(_drawing, "spare_core", lambda: True)  # started, whatever the load
+    drawn_here = []
+    draw = _drawing._draw_here
+    monkeypatch.setattr(_drawing, "_draw_here", lambda f, j: drawn_here.extend(j) or draw(f, j))
+    with _drawing.drawing_process():
+        helper = _drawing._DRAWING.get()
+        assert helper is not None
+        (tmp_path / "shared").mkdir()
+        _drawing.draw_figures(tmp_path / "shared", jobs)
+        assert len(drawn_here) == len(jobs) // 2
+        assert _files(tmp_path / "shared") == _files(tmp_path / "here")
+        broken = [("figures/broken.png", "no_such_figure", (), {}), *jobs]  # its share
+        (tmp_path / "broken").mkdir()
+        with pytest.raises(AttributeError, match="no_such_figure"):
+            _drawing.draw_figures(tmp_path / "broken", broken)
+    helper._process.join(timeout=10)
+    assert not helper._process.is_alive()
+
+
+def test_no_drawing_process_without_an_idle_core(monkeypatch):
+    monkeypatch.setattr(_platform, "usable_cores", lambda: 2)
+    monkeypatch.setattr(_drawing.os, "getloadavg", lambda: (1.8, 1.8, 1.8))
+    assert not _drawing.spare_core()
+    with _drawing.drawing_process():
+        assert _drawing._DRAWING.get() is None
+    monkeypatch.setattr(_drawing.os, "getloadavg", lambda: (0.3, 0.3, 0.3))
+    assert _drawing.spare_core()
+    monkeypatch.setattr(_platform, "usable_cores", lambda: 1)
+    assert not _drawing.spare_core()

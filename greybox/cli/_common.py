@@ -100,14 +100,21 @@ def fit_experiment_dir(
     `out` is checked first (absent, empty or an earlier result, writable; `force` replaces
     any other folder), then the problem size, before anything is compiled."""
     from greybox.io._atomic import check_output_dir
+    from greybox.io._drawing import drawing_process
     from greybox.io._experiment_set import check_problem_size, load_experiment_set
-    from greybox.io._results import write_fit_result
 
     out = check_output_dir(out, force=force, inputs=[experiment_dir])
     say(f"loading {experiment_dir}")
     index = None if candidate is None else candidate_index(experiment_dir, candidate)
     fs = load_experiment_set(experiment_dir, candidate=index)
     check_problem_size(fs)
+    with drawing_process():  # its start overlaps the fit; it draws half the figures
+        return _fit_and_write(fs, out, say, force, candidate, figure_format)
+
+
+def _fit_and_write(fs, out, say, force, candidate, figure_format) -> FitOutcome:
+    from greybox.io._results import write_fit_result
+
     n_est = sum(e.n_frames for e in fs.estimation)
     n_val = sum(e.n_frames for e in fs.validation)
     how = "least squares" if fs.noise is None else "maximum likelihood (process noise)"

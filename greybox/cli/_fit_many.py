@@ -252,7 +252,7 @@ def write_device(
     folder: Path, fs, result, validation, figures: bool, fmt: str = "png", defer=None
 ) -> None:
     """A device's result folder; its figures drawn here, or added to `defer` (a list, drawn
-    later by `greybox.io._results.draw_many`)."""
+    later by `greybox.io._drawing.draw_many`)."""
     from greybox.io._results import write_fit_files
 
     folder.mkdir(parents=True)
@@ -451,7 +451,7 @@ def _run(args, say) -> int:
                 deferred,
             )
         if deferred:
-            from greybox.io._results import draw_many
+            from greybox.io._drawing import draw_many
 
             say(f"drawing the figures of {len(deferred)} devices")
             draw_many(deferred)

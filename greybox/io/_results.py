@@ -311,70 +311,6 @@ def figure_jobs(fs, runs, sigma, fit_percent, *, result=None, fmt: str = "png") 
     return jobs
 
 
-def draw_figures(folder, jobs) -> None:
-    """Draw `figure_jobs` into `folder` (its figures/ made here)."""
-    from greybox.report import _plots as plots
-
-    folder = Path(folder)
-    (folder / "figures").mkdir(exist_ok=True)
-    with plots.png_writes_in_background():
-        for rel, function, args, kwargs in jobs:
-            getattr(plots, function)(folder / rel, *args, **kwargs)
-
-
-FIGURE_PROCESSES_MAX = 8  # processes drawing result folders' figures (~250 MB each)
-FIGURE_PROCESSES_FROM = 3  # folders below which the figures are drawn here: a process's
-# start (its imports, ~1-2 s) would cost more than it saves
-
-
-def draw_many(deferred) -> None:
-    """Draw the figures of many result folders (`deferred`: the (folder, `figure_jobs`) pairs
-    of `write_fit_files(defer=...)`), a folder per task, in processes side by side on the
-    cores this process may use: matplotlib holds the interpreter while it draws, so threads
-    would take turns (`greybox fit-many` of 8 chevrons: its writing was 86 % of the
-    command's time). The same files either way. Drawn here instead: with one core or few
-    folders, when a job cannot be sent to another process, and a folder whose process
-    failed (so a drawing error is raised here, as without processes)."""
-    from greybox import _platform
-
-    workers = min(_platform.usable_cores(), FIGURE_PROCESSES_MAX, len(deferred))
-    payloads = None
-    if workers >= 2 and len(deferred) >= FIGURE_PROCESSES_FROM:
-        payloads = _payloads(deferred)
-    if payloads is None:
-        for folder, jobs in deferred:
-            draw_figures(folder, jobs)
-        return
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    # spawned, never forked: this process runs JAX's threads
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
-    try:
-        futures = [pool.submit(_draw_payload, p) for p in payloads]
-        for (folder, jobs), future in zip(deferred, futures):
-            if future.exception() is not None:
-                draw_figures(folder, jobs)
-    finally:  # an error or an interrupt: the folders not started are not drawn
-        pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _payloads(deferred) -> list | None:
-    """Each folder's jobs pickled for another process, or None when one cannot be."""
-    import pickle
-
-    try:
-        return [pickle.dumps((Path(folder), jobs)) for folder, jobs in deferred]
-    except Exception:  # noqa: BLE001 (e.g. a waveform class defined inside a function)
-        return None
-
-
-def _draw_payload(payload: bytes) -> None:
-    import pickle
-
-    draw_figures(*pickle.loads(payload))
-
-
 # --------------------------------------------------------------------------------------------
 # From the fit's results to the runs of the result folder
 
@@ -586,6 +522,8 @@ def write_fit_files(
         jobs = figure_jobs(fs, runs, sigma, fit_percent, result=fitted, fmt=fmt)
         names = [rel for rel, *_ in jobs]
         if defer is None:
+            from greybox.io._drawing import draw_figures
+
             draw_figures(folder, jobs)
         else:  # the caller draws them (`draw_many`: many devices' figures side by side)
             defer.append((folder, jobs))

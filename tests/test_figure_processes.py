@@ -143,3 +143,16 @@ def test_no_drawing_process_without_an_idle_core(monkeypatch):
     assert _drawing.spare_core()
     monkeypatch.setattr(_platform, "usable_cores", lambda: 1)
     assert not _drawing.spare_core()
+
+
+def test_a_drawing_process_that_cannot_start_leaves_the_drawing_here(tmp_path, monkeypatch):
+    monkeypatch.setattr(_drawing, "spare_core", lambda: True)
+
+    def refused():
+        raise OSError("no processes here")
+
+    monkeypatch.setattr(_drawing, "_DrawingProcess", refused)
+    with _drawing.drawing_process():
+        assert _drawing._DRAWING.get() is None
+        _drawing.draw_figures(tmp_path, _jobs(0))
+    assert len(_files(tmp_path)) == 4

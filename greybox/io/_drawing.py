@@ -79,7 +79,12 @@ def drawing_process(start: bool = True):
     """Within this block, `draw_figures` shares its jobs with one process started here
     (when `start` and `spare_core()`), which imports what drawing needs at once, while the
     block's fit runs. The process ends with the block, also on an error or an interrupt."""
-    helper = _DrawingProcess() if start and spare_core() else None
+    helper = None
+    if start and spare_core():
+        try:
+            helper = _DrawingProcess()
+        except Exception:  # noqa: BLE001 (no process could be started: everything drawn here)
+            helper = None
     token = _DRAWING.set(helper)
     try:
         yield

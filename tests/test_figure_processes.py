@@ -6,6 +6,9 @@ Agg draws deterministically. Both ways are checked: `greybox.io._drawing.draw_ma
 its figures). A job that cannot be sent to another process is drawn here instead, and a
 drawing error in another process is raised here, as it is without processes."""
 
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -129,8 +132,7 @@ def test_the_drawing_process_draws_half_the_figures_and_raises_here(tmp_path, mo
         (tmp_path / "broken").mkdir()
         with pytest.raises(AttributeError, match="no_such_figure"):
             _drawing.draw_figures(tmp_path / "broken", broken)
-    helper._process.join(timeout=10)
-    assert not helper._process.is_alive()
+    assert helper._proc.poll() is not None  # it ended with the block
 
 
 def test_no_drawing_process_without_an_idle_core(monkeypatch):
@@ -155,4 +157,28 @@ def test_a_drawing_process_that_cannot_start_leaves_the_drawing_here(tmp_path, m
     with _drawing.drawing_process():
         assert _drawing._DRAWING.get() is None
         _drawing.draw_figures(tmp_path, _jobs(0))
+    assert len(_files(tmp_path)) == 4
+
+
+def test_a_script_without_a_main_guard_runs_once(tmp_path):
+    """multiprocessing's spawn would import the calling script again in the drawing process,
+    running its top level twice; the drawing process runs greybox's own program only."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "import pathlib\n"
+        "from greybox.io import _drawing\n"
+        "import test_figure_processes as t\n"
+        f"with open({str(tmp_path / 'runs.txt')!r}, 'a') as f:\n"
+        "    f.write('ran\\n')\n"
+        "_drawing.spare_core = lambda: True\n"
+        "with _drawing.drawing_process():\n"
+        "    assert _drawing._DRAWING.get() is not None\n"
+        f"    _drawing.draw_figures(pathlib.Path({str(tmp_path)!r}), t._jobs(0))\n"
+    )
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).parent), *sys.path]))
+    subprocess.run([sys.executable, str(script)], check=True, env=env, timeout=300)
+    assert (tmp_path / "runs.txt").read_text() == "ran\n"
     assert len(_files(tmp_path)) == 4

@@ -1,15 +1,18 @@
 """Where a result folder's figures are drawn: in this process, or in processes beside it.
 
 matplotlib holds the interpreter while it draws, so threads would take turns: figures are
-drawn side by side only in other processes, spawned (never forked: this process runs JAX's
-threads), and get the same bytes there (the jobs of `greybox.io._results.figure_jobs` carry
-plain data only and Agg draws deterministically). Two ways:
+drawn side by side only in other processes, and get the same bytes there (the jobs of
+`greybox.io._results.figure_jobs` carry plain data only and Agg draws deterministically).
+A drawing process is a plain Python process running `_serve` (`_DrawingProcess`): never a
+fork (this process runs JAX's threads), and not multiprocessing's spawn, which imports the
+caller's main script again in the child (a script without a `__main__` guard would run
+twice). Two ways:
 
-- `draw_many`: many result folders (`greybox fit-many`), a folder per process.
+- `draw_many`: many result folders (`greybox fit-many`), a share of the folders per process.
 - `drawing_process`: one process started before a fit, so that its start (Python,
   matplotlib and greybox's imports, ~1.3 s of CPU) runs on a core the fit leaves idle; when
   the fit's figures are drawn (`draw_figures`) it draws half of them while this process
-  draws the other half (the TCLab two-heater folder: writing 1.8-1.9 -> 1.1-1.2 s).
+  draws the other half (the TCLab two-heater result: writing 1.4-1.6 -> 1.0 s).
 
 Either way, a job that cannot be sent to another process, and the jobs of a process that
 failed, are drawn here, so a drawing error is raised here as without processes.
@@ -21,6 +24,8 @@ import contextlib
 import contextvars
 import os
 import pickle
+import struct
+import sys
 from pathlib import Path
 
 FIGURE_PROCESSES_MAX = 8  # processes drawing result folders' figures (~250 MB each)
@@ -40,13 +45,14 @@ def draw_figures(folder, jobs) -> None:
     helper = _DRAWING.get()
     there, here = jobs[::2], jobs[1::2]
     payload = None if helper is None or not here else _payload(folder, there)
-    if payload is None or not helper.send(payload):
+    if payload is None:
         _draw_here(folder, jobs)
         return
+    helper.send(payload)
     try:
         _draw_here(folder, here)
     finally:  # its share finished either way: nothing is written into `folder` after this
-        drawn = helper.done()
+        drawn = helper.drawn()
     if not drawn:  # it failed or is gone: its jobs are drawn (or raise) here
         _draw_here(folder, there)
 
@@ -79,116 +85,51 @@ def drawing_process(start: bool = True):
     """Within this block, `draw_figures` shares its jobs with one process started here
     (when `start` and `spare_core()`), which imports what drawing needs at once, while the
     block's fit runs. The process ends with the block, also on an error or an interrupt."""
-    helper = None
-    if start and spare_core():
-        try:
-            helper = _DrawingProcess()
-        except Exception:  # noqa: BLE001 (no process could be started: everything drawn here)
-            helper = None
-    token = _DRAWING.set(helper)
+    helpers = _start(1) if start and spare_core() else []
+    token = _DRAWING.set(helpers[0] if helpers else None)
     try:
         yield
     finally:
         _DRAWING.reset(token)
-        if helper is not None:
+        for helper in helpers:
             helper.stop()
-
-
-class _DrawingProcess:
-    """A spawned process (daemonic: it never outlives this one) that draws the payloads
-    sent to it, one at a time, answering each with None or the error it met."""
-
-    def __init__(self):
-        import multiprocessing
-
-        context = multiprocessing.get_context("spawn")
-        self._conn, theirs = context.Pipe()
-        self._process = context.Process(target=_serve, args=(theirs,), daemon=True)
-        self._process.start()
-        theirs.close()
-
-    def send(self, payload: bytes) -> bool:
-        try:
-            self._conn.send_bytes(payload)
-        except OSError:  # the process is gone
-            return False
-        return True
-
-    def done(self) -> bool:
-        """Whether the payload sent was drawn (False: it failed, or the process died)."""
-        try:
-            return self._conn.recv() is None
-        except (EOFError, OSError):
-            return False
-
-    def stop(self) -> None:
-        """End the process: idle, or still importing when the block ended early."""
-        self._conn.close()
-        self._process.terminate()
-
-
-def _serve(conn) -> None:
-    """The drawing process: ignores Ctrl-C (the command that started it stops it), reads
-    payloads from the start (a thread, so a sender never waits on the imports), imports what
-    drawing needs, and draws each payload in turn until its pipe closes."""
-    import queue
-    import signal
-    import threading
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    payloads = queue.SimpleQueue()
-
-    def read():
-        while True:
-            try:
-                payloads.put(conn.recv_bytes())
-            except (EOFError, OSError):
-                payloads.put(None)
-                return
-
-    threading.Thread(target=read, daemon=True).start()
-    from matplotlib.backends import backend_agg  # noqa: F401
-
-    from greybox.report import _plots  # noqa: F401
-
-    while (payload := payloads.get()) is not None:
-        try:
-            _draw_payload(payload)
-        except Exception as e:  # noqa: BLE001 (answered; the jobs are drawn again there)
-            conn.send(repr(e))
-        else:
-            conn.send(None)
 
 
 def draw_many(deferred) -> None:
     """Draw the figures of many result folders (`deferred`: the (folder, `figure_jobs`) pairs
-    of `write_fit_files(defer=...)`), a folder per task, in processes side by side on the
-    cores this process may use (`greybox fit-many` of 8 chevrons: its writing was 86 % of the
+    of `write_fit_files(defer=...)`), shared out among processes side by side on the cores
+    this process may use (`greybox fit-many` of 8 chevrons: its writing was 86 % of the
     command's time). Drawn here instead: with one core or few folders, when a job cannot be
     sent to another process, and a folder whose process failed."""
     from greybox import _platform
 
     workers = min(_platform.usable_cores(), FIGURE_PROCESSES_MAX, len(deferred))
-    payloads = None
+    payloads = []
     if workers >= 2 and len(deferred) >= FIGURE_PROCESSES_FROM:
         payloads = [_payload(Path(folder), jobs) for folder, jobs in deferred]
-        if any(p is None for p in payloads):
-            payloads = None
-    if payloads is None:
+    helpers = _start(workers) if payloads and None not in payloads else []
+    if not helpers:
         for folder, jobs in deferred:
             draw_figures(folder, jobs)
         return
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
-    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
     try:
-        futures = [pool.submit(_draw_payload, p) for p in payloads]
-        for (folder, jobs), future in zip(deferred, futures):
-            if future.exception() is not None:
+        for k, payload in enumerate(payloads):  # in turn; each process answers in order
+            helpers[k % len(helpers)].send(payload)
+        for k, (folder, jobs) in enumerate(deferred):
+            if not helpers[k % len(helpers)].drawn():
                 draw_figures(folder, jobs)
-    finally:  # an error or an interrupt: the folders not started are not drawn
-        pool.shutdown(wait=True, cancel_futures=True)
+    finally:  # an error or an interrupt: the folders not drawn yet are not drawn
+        for helper in helpers:
+            helper.stop()
+
+
+def _start(n: int) -> list:
+    """Up to `n` drawing processes (none where none can be started)."""
+    helpers = []
+    with contextlib.suppress(OSError, ValueError):  # no interpreter to run, no processes left
+        for _ in range(n):
+            helpers.append(_DrawingProcess())
+    return helpers
 
 
 def _payload(folder: Path, jobs) -> bytes | None:
@@ -197,6 +138,107 @@ def _payload(folder: Path, jobs) -> bytes | None:
         return pickle.dumps((folder, jobs))
     except Exception:  # noqa: BLE001 (e.g. a waveform class defined inside a function)
         return None
+
+
+# the drawing process's program (its argument: the folder this process imported greybox from)
+_SERVE = (
+    "import sys\n"
+    "if sys.argv[1] not in sys.path: sys.path.insert(0, sys.argv[1])\n"
+    "from greybox.io._drawing import _serve\n"
+    "_serve()\n"
+)
+
+
+class _DrawingProcess:
+    """A Python process running `_serve`, started now: it draws the payloads sent
+    to it one after another and answers each, in order (`drawn`). Payloads are written by a
+    thread, so that sending never waits on the process's imports."""
+
+    def __init__(self):
+        import queue
+        import subprocess
+        import threading
+
+        import greybox
+
+        # -P: no working folder on its path; this process's greybox, wherever it came from
+        where = str(Path(greybox.__file__).parents[1])
+        self._proc = subprocess.Popen(
+            [sys.executable, "-P", "-c", _SERVE, where],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,  # a failure shows as a missing answer: drawn here
+        )
+        self._outbox = queue.SimpleQueue()
+        self._writer = threading.Thread(target=self._write_all, daemon=True)
+        self._writer.start()
+
+    def send(self, payload: bytes) -> None:
+        self._outbox.put(payload)
+
+    def drawn(self) -> bool:
+        """Whether the next payload sent was drawn (False: it failed, or the process died).
+        Interrupted while waiting, the process is stopped first: it never writes on into a
+        folder its caller is about to clean up."""
+        try:
+            return _read(self._proc.stdout) == b""
+        except BaseException:
+            self.stop()
+            raise
+
+    def stop(self) -> None:
+        """End the process: idle, drawing, or still importing when the block ended early."""
+        self._outbox.put(None)
+        self._proc.kill()
+        self._proc.wait()
+        self._writer.join()
+        self._proc.stdout.close()
+
+    def _write_all(self) -> None:
+        pipe = self._proc.stdin
+        with contextlib.suppress(OSError):  # the process is gone: `drawn` reads its end
+            while (payload := self._outbox.get()) is not None:
+                _write(pipe, payload)
+        with contextlib.suppress(OSError):
+            pipe.close()
+
+
+def _write(pipe, data: bytes) -> None:
+    pipe.write(struct.pack(">Q", len(data)) + data)
+    pipe.flush()
+
+
+def _read(pipe) -> bytes | None:
+    """The next message on `pipe`, None at its end."""
+    head = pipe.read(8)
+    if len(head) < 8:
+        return None
+    size = struct.unpack(">Q", head)[0]
+    data = pipe.read(size)
+    return data if len(data) == size else None
+
+
+def _serve() -> None:
+    """The drawing process: ignores Ctrl-C (the command that started it stops it), imports
+    what drawing needs, then draws each payload read from stdin and answers on stdout (an
+    empty message, or the error it met) until stdin ends. What drawing prints goes to
+    stderr."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    answers = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
+    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
+    from matplotlib.backends import backend_agg  # noqa: F401
+
+    from greybox.report import _plots  # noqa: F401
+
+    while (payload := _read(sys.stdin.buffer)) is not None:
+        try:
+            _draw_payload(payload)
+        except Exception as e:  # noqa: BLE001 (answered; the jobs are drawn again there)
+            _write(answers, repr(e).encode())
+        else:
+            _write(answers, b"")
 
 
 def _draw_payload(payload: bytes) -> None:

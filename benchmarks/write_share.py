@@ -25,12 +25,13 @@ writing stayed 1.44-1.55 s, so write_share rose from 0.141 to 0.160-0.163. Impor
 matplotlib in a thread during the fit moved ~0.2 s from the writing to the fit (write_share
 0.135-0.144) but the total did not fall (9.17-9.60 against 9.31-9.40 s: the import holds the
 interpreter while the fit traces), so it was not kept.
-Then (2026-11-27, three alternating runs of 2c36d26 and this change, load 0.3-0.9): a process
+Then (2026-11-27, three alternating runs of 2c36d26 and cf18462, load 1.2-1.5): a process
 started before the fit (its imports on the idle core while the fit runs) draws half of the six
 figures while this process draws the other half (`greybox.io._drawing.drawing_process`, the
-same bytes): writing 1.44-1.62 -> 0.97-1.02 s, total 9.51-10.34 -> 9.17-9.47 s, fit unchanged
-(7.22-7.82 and 7.34-7.52 s), write_share 0.149-0.157 -> 0.105-0.109. On a busy machine (the
-1-minute load leaving under half a core idle) no process is started and the share is as before.
+same bytes): writing 1.53-1.57 -> 0.92-1.00 s, total 9.75-10.30 -> 9.09-9.26 s, fit unchanged
+(7.34-7.84 and 7.35-7.41 s), write_share 0.150-0.158 -> 0.102-0.108. On a busy machine (the
+1-minute load leaving under half a core idle) no process is started and the share is as before
+(`drawing_process` in the JSON line says which).
 
 Run: .venv/bin/python benchmarks/write_share.py [--smoke] [--folder DIR]
 

@@ -50,7 +50,11 @@ from greybox._model.freeparams import (
     pinned_fn,
 )
 from greybox._estimate.identifiability import RANK_TOL, IdentifiabilityReport, analyse
-from greybox._estimate.metrics import fit_percent_per_output, noise_ceiling_per_output
+from greybox._estimate.metrics import (
+    OUTLIER_SIGMAS,
+    fit_percent_per_output,
+    noise_ceiling_per_output,
+)
 from greybox._estimate.posterior import Posterior
 from greybox._estimate.residuals import (
     GoodnessOfFit,
@@ -72,7 +76,6 @@ from greybox._estimate.verdict import interval_verdict
 
 LOSSES = ("l2", "huber", "student_t")
 FAILED_SOLVE_RESIDUAL = 1e3  # per residual, in units of sigma: far worse than any real misfit
-OUTLIER_SIGMAS = 5.0  # frames further than this from the fit are reported as outliers
 AUTO_STARTS = _problem.AUTO_STARTS  # starts when n_starts=None and > 2 shared parameters
 SAME_COST = 1e-5  # relative cost difference within which two starts reached the same optimum
 STATUSES = (

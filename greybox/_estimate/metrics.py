@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+OUTLIER_SIGMAS = 5.0  # readings further than this (x their noise sd) from the model: outliers
+
 
 def _valid(y, y_hat):
     y = np.asarray(y, dtype=float)

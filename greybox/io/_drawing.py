@@ -10,9 +10,10 @@ twice). Two ways:
 
 - `draw_many`: many result folders (`greybox fit-many`), a share of the folders per process.
 - `drawing_process`: one process started before a fit, so that its start (Python,
-  matplotlib and greybox's imports, ~1.3 s of CPU) runs on a core the fit leaves idle; when
-  the fit's figures are drawn (`draw_figures`) it draws half of them while this process
-  draws the other half (the TCLab two-heater result: writing 1.4-1.6 -> 1.0 s).
+  matplotlib and greybox's plotting modules, ~0.35 s; not JAX) runs on a core the fit
+  leaves idle; when the fit's figures are drawn (`draw_figures`) it draws half of them
+  while this process draws the other half (the TCLab two-heater result: writing 1.4-1.6 ->
+  1.0 s).
 
 Either way, a job that cannot be sent to another process, and the jobs of a process that
 failed, are drawn here, so a drawing error is raised here as without processes.
@@ -28,9 +29,9 @@ import struct
 import sys
 from pathlib import Path
 
-FIGURE_PROCESSES_MAX = 8  # processes drawing result folders' figures (~250 MB each)
-FIGURE_PROCESSES_FROM = 3  # folders below which `draw_many` draws here: a process's start
-# (its imports, ~1-2 s) would cost more than it saves
+FIGURE_PROCESSES_MAX = 8  # processes drawing result folders' figures (~130 MB each)
+FIGURE_PROCESSES_FROM = 2  # folders below which `draw_many` draws here (a process starts in
+# ~0.35 s, a folder's figures take ~1 s or more)
 IDLE_CORE = 0.5  # the idle share of a core (by the 1-minute load) that a drawing process needs
 
 # the `_DrawingProcess` of `drawing_process`, where one is open

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from greybox._estimate.fit import OUTLIER_SIGMAS
+from greybox._estimate.metrics import OUTLIER_SIGMAS
 from greybox._estimate.metrics import noise_ceiling as noise_ceiling
 from greybox._estimate.residuals import OUTLIER_SCALES, _ranges
 from greybox._estimate.result_text import display_unit as display_unit

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from greybox._estimate.fit import OUTLIER_SIGMAS
+from greybox._estimate.metrics import OUTLIER_SIGMAS
 from greybox.plots import _label
 
 DPI = 200  # raster figures (png); svg and pdf are vector

@@ -62,13 +62,15 @@ def test_figures_drawn_in_processes_equal_those_drawn_here(tmp_path, monkeypatch
         _drawing.draw_figures(folder, j)
     for folder in there:
         folder.mkdir(parents=True)
-    drawn_here = []  # folders drawn in this process (the workers import the module afresh)
+    drawn_here = []  # folders drawn in this process (the other one imports the module afresh)
     draw = _drawing.draw_figures
     monkeypatch.setattr(
         _drawing, "draw_figures", lambda folder, j: drawn_here.append(folder) or draw(folder, j)
     )
     _drawing.draw_many(list(zip(there, jobs)))
-    assert not drawn_here
+    # two cores: one process beside this one, handed two folders at once; this one draws
+    # what is left from the back
+    assert drawn_here in ([], [there[2]])
     for a, b in zip(here, there):
         drawn, sent = _files(a), _files(b)
         assert sorted(drawn) == sorted(j[0] for j in jobs[0])
@@ -110,25 +112,27 @@ def test_a_drawing_error_is_raised_here_as_without_processes(tmp_path, monkeypat
     assert len(_files(folders[0])) == 4 and len(_files(folders[1])) == 4
 
 
-def test_the_drawing_process_draws_half_the_figures_and_raises_here(tmp_path, monkeypatch):
-    """One process (its start is what costs): the same bytes as drawn here with half the jobs
-    drawn here, then a drawing error in the process's share raised here; the process ends
-    with the block."""
+def test_the_drawing_process_shares_the_figures_and_raises_here(tmp_path, monkeypatch):
+    """One process (its start is what costs): the same bytes as drawn here with the jobs
+    shared out (it is handed two at once, so this process draws at most the rest), then a
+    drawing error in a job it was handed raised here; the process ends with the block."""
     jobs = _jobs(0)
     (tmp_path / "here").mkdir()
     _drawing.draw_figures(tmp_path / "here", jobs)
     monkeypatch.setattr(_drawing, "spare_core", lambda: True)  # started, whatever the load
     drawn_here = []
-    draw = _drawing._draw_here
-    monkeypatch.setattr(_drawing, "_draw_here", lambda f, j: drawn_here.extend(j) or draw(f, j))
+    draw = _drawing._draw_one
+    monkeypatch.setattr(
+        _drawing, "_draw_one", lambda p, f, j: drawn_here.append(j) or draw(p, f, j)
+    )
     with _drawing.drawing_process():
         helper = _drawing._DRAWING.get()
         assert helper is not None
         (tmp_path / "shared").mkdir()
         _drawing.draw_figures(tmp_path / "shared", jobs)
-        assert len(drawn_here) == len(jobs) // 2
+        assert 1 <= len(drawn_here) <= len(jobs) - 2
         assert _files(tmp_path / "shared") == _files(tmp_path / "here")
-        broken = [("figures/broken.png", "no_such_figure", (), {}), *jobs]  # its share
+        broken = [("figures/broken.png", "no_such_figure", (), {}), *jobs]  # handed to it
         (tmp_path / "broken").mkdir()
         with pytest.raises(AttributeError, match="no_such_figure"):
             _drawing.draw_figures(tmp_path / "broken", broken)

@@ -8,31 +8,37 @@ fork (this process runs JAX's threads), and not multiprocessing's spawn, which i
 caller's main script again in the child (a script without a `__main__` guard would run
 twice). Two ways:
 
-- `draw_many`: many result folders (`greybox fit-many`), a share of the folders per process.
 - `drawing_process`: one process started before a fit, so that its start (Python,
   matplotlib and greybox's plotting modules, ~0.35 s; not JAX) runs on a core the fit
-  leaves idle; when the fit's figures are drawn (`draw_figures`) it draws half of them
-  while this process draws the other half (the TCLab two-heater result: writing 1.4-1.6 ->
-  1.0 s).
+  leaves idle; it shares the fit's figures with this process when they are drawn
+  (`draw_figures`; the TCLab two-heater result: writing 1.4-1.6 -> 1.0 s).
+- `draw_many`: many result folders (`greybox fit-many`), shared out a folder at a time
+  among processes started for them and this one.
 
-Either way, a job that cannot be sent to another process, and the jobs of a process that
-failed, are drawn here, so a drawing error is raised here as without processes.
+The work is shared as it goes (`_share`): the other processes take items from the front,
+each as it finishes one, and this process takes them from the back, until they meet, so a
+slower side (a costly figure, this process's own matplotlib import, a busy core) draws
+fewer. A job that cannot be sent to another process, and the jobs of a process that failed,
+are drawn here, so a drawing error is raised here as without processes.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import contextvars
 import os
 import pickle
 import struct
 import sys
+import threading
 from pathlib import Path
 
 FIGURE_PROCESSES_MAX = 8  # processes drawing result folders' figures (~130 MB each)
 FIGURE_PROCESSES_FROM = 2  # folders below which `draw_many` draws here (a process starts in
 # ~0.35 s, a folder's figures take ~1 s or more)
 IDLE_CORE = 0.5  # the idle share of a core (by the 1-minute load) that a drawing process needs
+IN_HAND = 2  # items a drawing process holds: it never waits on this process between two
 
 # the `_DrawingProcess` of `drawing_process`, where one is open
 _DRAWING = contextvars.ContextVar("greybox_drawing_process", default=None)
@@ -40,30 +46,84 @@ _DRAWING = contextvars.ContextVar("greybox_drawing_process", default=None)
 
 def draw_figures(folder, jobs) -> None:
     """Draw `figure_jobs` into `folder` (its figures/ made here); inside `drawing_process`
-    every other job is drawn by that process while this one draws the rest."""
+    shared with that process."""
     folder = Path(folder)
     (folder / "figures").mkdir(exist_ok=True)
     helper = _DRAWING.get()
-    there, here = jobs[::2], jobs[1::2]
-    payload = None if helper is None or not here else _payload(folder, there)
-    if payload is None:
+    payloads = [_payload(folder, [job]) for job in jobs] if helper is not None else []
+    if len(jobs) < 2 or not payloads or None in payloads:
         _draw_here(folder, jobs)
         return
-    helper.send(payload)
+    from greybox.report import _plots as plots
+
+    with plots.png_writes_in_background():
+        failed = _share([helper], payloads, lambda k: _draw_one(plots, folder, jobs[k]))
+    if failed:  # it failed or is gone: its jobs are drawn (or raise) here
+        _draw_here(folder, [jobs[k] for k in failed])
+
+
+def draw_many(deferred) -> None:
+    """Draw the figures of many result folders (`deferred`: the (folder, `figure_jobs`) pairs
+    of `write_fit_files(defer=...)`), shared out a folder at a time among this process and
+    processes started beside it on the cores it may use (`greybox fit-many` of 8 chevrons:
+    its writing was 86 % of the command's time). All drawn here with one core or few
+    folders, or when a job cannot be sent to another process."""
+    from greybox import _platform
+
+    workers = min(_platform.usable_cores(), FIGURE_PROCESSES_MAX, len(deferred))
+    payloads = []
+    if workers >= 2 and len(deferred) >= FIGURE_PROCESSES_FROM:
+        payloads = [_payload(Path(folder), jobs) for folder, jobs in deferred]
+    helpers = _start(workers - 1) if payloads and None not in payloads else []
     try:
-        _draw_here(folder, here)
-    finally:  # its share finished either way: nothing is written into `folder` after this
-        drawn = helper.drawn()
-    if not drawn:  # it failed or is gone: its jobs are drawn (or raise) here
-        _draw_here(folder, there)
+        failed = _share(helpers, payloads, lambda k: draw_figures(*deferred[k]))
+    finally:
+        for helper in helpers:
+            helper.stop()
+    for k in failed if helpers else range(len(deferred)):
+        draw_figures(*deferred[k])
+
+
+def _share(helpers, payloads, draw_here) -> list:
+    """Draw the items `payloads` (by index): `helpers` take them from the front, each as it
+    finishes one, while this process draws them from the back (`draw_here(index)`) until
+    none is left. Returns the indices a helper did not draw (it failed, or died). On an
+    error here no item is handed out any more, and the helpers' items are waited for."""
+    if not helpers:
+        return []
+    pending, lock = collections.deque(range(len(payloads))), threading.Lock()
+
+    def take(pop):
+        with lock:
+            return pop() if pending else None
+
+    def hand_out():
+        k = take(pending.popleft)
+        return None if k is None else (k, payloads[k])
+
+    for helper in helpers:
+        helper.start(hand_out)
+    try:
+        while (k := take(pending.pop)) is not None:
+            draw_here(k)
+    finally:  # nothing is handed out any more; their items finished before this returns
+        with lock:
+            pending.clear()
+        answers = [a for helper in helpers for a in helper.answers()]
+    return sorted(k for k, drawn in answers if not drawn)
 
 
 def _draw_here(folder: Path, jobs) -> None:
     from greybox.report import _plots as plots
 
     with plots.png_writes_in_background():
-        for rel, function, args, kwargs in jobs:
-            getattr(plots, function)(folder / rel, *args, **kwargs)
+        for job in jobs:
+            _draw_one(plots, folder, job)
+
+
+def _draw_one(plots, folder: Path, job) -> None:
+    rel, function, args, kwargs = job
+    getattr(plots, function)(folder / rel, *args, **kwargs)
 
 
 def spare_core() -> bool:
@@ -96,34 +156,6 @@ def drawing_process(start: bool = True):
             helper.stop()
 
 
-def draw_many(deferred) -> None:
-    """Draw the figures of many result folders (`deferred`: the (folder, `figure_jobs`) pairs
-    of `write_fit_files(defer=...)`), shared out among processes side by side on the cores
-    this process may use (`greybox fit-many` of 8 chevrons: its writing was 86 % of the
-    command's time). Drawn here instead: with one core or few folders, when a job cannot be
-    sent to another process, and a folder whose process failed."""
-    from greybox import _platform
-
-    workers = min(_platform.usable_cores(), FIGURE_PROCESSES_MAX, len(deferred))
-    payloads = []
-    if workers >= 2 and len(deferred) >= FIGURE_PROCESSES_FROM:
-        payloads = [_payload(Path(folder), jobs) for folder, jobs in deferred]
-    helpers = _start(workers) if payloads and None not in payloads else []
-    if not helpers:
-        for folder, jobs in deferred:
-            draw_figures(folder, jobs)
-        return
-    try:
-        for k, payload in enumerate(payloads):  # in turn; each process answers in order
-            helpers[k % len(helpers)].send(payload)
-        for k, (folder, jobs) in enumerate(deferred):
-            if not helpers[k % len(helpers)].drawn():
-                draw_figures(folder, jobs)
-    finally:  # an error or an interrupt: the folders not drawn yet are not drawn
-        for helper in helpers:
-            helper.stop()
-
-
 def _start(n: int) -> list:
     """Up to `n` drawing processes (none where none can be started)."""
     helpers = []
@@ -151,14 +183,15 @@ _SERVE = (
 
 
 class _DrawingProcess:
-    """A Python process running `_serve`, started now: it draws the payloads sent
-    to it one after another and answers each, in order (`drawn`). Payloads are written by a
-    thread, so that sending never waits on the process's imports."""
+    """A Python process running `_serve`, started now. Given work (`start`: a function that
+    hands out (index, payload) items, None when there are none), it holds `IN_HAND` items at
+    a time and takes the next as it answers each, from its reader thread, so it never waits
+    on this process; `answers` waits for the (index, drawn) of every item it took. Payloads
+    are written by a thread too, so that handing one out never waits on its imports."""
 
     def __init__(self):
         import queue
         import subprocess
-        import threading
 
         import greybox
 
@@ -171,33 +204,67 @@ class _DrawingProcess:
             stderr=subprocess.DEVNULL,  # a failure shows as a missing answer: drawn here
         )
         self._outbox = queue.SimpleQueue()
-        self._writer = threading.Thread(target=self._write_all, daemon=True)
-        self._writer.start()
+        self._lock, self._finished = threading.Lock(), threading.Event()
+        self._hand_out, self._held, self._answers = None, collections.deque(), []
+        self._gone = False
+        self._threads = [
+            threading.Thread(target=self._write_all, daemon=True),
+            threading.Thread(target=self._read_all, daemon=True),
+        ]
+        for thread in self._threads:
+            thread.start()
 
-    def send(self, payload: bytes) -> None:
-        self._outbox.put(payload)
+    def start(self, hand_out) -> None:
+        with self._lock:
+            self._hand_out, self._answers = hand_out, []
+            self._finished.clear()
+            for _ in range(0 if self._gone else IN_HAND):
+                self._take()
+            if not self._held:
+                self._finished.set()
 
-    def drawn(self) -> bool:
-        """Whether the next payload sent was drawn (False: it failed, or the process died).
-        Interrupted while waiting, the process is stopped first: it never writes on into a
-        folder its caller is about to clean up."""
+    def answers(self) -> list:
+        """(index, drawn) of every item it took. Interrupted while waiting, the process is
+        stopped first: it never writes on into a folder its caller is about to clean up."""
         try:
-            return _read(self._proc.stdout) == b""
+            self._finished.wait()
         except BaseException:
             self.stop()
             raise
+        return self._answers
 
     def stop(self) -> None:
         """End the process: idle, drawing, or still importing when the block ended early."""
         self._outbox.put(None)
         self._proc.kill()
         self._proc.wait()
-        self._writer.join()
+        for thread in self._threads:
+            thread.join()
         self._proc.stdout.close()
+
+    def _take(self) -> None:  # with self._lock held
+        item = self._hand_out()
+        if item is not None:
+            self._held.append(item[0])
+            self._outbox.put(item[1])
+
+    def _read_all(self) -> None:
+        with contextlib.suppress(OSError, ValueError):  # its end, or this side closed
+            while (answer := _read(self._proc.stdout)) is not None:
+                with self._lock:
+                    self._answers.append((self._held.popleft(), answer == b""))
+                    self._take()
+                    if not self._held:
+                        self._finished.set()
+        with self._lock:  # its end: the items it held are not drawn
+            self._gone = True
+            self._answers.extend((k, False) for k in self._held)
+            self._held.clear()
+            self._finished.set()
 
     def _write_all(self) -> None:
         pipe = self._proc.stdin
-        with contextlib.suppress(OSError):  # the process is gone: `drawn` reads its end
+        with contextlib.suppress(OSError):  # the process is gone: its reader says so
             while (payload := self._outbox.get()) is not None:
                 _write(pipe, payload)
         with contextlib.suppress(OSError):
@@ -221,18 +288,17 @@ def _read(pipe) -> bytes | None:
 
 def _serve() -> None:
     """The drawing process: ignores Ctrl-C (the command that started it stops it), imports
-    what drawing needs, then draws each payload read from stdin and answers on stdout (an
-    empty message, or the error it met) until stdin ends. What drawing prints goes to
-    stderr."""
+    what drawing needs and draws a first figure (its fonts), then draws each payload read
+    from stdin and answers on stdout (an empty message, or the error it met) until stdin
+    ends. What drawing prints goes to stderr."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     answers = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
-    from matplotlib.backends import backend_agg  # noqa: F401
+    from greybox.report import _plots
 
-    from greybox.report import _plots  # noqa: F401
-
+    _plots.warm_up()
     while (payload := _read(sys.stdin.buffer)) is not None:
         try:
             _draw_payload(payload)

@@ -64,6 +64,18 @@ def _render(fig) -> np.ndarray:
         fig.set_dpi(dpi)
 
 
+def warm_up() -> None:
+    """Draw a small figure and discard it: what the first figure of a process costs beyond
+    the others (Agg, the fonts and their glyphs), paid in advance."""
+    fig = _figure(2.0, 1.5)
+    ax = fig.subplots()
+    ax.plot([0.0, 1.0], [0.0, 1.0], ".-", label="measured")
+    ax.legend(loc="best", fontsize=7)
+    ax.set_xlabel("time [s]")
+    ax.set_title("warm-up", fontsize=10)
+    _render(fig)
+
+
 def _write_png(path: Path, rgba: np.ndarray) -> None:
     from matplotlib.image import imsave
 

@@ -31,7 +31,10 @@ figures while this process draws the other half (`greybox.io._drawing.drawing_pr
 same bytes): writing 1.53-1.57 -> 0.92-1.00 s, total 9.75-10.30 -> 9.09-9.26 s, fit unchanged
 (7.34-7.84 and 7.35-7.41 s), write_share 0.150-0.158 -> 0.102-0.108. On a busy machine (the
 1-minute load leaving under half a core idle) no process is started and the share is as before
-(`drawing_process` in the JSON line says which).
+(`drawing_process` in the JSON line says which). With the figures shared as they go and a
+drawing process that imports no JAX (d98fa04 against 2c36d26, two alternating runs, the
+machine slower that hour: totals 11.3-11.6 and 11.9-12.2 s): writing 1.86-1.92 -> 1.11-1.14
+s, write_share 0.156-0.157 -> 0.099.
 
 Run: .venv/bin/python benchmarks/write_share.py [--smoke] [--folder DIR]
 

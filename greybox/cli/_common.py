@@ -108,7 +108,7 @@ def fit_experiment_dir(
     index = None if candidate is None else candidate_index(experiment_dir, candidate)
     fs = load_experiment_set(experiment_dir, candidate=index)
     check_problem_size(fs)
-    with drawing_process():  # its start overlaps the fit; it draws half the figures
+    with drawing_process():  # its start overlaps the fit; it shares the drawing
         return _fit_and_write(fs, out, say, force, candidate, figure_format)
 
 

@@ -34,7 +34,8 @@ import sys
 import threading
 from pathlib import Path
 
-FIGURE_PROCESSES_MAX = 8  # processes drawing result folders' figures (~130 MB each)
+FIGURE_PROCESSES_MAX = 8  # processes drawing result folders' figures, this one included
+# (each other one ~130 MB)
 FIGURE_PROCESSES_FROM = 2  # folders below which `draw_many` draws here (a process starts in
 # ~0.35 s, a folder's figures take ~1 s or more)
 IDLE_CORE = 0.5  # the idle share of a core (by the 1-minute load) that a drawing process needs
@@ -75,13 +76,15 @@ def draw_many(deferred) -> None:
     if workers >= 2 and len(deferred) >= FIGURE_PROCESSES_FROM:
         payloads = [_payload(Path(folder), jobs) for folder, jobs in deferred]
     helpers = _start(workers - 1) if payloads and None not in payloads else []
+    token = _DRAWING.set(None)  # a folder drawn here is drawn here whole
     try:
         failed = _share(helpers, payloads, lambda k: draw_figures(*deferred[k]))
+        for k in failed if helpers else range(len(deferred)):
+            draw_figures(*deferred[k])
     finally:
+        _DRAWING.reset(token)
         for helper in helpers:
             helper.stop()
-    for k in failed if helpers else range(len(deferred)):
-        draw_figures(*deferred[k])
 
 
 def _share(helpers, payloads, draw_here) -> list:

@@ -35,9 +35,8 @@ import threading
 from pathlib import Path
 
 FIGURE_PROCESSES_MAX = 8  # processes drawing result folders' figures, this one included
-# (each other one ~130 MB)
-FIGURE_PROCESSES_FROM = 2  # folders below which `draw_many` draws here (a process starts in
-# ~0.35 s, a folder's figures take ~1 s or more)
+# (each other one ~130 MB); from two folders on, as a process starts in ~0.35 s and a
+# folder's figures take ~1 s or more
 IDLE_CORE = 0.5  # the idle share of a core (by the 1-minute load) that a drawing process needs
 IN_HAND = 2  # items a drawing process holds: it never waits on this process between two
 
@@ -51,8 +50,9 @@ def draw_figures(folder, jobs) -> None:
     folder = Path(folder)
     (folder / "figures").mkdir(exist_ok=True)
     helper = _DRAWING.get()
-    payloads = [_payload(folder, [job]) for job in jobs] if helper is not None else []
-    if len(jobs) < 2 or not payloads or None in payloads:
+    shared = helper is not None and len(jobs) >= 2
+    payloads = [_payload(folder, [job]) for job in jobs] if shared else []
+    if not payloads or None in payloads:
         _draw_here(folder, jobs)
         return
     from greybox.report import _plots as plots
@@ -73,7 +73,7 @@ def draw_many(deferred) -> None:
 
     workers = min(_platform.usable_cores(), FIGURE_PROCESSES_MAX, len(deferred))
     payloads = []
-    if workers >= 2 and len(deferred) >= FIGURE_PROCESSES_FROM:
+    if workers >= 2:
         payloads = [_payload(Path(folder), jobs) for folder, jobs in deferred]
     helpers = _start(workers - 1) if payloads and None not in payloads else []
     token = _DRAWING.set(None)  # a folder drawn here is drawn here whole
@@ -145,11 +145,11 @@ def spare_core() -> bool:
 
 
 @contextlib.contextmanager
-def drawing_process(start: bool = True):
+def drawing_process():
     """Within this block, `draw_figures` shares its jobs with one process started here
-    (when `start` and `spare_core()`), which imports what drawing needs at once, while the
-    block's fit runs. The process ends with the block, also on an error or an interrupt."""
-    helpers = _start(1) if start and spare_core() else []
+    (where `spare_core()`), which imports what drawing needs at once, while the block's fit
+    runs. The process ends with the block, also on an error or an interrupt."""
+    helpers = _start(1) if spare_core() else []
     token = _DRAWING.set(helpers[0] if helpers else None)
     try:
         yield
@@ -312,6 +312,4 @@ def _serve() -> None:
 
 
 def _draw_payload(payload: bytes) -> None:
-    folder, jobs = pickle.loads(payload)
-    (folder / "figures").mkdir(exist_ok=True)
-    _draw_here(folder, jobs)
+    draw_figures(*pickle.loads(payload))  # no drawing process of its own: drawn here

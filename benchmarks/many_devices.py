@@ -17,7 +17,8 @@ constant are drawn from a known log-normal population. It measures
     models (`_batch._fitted_models`, `models_s`), both run back to back by the calling
     thread; beside it the host phases (`prepare_s`: `_batch._prepare`, before any solve;
     `residual_tests_s`: the residual tests of each wave of devices in one vectorised pass;
-    `assemble_s`: the per-device `_fit._assemble`). The last two run in `fit_batch`'s host
+    `sandwich_s`: the model-error regressions and HAC meats of each wave, stacked;
+    `assemble_s`: the per-device `_fit._assemble`). The last three run in `fit_batch`'s host
     thread while the next wave solves, so the phases add up to more than the wall time;
     `host_overlap_s` is by how much;
 (c') `compiled_alone_s`: the same compiled calls run alone (`compiled_alone`: every wave's
@@ -169,8 +170,9 @@ def synthetic_devices(n, seed=0, population=POPULATION, runs=RUNS, outlier=None)
 class PhaseTimer:
     """Wall time spent in `_batch._solve_many` (waited for), `_batch._prepare`, the
     vectorised residual tests of every device (`_batch.analyse_residuals`), the fitted
-    models (`_batch._fitted_models`, waited for) and the per-device `_fit._assemble` while
-    active: the module attributes are wrapped, then restored."""
+    models (`_batch._fitted_models`, waited for), the sandwich meats of each wave of devices
+    (`_fit._sandwich_meats`) and the per-device `_fit._assemble` while active: the module
+    attributes are wrapped, then restored."""
 
     NAMES = {
         "solve": ("_solve_many", True),
@@ -180,7 +182,7 @@ class PhaseTimer:
     }
 
     def __init__(self):
-        self.t = dict.fromkeys([*self.NAMES, "assemble"], 0.0)
+        self.t = dict.fromkeys([*self.NAMES, "sandwich", "assemble"], 0.0)
 
     def _wrap(self, key, fn, block=False):
         def timed(*a, **k):
@@ -195,16 +197,18 @@ class PhaseTimer:
 
     def __enter__(self):
         self.saved = {name: getattr(_batch, name) for name, _ in self.NAMES.values()}
-        self.saved_assemble = _fit._assemble
+        self.saved_fit = {"assemble": _fit._assemble, "sandwich": _fit._sandwich_meats}
         for key, (name, block) in self.NAMES.items():
             setattr(_batch, name, self._wrap(key, self.saved[name], block=block))
         _fit._assemble = self._wrap("assemble", _fit._assemble)
+        _fit._sandwich_meats = self._wrap("sandwich", _fit._sandwich_meats)
         return self
 
     def __exit__(self, *exc):
         for name, fn in self.saved.items():
             setattr(_batch, name, fn)
-        _fit._assemble = self.saved_assemble
+        _fit._assemble = self.saved_fit["assemble"]
+        _fit._sandwich_meats = self.saved_fit["sandwich"]
 
 
 def compiled_alone(devices, free, chunk) -> float:
@@ -317,6 +321,7 @@ def main(argv=None):
         "prepare_s": round(phases.t["prepare"], 3),
         "residual_tests_s": round(phases.t["residual_tests"], 3),
         "models_s": round(phases.t["models"], 3),
+        "sandwich_s": round(phases.t["sandwich"], 3),
         "assemble_s": round(phases.t["assemble"], 3),
         "host_overlap_s": round(sum(phases.t.values()) - batch_s, 3),
         "compiled_alone_s": round(alone_s, 3),

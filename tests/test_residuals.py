@@ -25,11 +25,10 @@ from greybox._estimate.residuals import (
     LjungBox,
     analyse,
     analyse_run,
-    hac_meat,
     ljung_box,
-    model_error_residuals,
     portmanteau,
 )
+from greybox._estimate.sandwich import hac_meat, model_error_residuals
 from greybox._model.waveforms import PiecewiseConstant
 from tests.helpers import chevron_runs
 

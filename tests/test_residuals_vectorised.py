@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from greybox._estimate import residuals as _residuals
+from greybox._estimate import sandwich as _sandwich
 from greybox._estimate.residuals import analyse, analyse_run, lag_products, lagged_sums
 
 
@@ -180,7 +181,7 @@ def test_input_levels_hold_the_last_known_level_across_gaps():
     u[rng.random((n, 2)) < 0.15] = np.nan  # and unknown levels at some frames
     grid = _residuals.FrameGrid.build(t)
     lags = 4
-    got = _residuals._input_lags(t, grid, u, n, lags)
+    got = _sandwich._input_lags(t, grid, u, n, lags)
     # the definition, slot by slot: an empty slot or unknown level holds the one before it
     slot_u = np.zeros((grid.n_slots, 2))
     held = np.zeros(2)

@@ -631,7 +631,8 @@ def _solve_wave(prepared, wave, chunk, opts, say, label, counter) -> tuple:
 
 def _assemble_wave(prepared, wave, runs_of, best_of, models) -> dict:
     """{device name: FitResult} of one solved wave: the residual tests of all its devices in
-    one vectorised pass (their shuffles shared), then `_fit._assemble` per device."""
+    one vectorised pass (their shuffles shared), the meats of their sandwich covariances in
+    another (`_fit._sandwich_meats`), then `_fit._assemble` per device."""
     tests = analyse_residuals(
         [
             _fit._residual_runs(
@@ -641,6 +642,12 @@ def _assemble_wave(prepared, wave, runs_of, best_of, models) -> dict:
             for i in wave
         ]
     )
+    finite = [
+        (i, (prepared[i].problem, best_of[i][1], prepared[i].device.experiments, r.max_lag))
+        for i, r in zip(wave, tests)
+        if _fit._finite(best_of[i][1])
+    ]
+    hac = dict(zip([i for i, _ in finite], _fit._sandwich_meats([f for _, f in finite])))
     out = {}
     for i, residuals in zip(wave, tests):
         p = prepared[i]
@@ -659,5 +666,6 @@ def _assemble_wave(prepared, wave, runs_of, best_of, models) -> dict:
             lambda _msg: None,
             models=models[i],
             residuals=residuals,
+            hac=hac.get(i),
         )
     return out

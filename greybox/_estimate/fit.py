@@ -60,10 +60,9 @@ from greybox._estimate.residuals import (
     GoodnessOfFit,
     ResidualAnalysis,
     goodness_of_fit,
-    hac_meat,
-    model_error_residuals,
     padded_stack,
 )
+from greybox._estimate.sandwich import HACMeat, hac_meats, model_error_residuals_many
 from greybox._estimate.residuals import analyse as analyse_residuals
 from greybox._simulate.simulate import (
     as_arrays,
@@ -1058,25 +1057,50 @@ def _residual_runs(experiments, predictions) -> list:
     ]
 
 
-def _scores(
-    problem: _Problem, jac_data: np.ndarray, resid: np.ndarray, experiments, lags: int
-) -> tuple[list, int]:
-    """((t_s, per-frame score contributions (N, P)) per run, model-error coefficients fitted):
-    g_t = sum_outputs J_t^T r~_t, r~ the residuals less their FIR model-error model on the
-    run's input levels at frame lags 0..`lags`-1 on the frame grid (as the residual analysis
-    counts lags; `_residuals.model_error_residuals`)."""
-    e_n, n_f, n_y = problem.y.shape
-    j4 = jac_data.reshape(e_n, n_f, n_y, -1)
-    r3 = resid.reshape(e_n, n_f, n_y)
-    w3 = np.asarray(problem.w).reshape(e_n, n_f, n_y) > 0
-    left, fitted = np.zeros_like(r3), 0  # what the model-error model leaves, per run
-    for i, e in enumerate(experiments):
-        n = e.n_frames
-        u = e.frame_inputs()
-        left[i, :n], k = model_error_residuals(e.t_s, r3[i, :n], w3[i, :n], u, lags)
-        fitted += k
-    g = np.einsum("efyp,efy->efp", j4, left)  # every run's scores in one product
-    return [(e.t_s, g[i, : e.n_frames]) for i, e in enumerate(experiments)], fitted
+def _finite(best) -> bool:
+    """Whether the solve `best` ended at finite parameters and cost."""
+    return bool(np.all(np.isfinite(np.asarray(best["raw"])))) and bool(
+        np.isfinite(float(best["cost"]))
+    )
+
+
+def _sandwich_meats(fits) -> list[HACMeat]:
+    """The HAC meat (`sandwich.hac_meats`) of each fit of `fits`, (problem, best solve,
+    experiments, lags) each: the score contributions g_t = sum_outputs J_t^T r~_t, r~ the
+    residuals less their FIR model-error model on the run's input levels at frame lags
+    0..`lags`-1 on the frame grid (as the residual analysis counts lags), every regression of
+    every run of every fit in one stacked pass and every meat in another (`fit_batch` passes
+    the devices of a wave, `fit` its own fit), the model-error coefficients counted in the
+    degrees of freedom."""
+    regressions, stacked = [], []
+    for problem, best, experiments, lags in fits:
+        e_n, n_f, n_y = problem.y.shape
+        n_rows = _data_rows(problem, best)
+        r3 = np.asarray(best["residuals"])[:n_rows].reshape(e_n, n_f, n_y)
+        w3 = np.asarray(problem.w).reshape(e_n, n_f, n_y) > 0
+        stacked.append(r3)
+        for i, e in enumerate(experiments):
+            n = e.n_frames
+            regressions.append((e.t_s, r3[i, :n], w3[i, :n], e.frame_inputs(), lags))
+    cleaned = iter(model_error_residuals_many(regressions))
+    runs_of, n_readings, n_fitted = [], [], []
+    for (problem, best, experiments, _), r3 in zip(fits, stacked):
+        left, fitted = np.zeros_like(r3), 0  # what the model-error model leaves, per run
+        for i, e in enumerate(experiments):
+            left[i, : e.n_frames], k = next(cleaned)
+            fitted += k
+        j4 = np.asarray(best["jacobian"])[: _data_rows(problem, best)]
+        j4 = j4.reshape(*r3.shape, -1)
+        g = np.sum(j4 * left[..., None], axis=2)  # every run's scores in one product
+        runs_of.append([(e.t_s, g[i, : e.n_frames]) for i, e in enumerate(experiments)])
+        n_readings.append(problem.n_data)
+        n_fitted.append(problem.n_raw + fitted)
+    return hac_meats(runs_of, n_readings=n_readings, n_fitted=n_fitted)
+
+
+def _data_rows(problem, best) -> int:
+    """Rows of the solve's Jacobian and residual vector that are data (the rest: priors)."""
+    return int(np.shape(best["jacobian"])[0]) - len(problem.priors)
 
 
 def _assemble(
@@ -1094,16 +1118,18 @@ def _assemble(
     max_steps: int | None = None,
     models=None,
     residuals: ResidualAnalysis | None = None,
+    hac: HACMeat | None = None,
 ) -> FitResult:
     """The `FitResult` of the best solve `best` (covariance, identifiability, residual tests,
-    scores). `models`: (shared model, per-run models) at its raw vector, and `residuals`: the
-    residual analysis of its predictions (`_residual_runs`), when already computed
-    (`fit_batch` computes both for many devices in one call)."""
+    scores). `models`: (shared model, per-run models) at its raw vector, `residuals`: the
+    residual analysis of its predictions (`_residual_runs`), and `hac`: the meat of its
+    sandwich (`_sandwich_meats`), when already computed (`fit_batch` computes them for many
+    devices at once)."""
     raw, cost, ok = np.asarray(best["raw"]), float(best["cost"]), bool(best["ok"])
-    finite = bool(np.all(np.isfinite(raw))) and np.isfinite(cost)
+    finite = _finite(best)
     say("computing covariance, identifiability and residual tests")
     jac = np.asarray(best["jacobian"]) if finite else np.full_like(best["jacobian"], np.nan)
-    n_rows_data = jac.shape[0] - len(problem.priors)
+    n_rows_data = _data_rows(problem, best)
     labels, owners = _labels(problem, experiments)
     flat_free = problem.flat_free
     bounds = [p.bound_hit(raw[k], raw0[k]) if finite else None for k, p in enumerate(flat_free)]
@@ -1116,13 +1142,13 @@ def _assemble(
         residuals = analyse_residuals(_residual_runs(experiments, preds))
 
     # Gauss-Newton and HAC sandwich covariance (same determined subspace); the meat leaves
-    # out what the inputs explain of the residuals (misfit, not noise: `_residuals`)
+    # out what the inputs explain of the residuals (misfit, not noise: `sandwich`)
     cov_gn = report.covariance_raw
-    hac = None
-    if finite:
-        resid = np.asarray(best["residuals"])[:n_rows_data]
-        scores, n_error = _scores(problem, jac[:n_rows_data], resid, experiments, residuals.max_lag)
-        hac = hac_meat(scores, n_readings=problem.n_data, n_fitted=problem.n_raw + n_error)
+    if not finite:
+        hac = None
+    elif hac is None:
+        (hac,) = _sandwich_meats([(problem, best, experiments, residuals.max_lag)])
+    if hac is not None:
         jp = jac[n_rows_data:]
         cov_hac = cov_gn @ (hac.meat + jp.T @ jp) @ cov_gn
     else:

@@ -152,5 +152,11 @@ class Experiment:
         return np.isfinite(self.y)
 
     def frame_inputs(self) -> np.ndarray:
-        """The input levels at the frames, (N, n_u) in the inputs' SI units."""
-        return np.asarray(self.inputs(self.t_s), dtype=float).reshape(self.n_frames, -1)
+        """The input levels at the frames, (N, n_u) in the inputs' SI units (read-only:
+        evaluated once, as a fit's residual tests and its sandwich both ask for them)."""
+        levels = self.__dict__.get("_frame_inputs")
+        if levels is None:
+            levels = np.array(self.inputs(self.t_s), dtype=float).reshape(self.n_frames, -1)
+            levels.setflags(write=False)
+            object.__setattr__(self, "_frame_inputs", levels)
+        return levels

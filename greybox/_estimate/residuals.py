@@ -462,8 +462,6 @@ def shuffle_threads() -> int:
 def _block_autocorrelation(block, size, width, h, scratch) -> None:
     """One block of `_permuted_autocorrelation`: its rows placed, lag-multiplied, written."""
     grid = scratch.grid(size, width)
-    npairs = np.ones((size, h))
-    bias = np.empty((size, 1))
     r = 0
     for job, _, order in block:
         slots, first = job.runs_of_slots()
@@ -474,8 +472,6 @@ def _block_autocorrelation(block, size, width, h, scratch) -> None:
         else:
             for a, b in zip(first[:-1], first[1:]):
                 grid[r : r + k, slots[a] : slots[a] + b - a] = shuffled[:, a:b]
-        npairs[r : r + k, : job.npairs.size] = np.maximum(job.npairs, 1)
-        bias[r : r + k] = 1.0 / (job.n - 1)
         r += k
     sums = np.empty((size, h), dtype=SHUFFLE_DTYPE)
     for k in range(1, h + 1):  # row by row dot products: einsum is 2x a stacked matmul
@@ -483,12 +479,12 @@ def _block_autocorrelation(block, size, width, h, scratch) -> None:
             np.einsum("ij,ij->i", grid[:, k:], grid[:, : width - k], out=sums[:, k - 1])
         else:
             sums[:, k - 1] = 0.0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rk = sums / npairs + bias  # the values have unit variance: c0 = 1
     r = 0
-    for job, first, order in block:
-        k = order.shape[0]
-        job.out[first : first + k] = rk[r : r + k, : job.npairs.size]
+    for job, first, order in block:  # r(k) = sums / pairs + 1 / (n - 1): unit variance, c0 = 1
+        k, hj = order.shape[0], job.npairs.size
+        out = job.out[first : first + k]
+        np.divide(sums[r : r + k, :hj], np.maximum(job.npairs, 1), out=out)
+        out += 1.0 / (job.n - 1)
         r += k
 
 

@@ -98,6 +98,17 @@ Then (2026-11-27, quiet, load 1.1-1.2): `--loop-sample` 3 -> 12 by default. Thre
 device (chevron0006) ends its single fit and its batch solve a rounding step apart, 1.2e-10
 relative on its absorptance, 2e-8 of that estimate's standard error. Batch of 512: 9,373 and
 8,509 fits/min, solve_share 0.48 and 0.44.
+Then (2026-11-27, alternating runs of 279a271 and e85f4ca/2c50f28, loads 0.8-1.5): the
+model-error regressions and HAC meats of a wave as stacked passes (`sandwich_s`, beside
+`assemble_s` now) and the shuffle pass without its block-wide temporaries: warm batch 4.47,
+4.29, 5.75, 4.89 s -> 4.21, 3.98, 4.71, 4.08 s (6,867-7,160 -> 7,292-7,712 fits/min in the
+quieter pair), solve_share 0.43-0.47 -> 0.47-0.50; the sandwich and assembly of 512 devices
+1.36-1.78 s -> 1.19-1.16 s of host-thread wall. Same estimates (batch_vs_fit_max_rel 1.9e-9
+either way), the same population z-scores, 512/512 valid. A warm batch now uses 4.96 s of
+CPU in 3.66-3.73 s of wall: 1.34 of the 2 cores. The rest is the interpreter lock: the
+host work (its numpy calls included, which hold the lock between their short C loops) is
+one chain, and the compiled solves are the only work that runs beside it. 0.8 needs that
+chain under ~2.4 s (compiled residual tests and assembly, or the host work in a process).
 """
 
 from __future__ import annotations

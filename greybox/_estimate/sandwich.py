@@ -36,7 +36,7 @@ import dataclasses
 
 import numpy as np
 
-from greybox._estimate.residuals import FrameGrid
+from greybox._estimate.residuals import FrameGrid, _bucket_rows
 
 AM_CAP = 0.97  # Andrews-Monahan: singular values of the VAR(1) matrix capped here
 
@@ -92,13 +92,21 @@ def model_error_residuals(t_s, residuals, valid, inputs, lags: int) -> tuple[np.
 
 def model_error_residuals_many(runs) -> list[tuple[np.ndarray, int]]:
     """`model_error_residuals` of each (t_s, residuals, valid, inputs, lags) of `runs`: every
-    output of every run one regression, all of them in stacked passes (runs padded to the
-    longest, zero rows standing for unused readings; those with the same number of
-    coefficients solved as one stack: the minimum-norm least-squares solution of each from
-    its SVD, singular values at or below eps max(rows, columns) of the largest left out, as
-    `np.linalg.lstsq` does; the rank is the number kept)."""
-    if not runs:
-        return []
+    output of every run one regression, in stacked passes over runs of similar length (a
+    power-of-two bucket each, so padding at most doubles the memory one run alone takes)."""
+    out: list = [None] * len(runs)
+    for members in _bucket_rows([np.shape(run[1])[0] for run in runs]):
+        for i, done in zip(members, _regressions([runs[i] for i in members])):
+            out[i] = done
+    return out
+
+
+def _regressions(runs) -> list[tuple[np.ndarray, int]]:
+    """`model_error_residuals_many` of runs padded to the longest (zero rows stand for unused
+    readings); the regressions with the same number of coefficients solved as one stack: the
+    minimum-norm least-squares solution of each from its SVD, singular values at or below
+    eps max(rows, columns) of the largest left out, as `np.linalg.lstsq` does; the rank is
+    the number kept."""
     res = [np.asarray(run[1], dtype=float) for run in runs]
     res = [x.reshape(x.shape[0], -1) for x in res]
     sizes = [x.shape[0] for x in res]

@@ -43,7 +43,7 @@ def _lstsq_reference(t, e, valid, u, lags):
     return out, fitted
 
 
-def test_stacked_regressions_equal_lstsq_run_by_run():
+def test_stacked_regressions_equal_lstsq_run_by_run(monkeypatch):
     rng = np.random.default_rng(4)
     runs = []
     for n, lags, n_u in [(40, 6, 1), (73, 11, 1), (25, 25, 1), (90, 4, 2), (8, 3, 1), (55, 0, 1)]:
@@ -55,9 +55,13 @@ def test_stacked_regressions_equal_lstsq_run_by_run():
         want, want_fitted = _lstsq_reference(t, e, valid, u, lags)
         assert fitted == want_fitted
         np.testing.assert_allclose(left, want, rtol=1e-9, atol=1e-12 * np.nanmax(np.abs(e)))
-    # one run alone gives what it gives among the others
+    # one run alone gives what it gives among the others, and so does one pass a run
     alone = sandwich.model_error_residuals(*runs[1])
     np.testing.assert_array_equal(alone[0], got[1][0])
+    monkeypatch.setattr(sandwich, "REGRESSION_BLOCK", 1)
+    for (left, fitted), (left_1, fitted_1) in zip(got, sandwich.model_error_residuals_many(runs)):
+        assert fitted_1 == fitted
+        np.testing.assert_array_equal(left_1, left)
 
 
 def test_regressions_on_an_input_function_use_its_values_at_lagged_times():

@@ -39,6 +39,8 @@ import numpy as np
 from greybox._estimate.residuals import FrameGrid, _bucket_rows
 
 AM_CAP = 0.97  # Andrews-Monahan: singular values of the VAR(1) matrix capped here
+REGRESSION_BLOCK = 1 << 20  # design elements (8 MB) of one stacked pass of regressions: a
+# wave of 64 chevrons is ~0.25 M; a 100,000-frame run alone is more, and then goes alone
 
 
 def _input_lags(t_s, grid: FrameGrid, inputs, n_frames: int, lags: int) -> np.ndarray:
@@ -93,11 +95,20 @@ def model_error_residuals(t_s, residuals, valid, inputs, lags: int) -> tuple[np.
 def model_error_residuals_many(runs) -> list[tuple[np.ndarray, int]]:
     """`model_error_residuals` of each (t_s, residuals, valid, inputs, lags) of `runs`: every
     output of every run one regression, in stacked passes over runs of similar length (a
-    power-of-two bucket each, so padding at most doubles the memory one run alone takes)."""
+    power-of-two bucket each, so padding at most doubles the memory one run alone takes),
+    at most REGRESSION_BLOCK design elements a pass (a long record: one run at a time)."""
     out: list = [None] * len(runs)
     for members in _bucket_rows([np.shape(run[1])[0] for run in runs]):
-        for i, done in zip(members, _regressions([runs[i] for i in members])):
-            out[i] = done
+        sizes = [np.shape(runs[i][1])[0] for i in members]
+        width = max(
+            1 + _n_inputs(runs[i][0], runs[i][3], n) * int(runs[i][4])
+            for i, n in zip(members, sizes)
+        )
+        step = max(1, REGRESSION_BLOCK // max(max(sizes) * width, 1))
+        for c in range(0, len(members), step):
+            part = members[c : c + step]
+            for i, done in zip(part, _regressions([runs[i] for i in part])):
+                out[i] = done
     return out
 
 
@@ -132,10 +143,11 @@ def _regressions(runs) -> list[tuple[np.ndarray, int]]:
     for c in np.unique(cols[todo]):
         si, yj = np.nonzero(todo & (cols == c))
         m = ok[si, :, yj]  # (Q, N)
-        x = np.where(m[..., None], design[si, :, :c], 0.0)
+        x = design[si, :, :c]  # a copy (fancy index), zeroed at unused rows and scaled in place
+        np.copyto(x, 0.0, where=~m[..., None])
         y = np.where(m, r[si, :, yj], 0.0)
         scale = np.max(np.abs(x), axis=1, keepdims=True)
-        x = x / np.where(scale > 0, scale, 1.0)
+        x /= np.where(scale > 0, scale, 1.0)
         u, sv, vt = np.linalg.svd(x, full_matrices=False)
         cutoff = np.finfo(float).eps * np.maximum(counts[si, yj], c)[:, None] * sv[:, :1]
         keep = sv > cutoff

@@ -1074,23 +1074,21 @@ def _sandwich_meats(fits) -> list[HACMeat]:
     degrees of freedom."""
     regressions, stacked = [], []
     for problem, best, experiments, lags in fits:
-        e_n, n_f, n_y = problem.y.shape
         n_rows = _data_rows(problem, best)
-        r3 = np.asarray(best["residuals"])[:n_rows].reshape(e_n, n_f, n_y)
-        w3 = np.asarray(problem.w).reshape(e_n, n_f, n_y) > 0
-        stacked.append(r3)
+        r3 = np.asarray(best["residuals"])[:n_rows].reshape(problem.y.shape)
+        w3 = np.asarray(problem.w).reshape(problem.y.shape) > 0
+        j4 = np.asarray(best["jacobian"])[:n_rows].reshape(*r3.shape, -1)
+        stacked.append((r3, j4))
         for i, e in enumerate(experiments):
             n = e.n_frames
             regressions.append((e.t_s, r3[i, :n], w3[i, :n], e.frame_inputs(), lags))
     cleaned = iter(model_error_residuals_many(regressions))
     runs_of, n_readings, n_fitted = [], [], []
-    for (problem, best, experiments, _), r3 in zip(fits, stacked):
+    for (problem, _, experiments, _), (r3, j4) in zip(fits, stacked):
         left, fitted = np.zeros_like(r3), 0  # what the model-error model leaves, per run
         for i, e in enumerate(experiments):
             left[i, : e.n_frames], k = next(cleaned)
             fitted += k
-        j4 = np.asarray(best["jacobian"])[: _data_rows(problem, best)]
-        j4 = j4.reshape(*r3.shape, -1)
         g = np.sum(j4 * left[..., None], axis=2)  # every run's scores in one product
         runs_of.append([(e.t_s, g[i, : e.n_frames]) for i, e in enumerate(experiments)])
         n_readings.append(problem.n_data)

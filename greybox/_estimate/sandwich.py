@@ -58,15 +58,27 @@ def _input_lags(t_s, grid: FrameGrid, inputs, n_frames: int, lags: int) -> np.nd
         ]
         return np.concatenate(cols, axis=1)
     u = np.asarray(inputs, dtype=float).reshape(n_frames, -1)
-    back = np.maximum(grid.slots[:, None] - np.arange(lags)[None, :], 0)  # (N, lags) slots
-    slot_u = np.full((grid.n_slots, u.shape[1]), np.nan)
-    slot_u[grid.slots] = u
+    return _lagged_levels([grid], [u], n_frames, lags)[0]
+
+
+def _lagged_levels(grids, levels, n_f: int, lags: int) -> np.ndarray:
+    """(Q, n_f, lags * n_u) the `_input_lags` of Q runs given their input levels (N_q, n_u),
+    one n_u for all, placed on their frame `grids` in one stacked pass (zero-padded rows)."""
+    n_u = levels[0].shape[1]
+    w = max(g.n_slots for g in grids)
+    slots = np.zeros((len(grids), n_f), dtype=int)
+    slot_u = np.full((len(grids), w, n_u), np.nan)
+    for q, (g, u) in enumerate(zip(grids, levels)):
+        slots[q, : g.slots.size] = g.slots
+        slot_u[q, g.slots] = u
     # missing timestamps: hold the last known level (forward fill: each slot reads the latest
     # slot at or before it that holds a finite level, per input; one gather)
     known = np.isfinite(slot_u)
-    last = np.maximum.accumulate(np.where(known, np.arange(grid.n_slots)[:, None], -1), axis=0)
-    filled = np.where(last >= 0, slot_u[np.maximum(last, 0), np.arange(u.shape[1])], 0.0)
-    return filled[back].reshape(n_frames, -1)
+    last = np.maximum.accumulate(np.where(known, np.arange(w)[None, :, None], -1), axis=1)
+    rows = np.arange(len(grids))[:, None, None]
+    filled = np.where(last >= 0, slot_u[rows, np.maximum(last, 0), np.arange(n_u)], 0.0)
+    back = np.maximum(slots[:, :, None] - np.arange(lags), 0)  # (Q, n_f, lags) slots
+    return filled[rows, back].reshape(len(grids), n_f, lags * n_u)  # (Q, n_f, lags, n_u)
 
 
 def _n_inputs(t_s, inputs, n_frames: int) -> int:
@@ -97,27 +109,25 @@ def model_error_residuals_many(runs) -> list[tuple[np.ndarray, int]]:
     output of every run one regression, in stacked passes over runs of similar length (a
     power-of-two bucket each, so padding at most doubles the memory one run alone takes),
     at most REGRESSION_BLOCK design elements a pass (a long record: one run at a time)."""
+    sizes = [np.shape(run[1])[0] for run in runs]
+    n_u = np.array([_n_inputs(run[0], run[3], n) for run, n in zip(runs, sizes)], dtype=int)
     out: list = [None] * len(runs)
-    for members in _bucket_rows([np.shape(run[1])[0] for run in runs]):
-        sizes = [np.shape(runs[i][1])[0] for i in members]
-        width = max(
-            1 + _n_inputs(runs[i][0], runs[i][3], n) * int(runs[i][4])
-            for i, n in zip(members, sizes)
-        )
-        step = max(1, REGRESSION_BLOCK // max(max(sizes) * width, 1))
+    for members in _bucket_rows(sizes):
+        width = max(1 + n_u[i] * int(runs[i][4]) for i in members)
+        step = max(1, REGRESSION_BLOCK // max(max(sizes[i] for i in members) * width, 1))
         for c in range(0, len(members), step):
             part = members[c : c + step]
-            for i, done in zip(part, _regressions([runs[i] for i in part])):
+            for i, done in zip(part, _regressions([runs[i] for i in part], n_u[part])):
                 out[i] = done
     return out
 
 
-def _regressions(runs) -> list[tuple[np.ndarray, int]]:
-    """`model_error_residuals_many` of runs padded to the longest (zero rows stand for unused
-    readings); the regressions with the same number of coefficients solved as one stack: the
-    minimum-norm least-squares solution of each from its SVD, singular values at or below
-    eps max(rows, columns) of the largest left out, as `np.linalg.lstsq` does; the rank is
-    the number kept."""
+def _regressions(runs, n_u) -> list[tuple[np.ndarray, int]]:
+    """`model_error_residuals_many` of runs (`n_u` inputs each) padded to the longest (zero
+    rows stand for unused readings); the regressions with the same number of coefficients
+    solved as one stack: the minimum-norm least-squares solution of each from its SVD,
+    singular values at or below eps max(rows, columns) of the largest left out, as
+    `np.linalg.lstsq` does; the rank is the number kept."""
     res = [np.asarray(run[1], dtype=float) for run in runs]
     res = [x.reshape(x.shape[0], -1) for x in res]
     sizes = [x.shape[0] for x in res]
@@ -128,7 +138,6 @@ def _regressions(runs) -> list[tuple[np.ndarray, int]]:
         n, n_y = x.shape
         valid = np.asarray(run[2], dtype=bool).reshape(x.shape) & np.isfinite(x)
         r[i, :n, :n_y], ok[i, :n, :n_y] = np.where(valid, x, 0.0), valid
-    n_u = np.array([_n_inputs(run[0], run[3], n) for run, n in zip(runs, sizes)])
     counts = ok.sum(axis=1)  # (S, n_y)
     lags = np.array([int(run[4]) for run in runs])[:, None]
     k = np.where(
@@ -175,23 +184,12 @@ def _designs(runs, sizes, n_f: int, n_u, lags: int) -> np.ndarray:
     if not levels or not lags:
         return out
     for nu in np.unique(n_u[levels]):
+        if nu == 0:  # no input: a constant only
+            continue
         idx = [i for i in levels if n_u[i] == nu]
         grids = [FrameGrid.build(runs[i][0]) for i in idx]
-        w = max(g.n_slots for g in grids)
-        slots = np.zeros((len(idx), n_f), dtype=int)
-        slot_u = np.full((len(idx), w, int(nu)), np.nan)
-        for q, (i, g) in enumerate(zip(idx, grids)):
-            n = sizes[i]
-            slots[q, :n] = g.slots
-            slot_u[q, g.slots] = np.asarray(runs[i][3], dtype=float).reshape(n, -1)
-        # missing timestamps: hold the last known level (forward fill, per input)
-        known = np.isfinite(slot_u)
-        last = np.maximum.accumulate(np.where(known, np.arange(w)[None, :, None], -1), axis=1)
-        rows = np.arange(len(idx))[:, None, None]
-        filled = np.where(last >= 0, slot_u[rows, np.maximum(last, 0), np.arange(int(nu))], 0.0)
-        back = np.maximum(slots[:, :, None] - np.arange(lags), 0)  # (Q, n_f, lags)
-        lagged = filled[np.arange(len(idx))[:, None, None], back]  # (Q, n_f, lags, n_u)
-        out[idx, :, 1 : 1 + lags * int(nu)] = lagged.reshape(len(idx), n_f, -1)
+        u = [np.asarray(runs[i][3], dtype=float).reshape(sizes[i], -1) for i in idx]
+        out[idx, :, 1 : 1 + lags * int(nu)] = _lagged_levels(grids, u, n_f, lags)
     return out
 
 

@@ -107,21 +107,47 @@ def test_chunk_size_respects_memory_budget(batch):
     assert chunk_size_for(b, 256 * b, 1000, 256) == 250
 
 
+def test_a_result_survives_pickling_whole(batch):
+    # results cross processes by pickle (fit_distributed), their run models as leaves only
+    import dataclasses
+    import pickle
+
+    import jax
+
+    r = batch[2].results["dev00"]
+    back = pickle.loads(pickle.dumps(r))
+    for f in dataclasses.fields(r):
+        a, b = getattr(r, f.name), getattr(back, f.name)
+        assert jax.tree_util.tree_structure(a) == jax.tree_util.tree_structure(b), f.name
+        for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+            assert type(x) is type(y), f.name
+            if isinstance(x, np.ndarray):
+                np.testing.assert_array_equal(x, y, err_msg=f.name)
+            else:
+                assert repr(x) == repr(y), f.name
+    assert len(back.experiment_models) == len(r.experiments) > 1
+    assert all(type(m) is type(r.model) for m in back.experiment_models)
+    np.testing.assert_array_equal(back.predict(1), r.predict(1))
+    assert back.summary() == r.summary()
+
+
 def test_distributed_chunks_fill_the_worker_budget_only_on_an_accelerator(batch):
     from greybox._estimate import batch as _batch
-    from greybox._estimate.distributed import plan
+    from greybox._estimate.distributed import TASKS_PER_WORKER, plan
 
-    devices = batch[0] * 200  # 2,800 devices over 4 workers, 1 GiB each
+    devices = batch[0] * 800  # 11,200 devices over 4 workers, 1 GiB each
     free = SPEC.free_parameters()
-    cpu = plan(devices, free, n_workers=4)
-    gpu = plan(devices, free, n_workers=4, accelerator=True)
+    cpu = plan(devices, free, n_workers=4, memory_budget_bytes=1024**3)
+    gpu = plan(devices, free, n_workers=4, memory_budget_bytes=1024**3, accelerator=True)
     b = gpu[2]
-    # one solve after another on a CPU: chunks of at most 64, evened out over the 350
-    # devices a task holds (two tasks per worker); a vmapped chunk on a shared accelerator:
-    # as many solves as the worker's 1 GiB holds
-    assert cpu[0] == chunk_size_for(b, 1024**3, 350, _batch.MAX_CHUNK) == 59
-    assert gpu[0] == chunk_size_for(b, 1024**3, 350, _batch.MAX_CHUNK_ACCELERATOR) == 350
-    assert gpu[0] * b <= 1024**3 and gpu[1] % gpu[0] == 0
+    # one solve after another on a CPU: chunks of at most 64, evened out over the devices a
+    # task holds (2,800 a worker, TASKS_PER_WORKER tasks each); a vmapped chunk on a shared
+    # accelerator: as many solves as a task holds and the worker's 1 GiB allows
+    per_task = 2800 // TASKS_PER_WORKER
+    assert cpu[0] == chunk_size_for(b, 1024**3, per_task, _batch.MAX_CHUNK) <= 64
+    assert gpu[0] == chunk_size_for(b, 1024**3, per_task, _batch.MAX_CHUNK_ACCELERATOR)
+    assert gpu[0] == min(per_task, 1024**3 // b)
+    assert gpu[0] * b <= 1024**3 and gpu[1] % gpu[0] == 0 and cpu[1] % cpu[0] == 0
 
 
 def test_local_workers_share_an_accelerator_without_taking_its_memory(monkeypatch):
@@ -133,6 +159,39 @@ def test_local_workers_share_an_accelerator_without_taking_its_memory(monkeypatc
     assert worker_environment("cpu")["JAX_PLATFORMS"] == "cpu"
     monkeypatch.setenv("XLA_PYTHON_CLIENT_PREALLOCATE", "true")  # the user's own setting wins
     assert worker_environment() == {}
+
+
+def test_a_cluster_returns_what_the_batch_returns(batch):
+    pytest.importorskip("distributed")
+    from greybox._estimate.distributed import fit_distributed, start_client
+
+    devices, _, out, _ = batch
+    client, cluster = start_client("local", n_workers=1, platform="cpu")
+    try:
+        dist = fit_distributed(devices[:6], SPEC.free_parameters(), client=client, n_workers=1)
+    finally:
+        client.close()
+        cluster.close()
+    assert list(dist.results) == [d.name for d in devices[:6]]
+    assert len(dist.worker_s) > 1 and all(s > 0 for s in dist.worker_s)  # several tasks
+    for name, r in dist.results.items():
+        np.testing.assert_allclose(r.raw, out.results[name].raw, rtol=1e-9)
+        assert r.status == out.results[name].status
+        np.testing.assert_allclose(r.predict(0), out.results[name].predict(0), rtol=1e-9)
+
+
+def test_a_worker_keeps_its_host_work_to_one_core(monkeypatch):
+    # 15 Dask workers on 16 cores, each spreading its residual tests' shuffles over threads,
+    # had them twice as slow as one process alone: a worker's task runs inside `one_core`
+    from greybox import _platform
+    from greybox._estimate.residuals import SHUFFLE_THREADS_MAX, shuffle_threads
+
+    sixteen = lambda _pid: set(range(16))  # noqa: E731
+    monkeypatch.setattr(_platform.os, "sched_getaffinity", sixteen, raising=False)
+    assert shuffle_threads() == min(SHUFFLE_THREADS_MAX, 15) > 1
+    with _platform.one_core():
+        assert _platform.usable_cores() == 1 and shuffle_threads() == 1
+    assert shuffle_threads() == min(SHUFFLE_THREADS_MAX, 15)
 
 
 def test_population_recovers_median_spread_and_flags_outlier(batch):

@@ -106,7 +106,8 @@ class BatchResult:
     """Per-device `FitResult`s (`results`, in the order given) and how the batch ran.
 
     - `groups`: number of compiled problem structures; `chunk_size`: items per compiled call;
-    - `n_calls`: compiled calls made; `bytes_per_item`: the memory estimate that chose it.
+    - `n_calls`: compiled calls made; `bytes_per_item`: the memory estimate that chose it;
+    - `worker_s`: on a cluster (`fit_distributed`), the seconds each task spent on its worker.
     """
 
     results: dict
@@ -114,6 +115,7 @@ class BatchResult:
     chunk_size: int
     n_calls: int
     bytes_per_item: int
+    worker_s: tuple = ()
 
     @property
     def names(self) -> list:

@@ -79,6 +79,31 @@ timed again). Fifteen independent processes running a warm `fit_batch` of 96 dev
 that CPU gave 34,755 /min together (one alone 4,456): most of the gap is likely Dask's own
 work (not measured apart).
 
+Then (2026-11-27, H200 box, jax 0.11.2, one call: `--devices 32768 --complete 256 --check 4
+--workers 15 --skip-qr`, then `--devices 8192 --complete 64 --check 2 --workers 15` with
+NVIDIA MPS started), the workers timing their own tasks (`_busy_share`,
+`_worker_ms_per_device`, the warm call's `_worker_phases_s` summed over workers): 32,768
+solves warm in 4.3 s (456,412 /min, first chunk 9.7 s, all converged; the 64 alone 8.2e-9
+of the same in the big batch, 6 step counts differ); one process's complete `fit_batch` of
+256, 6,964 /min; the CPU's estimates to 5.2e-15. Fifteen workers sharing the card: 32,768
+complete fits in 155.1 s on the first call (12,679 /min; chunks of 546; all valid; the CPU's
+estimates to 5.2e-15; over `FIRST_CALL_LIMIT_S`, so not timed warm), the workers busy 38 % of
+the time (27.3 ms of worker time a device); with MPS, 8,192 in 35.6 s warm (13,798 /min),
+busy 22 %, 14.3 ms a device, of which the residual tests 7.9 ms (3.7 in one process alone:
+each worker ran 8 shuffle threads on the 16 cores), prepare 2.1, assembly 1.3, sandwich 0.9,
+the fitted models 0.8 and the solves 0.5 ms. `nvidia-smi dmon`: the card's SMs at 0 %
+nearly throughout. So neither the card nor the workers' fitting bounded the cluster, but
+its client: Dask wrote each result's ~150 arrays as frames of their own (2.1 ms a result on
+the worker) and the client unpickled them with its garbage collector walking its growing
+heap (0.74-1.7 ms a result). Changed after that call, measured on the 2-core CPU only (no
+second device window was lent): a task's results go back as one pickle (1.15 ms a result to
+write), unpickled with the collector paused (0.43-0.50 ms), a result's run models as their
+leaves (13 % less to read), eight tasks a worker (the client's gathering overlaps the
+fitting), a worker's host work on one core (`greybox._platform.one_core`) and accelerator
+workers' chunks from the card's memory (`distributed.worker_budget`). With the workers at
+the single process's ~9 ms a device and the client at ~0.6 ms a result, 15 workers would
+be past 50,000 /min; not yet shown.
+
 Usage: .venv/bin/python benchmarks/gpu_many_devices.py [--devices 32768] [--workers 15] [--smoke]
 Last line: one JSON object.
 """
@@ -113,7 +138,7 @@ from greybox._model import householder  # noqa: E402
 SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
 NOISE_M = 0.05e-6
 DROP = 0.05
-FIRST_CALL_LIMIT_S = 150.0  # a distributed first call slower than this is not timed again
+FIRST_CALL_LIMIT_S = 180.0  # a distributed first call slower than this is not timed again
 
 
 def pool_devices(n_pool, seed=24):
@@ -323,9 +348,12 @@ def distributed_batch(devices, free, n_workers, platform, cpu, say) -> dict:
     client, cluster = dist.start_client("local", n_workers, platform=plat)
     start_s = time.perf_counter() - t0
     quiet = lambda _m: None  # noqa: E731
+    here = str(Path(__file__).resolve().parent)
     try:
         times = []
-        for _ in range(2):
+        for call in range(2):
+            if call:  # the warm call's phases, timed on every worker
+                client.run(_start_worker_phases, here)
             t0 = time.perf_counter()
             res = dist.fit_distributed(
                 devices,
@@ -339,6 +367,11 @@ def distributed_batch(devices, free, n_workers, platform, cpu, say) -> dict:
             say(f"{key}: {len(devices)} complete fits in {times[-1]:.1f} s")
             if times[0] > FIRST_CALL_LIMIT_S:  # too slow to time twice in one device window
                 break
+        phases = {}
+        if len(times) > 1:
+            for worker_phases in client.run(_worker_phases).values():
+                for k, v in worker_phases.items():
+                    phases[k] = phases.get(k, 0.0) + v
     finally:
         client.close()
         cluster.close()
@@ -353,7 +386,29 @@ def distributed_batch(devices, free, n_workers, platform, cpu, say) -> dict:
         f"{key}_chunk": res.chunk_size,
         f"{key}_valid": int(sum(r.valid for r in res.results.values())),
         f"{key}_cpu_agreement_max_rel": worst,
+        # the workers' share of the cluster's time spent on their tasks (unpickling the
+        # devices, fit_batch), and their phases summed over workers (seconds; warm call):
+        # what is not theirs is the client's and Dask's (pickling, gathering)
+        f"{key}_busy_share": round(sum(res.worker_s) / (n_workers * times[-1]), 3),
+        f"{key}_worker_ms_per_device": round(1e3 * sum(res.worker_s) / len(devices), 2),
+        f"{key}_worker_phases_s": {k: round(v, 1) for k, v in phases.items()},
     }
+
+
+def _start_worker_phases(bench_dir):
+    """On a worker: time `fit_batch`'s phases from now on (`many_devices.PhaseTimer`)."""
+    sys.path.insert(0, bench_dir)
+    import many_devices
+
+    many_devices.WORKER_PHASES = many_devices.PhaseTimer().__enter__()
+
+
+def _worker_phases():
+    """On a worker: the phases timed since `_start_worker_phases` (empty if never started)."""
+    import many_devices
+
+    timer = getattr(many_devices, "WORKER_PHASES", None)
+    return dict(timer.t) if timer is not None else {}
 
 
 def process_batch(n, n_check, say) -> dict:

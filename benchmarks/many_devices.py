@@ -27,7 +27,11 @@ constant are drawn from a known log-normal population. It measures
     solves run slower (they share the two cores), and `solve_share` counts that slowdown
     as compiled time, so this is the stricter figure of how much of the batch is the work
     only compiled code can do;
-(d) optionally (`--dask`) `fit_distributed` on a Dask `LocalCluster` of `--workers` processes;
+(d) optionally (`--dask`) `fit_distributed` on a Dask `LocalCluster` of `--workers` processes,
+    and the client's gathering of results from a worker (`gather_figures`): as
+    `fit_distributed` ships them against Dask's own way with objects (2026-11-27, 128
+    devices x 24 copies: 0.77-0.83 against 1.41-1.42 ms a result, `dask_gather_speedup`
+    1.70-1.85);
 
 and checks that the batch agrees with the single fits of the loop (`batch_vs_fit_max_rel`)
 and that the population model recovers the known median and spread from the batch
@@ -243,6 +247,40 @@ def compiled_alone(devices, free, chunk) -> float:
     return time.perf_counter() - t0
 
 
+def gather_figures(results, copies=24) -> dict:
+    """Milliseconds a result that a client spends gathering results from a worker: `copies`
+    times `results`, held on one worker of a local cluster, gathered back (a) as
+    `fit_distributed` ships them (one pickle a task, unpickled as it arrives with the
+    garbage collector paused: `dask_gather_ms_per_result`) and (b) as Dask ships Python
+    objects of its own accord (each array a frame of its own, the collector on:
+    `dask_gather_objects_ms_per_result`, the baseline). With many workers this gathering,
+    not the fitting, bounded the cluster (benchmarks/gpu_many_devices.py)."""
+    from greybox._estimate import distributed as dist
+
+    client, cluster = dist.start_client("local", 1, platform="cpu")
+    try:
+        blob = pickle.dumps(results, protocol=pickle.HIGHEST_PROTOCOL)
+        held = client.scatter([(blob, 0.0)] * copies, direct=True, hash=False)
+        t0 = time.perf_counter()
+        with dist._collector_paused():
+            got = [dist._unpickled_results(part) for part in client.gather(held)]
+        ours = time.perf_counter() - t0
+        held = client.scatter([results] * copies, direct=True, hash=False)
+        t0 = time.perf_counter()
+        plain = client.gather(held)
+        objects = time.perf_counter() - t0
+    finally:
+        client.close()
+        cluster.close()
+    assert len(got) == len(plain) == copies and list(got[0][0]) == list(results)
+    n = copies * len(results)
+    return {
+        "dask_gather_ms_per_result": round(1e3 * ours / n, 3),
+        "dask_gather_objects_ms_per_result": round(1e3 * objects / n, 3),
+        "dask_gather_speedup": round(objects / ours, 2),
+    }
+
+
 def max_rel_diff(a, b):
     """Largest relative difference over every parameter value of two {name: FitResult}."""
     worst = 0.0
@@ -353,6 +391,7 @@ def main(argv=None):
         dask_s = time.perf_counter() - t0
         out["dask_fits_per_min"] = round(60.0 * args.devices / dask_s, 1)
         out["dask_vs_batch_max_rel"] = max_rel_diff(dask_res.results, batch.results)
+        out.update(gather_figures(dict(batch.results)))
     if args.devices >= 8:
         out["population_z"] = population_z(batch.results)
     out["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)

@@ -105,6 +105,13 @@ the single process's ~9 ms a device and the client at ~0.6 ms a result, 15 worke
 be past 50,000 /min; not yet shown.
 
 Usage: .venv/bin/python benchmarks/gpu_many_devices.py [--devices 32768] [--workers 15] [--smoke]
+On a lent GPU machine (no package registry there; its image holds jax, equinox, diffrax,
+optimistix, lineax, numpy, scipy and matplotlib): carry as wheels dask and distributed
+2026.8.0, tornado 6.6.1, tblib 3.2.2, zict 3.0.0, locket 1.0.0, partd 1.4.2, pint 0.25.3,
+flexcache 0.3, flexparser 0.4 and platformdirs 4.14.8, install them with `pip install
+--no-index --no-deps --target /tmp/site`, then `PYTHONPATH=/tmp/site:$PWD
+XLA_PYTHON_CLIENT_PREALLOCATE=false python3 benchmarks/gpu_many_devices.py --devices 32768
+--complete 256 --check 4 --workers 15 --skip-qr` (about 6 minutes).
 Last line: one JSON object.
 """
 

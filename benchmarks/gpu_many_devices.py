@@ -89,8 +89,9 @@ of the same in the big batch, 6 step counts differ); one process's complete `fit
 complete fits in 155.1 s on the first call (12,679 /min; chunks of 546; all valid; the CPU's
 estimates to 5.2e-15; over `FIRST_CALL_LIMIT_S`, so not timed warm), the workers busy 38 % of
 the time (27.3 ms of worker time a device); with MPS, 8,192 in 35.6 s warm (13,798 /min),
-busy 22 %, 14.3 ms a device, of which the residual tests 7.9 ms (3.7 in one process alone:
-each worker ran 8 shuffle threads on the 16 cores), prepare 2.1, assembly 1.3, sandwich 0.9,
+busy 22 %, 14.3 ms a device, of which the residual tests 7.9 ms (each worker ran 8 shuffle
+threads, 120 on the 16 cores; one process with the box to itself: 3.7), prepare 2.1,
+assembly 1.3, sandwich 0.9,
 the fitted models 0.8 and the solves 0.5 ms. `nvidia-smi dmon`: the card's SMs at 0 %
 nearly throughout. So neither the card nor the workers' fitting bounded the cluster, but
 its client: Dask wrote each result's ~150 arrays as frames of their own (2.1 ms a result on
@@ -100,9 +101,10 @@ second device window was lent): a task's results go back as one pickle (1.15 ms 
 write), unpickled with the collector paused (0.43-0.50 ms), a result's run models as their
 leaves (13 % less to read), eight tasks a worker (the client's gathering overlaps the
 fitting), a worker's host work on one core (`greybox._platform.one_core`) and accelerator
-workers' chunks from the card's memory (`distributed.worker_budget`). With the workers at
-the single process's ~9 ms a device and the client at ~0.6 ms a result, 15 workers would
-be past 50,000 /min; not yet shown.
+workers' chunks from the card's memory (`distributed.worker_budget`); the client's whole
+gathering, `many_devices.py --dask`: 0.77-0.83 ms a result, against 1.41 as Dask ships
+objects. With the workers at the single process's ~9 ms a device and the client at ~0.8 ms
+a result, 15 workers would be past 50,000 /min; not yet shown.
 
 Usage: .venv/bin/python benchmarks/gpu_many_devices.py [--devices 32768] [--workers 15] [--smoke]
 On a lent GPU machine (no package registry there; its image holds jax, equinox, diffrax,

@@ -36,7 +36,9 @@ import gc
 import logging
 import math
 import os
+import pickle
 import sys
+import time
 import types
 from collections.abc import Callable, Sequence
 
@@ -94,9 +96,6 @@ def _fit_task(task_id: int, packages: dict, payload: bytes) -> tuple:
     The results go back as one pickle: Dask would send each of their arrays as a frame of
     its own (~150 a chevron result), which cost the worker 2.1 ms a result to write against
     1.2 ms for one pickle, and the client more to read."""
-    import pickle
-    import time
-
     import cloudpickle
     import jax
 
@@ -115,18 +114,18 @@ def _fit_task(task_id: int, packages: dict, payload: bytes) -> tuple:
 
 
 def _unpickled_results(part: tuple) -> tuple:
-    """Client side of `_fit_task`'s result: ({name: FitResult}, worker seconds)."""
-    import pickle
-
+    """Client side of `_fit_task`'s result: ({name: FitResult}, worker seconds), unpickled
+    with the garbage collector paused."""
     results, seconds = part
-    return pickle.loads(results), seconds
+    with _collector_paused():
+        return pickle.loads(results), seconds
 
 
 @contextlib.contextmanager
 def _collector_paused():
     """Python's cyclic garbage collector off inside (back on at exit, if it was on).
 
-    Unpickling the gathered results creates objects (~135 a chevron result) that nothing
+    Unpickling a task's results creates objects (~135 a chevron result) that nothing
     frees, and every so many of them the collector walks every object the client holds,
     a number the results themselves keep raising: in a process that had gathered a thousand,
     a result took 0.74-1.7 ms to unpickle with the collector on, 0.43-0.50 ms with it off."""
@@ -163,13 +162,12 @@ def run_tasks(
         for i in range(len(payloads))
     ]
     got: dict = {}
-    with _collector_paused():  # the results unpickled as they come
-        for k, fut in enumerate(distributed.as_completed(futures), start=1):
-            task_id, result = fut.result()
-            if task_id in got:
-                raise RuntimeError(f"task {task_id} returned twice; results would be duplicated")
-            got[task_id] = result if decode is None else decode(result)
-            say(f"task {task_id + 1}/{len(payloads)} gathered ({k}/{len(payloads)} done)")
+    for k, fut in enumerate(distributed.as_completed(futures), start=1):
+        task_id, result = fut.result()
+        if task_id in got:
+            raise RuntimeError(f"task {task_id} returned twice; results would be duplicated")
+        got[task_id] = result if decode is None else decode(result)
+        say(f"task {task_id + 1}/{len(payloads)} gathered ({k}/{len(payloads)} done)")
     missing = sorted(set(range(len(payloads))) - set(got))
     if missing:
         raise RuntimeError(f"tasks {missing} returned no result")
@@ -264,8 +262,13 @@ def plan(
     the devices allow, so a dead worker costs little, the load balances and the client's
     gathering keeps pace. Workers on an `accelerator` take chunks as large as a task and their
     memory budget allow (a vmapped chunk is one set of kernels: small chunks pay the per-call
-    and per-step launches many times); on a CPU, at most `_batch.MAX_CHUNK`."""
-    budget = DEFAULT_WORKER_BUDGET if memory_budget_bytes is None else memory_budget_bytes
+    and per-step launches many times); on a CPU, at most `_batch.MAX_CHUNK`. The budget per
+    worker is `memory_budget_bytes`, by default `worker_budget`."""
+    budget = (
+        worker_budget(n_workers, accelerator)
+        if memory_budget_bytes is None
+        else memory_budget_bytes
+    )
     prepared, groups = _batch._prepare(
         devices[:1],
         tuple(devices[0].free or free),
@@ -342,11 +345,7 @@ def fit_distributed(
         free,
         n_workers=n_workers,
         chunk_size=chunk_size,
-        memory_budget_bytes=(
-            worker_budget(n_workers, accelerator)
-            if memory_budget_bytes is None
-            else memory_budget_bytes
-        ),
+        memory_budget_bytes=memory_budget_bytes,
         accelerator=accelerator,
         **fit_kwargs,
     )

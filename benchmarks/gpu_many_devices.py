@@ -30,6 +30,9 @@ Measured, on the default JAX backend (`backend`):
   step (`lx.QR`, `solve_chunk_lapack_qr_s`) over the same chunk with this backend's own
   (`householder.lm_linear_solver`: the vectorised Householder QR on an accelerator,
   `solve_chunk_warm_s`).
+- `shuffle_pass`: how this process runs a batch's residual tests (999 shuffles per run):
+  "compiled" on an accelerator (`greybox._estimate.shuffle_kernel`, from 2026-11-28; the
+  figures below predate it and ran numpy's blocks there), "numpy" on a CPU.
 
 Each phase prints its figures as soon as it ends (a `partial` line on stderr), so a run cut
 off by its device window still reports what it measured.
@@ -143,6 +146,7 @@ import many_devices as md  # noqa: E402
 import greybox  # noqa: E402
 from greybox._estimate import batch as _batch  # noqa: E402
 from greybox._model import householder  # noqa: E402
+from greybox._platform import on_accelerator  # noqa: E402
 
 SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
 NOISE_M = 0.05e-6
@@ -240,7 +244,12 @@ def main(argv=None):
         args.workers = 0
     say = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
     t_start = time.perf_counter()
-    out = {"backend": jax.default_backend(), "device": str(jax.devices()[0].device_kind)}
+    out = {
+        "backend": jax.default_backend(),
+        "device": str(jax.devices()[0].device_kind),
+        # how this process runs a batch's residual shuffles (`residuals._compiled_shuffles`)
+        "shuffle_pass": "compiled" if on_accelerator() else "numpy",
+    }
 
     def partial(**figures):  # each phase's figures as soon as it ends: a run cut off by its
         out.update(figures)  # device window still reports what it measured

@@ -33,6 +33,7 @@ KEYS = {
         "batch_fits_per_min",
         "cpu_agreement_max_rel",
         "batch_independence_max_rel",
+        "shuffle_pass",
     },
     "io.py": {
         "csv_read",

@@ -70,12 +70,17 @@ def naive_p_value(t, e, valid, seed, h, b):
     return q0, (1 + beyond) / (b + 1)
 
 
+@pytest.mark.parametrize("compiled", [False, True], ids=["numpy", "compiled"])
 @pytest.mark.parametrize("cached", [True, False])
-def test_permutation_p_value_matches_the_loop_with_the_documented_stream(monkeypatch, cached):
+def test_permutation_p_value_matches_the_loop_with_the_documented_stream(
+    monkeypatch, cached, compiled
+):
     """Both ways of drawing the shuffles (cached orders, or drawn block by block for a long
-    run) are the documented stream."""
+    run) are the documented stream, in numpy's blocks (a CPU) and in the compiled kernel (an
+    accelerator; here forced on the CPU)."""
     if not cached:
         monkeypatch.setattr(_residuals, "ORDER_CACHE_ELEMENTS", 0)
+    monkeypatch.setattr(_residuals, "_compiled_shuffles", lambda *_: compiled)
     rng = np.random.default_rng(4)
     n = 90
     t = np.cumsum(rng.uniform(0.9, 1.1, n) * np.where(rng.random(n) < 0.05, 3, 1))
@@ -245,3 +250,59 @@ def test_shuffle_blocks_in_threads_give_the_same_p_values(monkeypatch):
         np.testing.assert_array_equal(a.q, b.q)
         for ra, rb in zip(a.runs, b.runs):
             np.testing.assert_array_equal(ra.p_value, rb.p_value)
+
+
+def test_compiled_shuffle_kernel_gives_numpys_statistics_on_a_batch(monkeypatch):
+    """The shuffle pass as the compiled kernel (what an accelerator runs) against numpy's
+    blocks, on fits of different run lengths, lags, gaps and dropped readings analysed
+    together: every shuffled r(k) to single precision, every p-value and Q the same."""
+    rng = np.random.default_rng(21)
+    fits = []
+    for n_runs, n in [(2, 60), (3, 140), (1, 45), (2, 33)]:
+        runs = []
+        for i in range(n_runs):
+            t = np.cumsum(np.where(rng.random(n) < 0.05, 2.0, 1.0)) / 30.0
+            e = rng.normal(size=(n, 2))
+            e[1:] += 0.3 * e[:-1]
+            runs.append((f"r{i}", t, e, rng.random((n, 2)) > 0.05, None))
+        fits.append(runs)
+    shuffled = {}
+
+    def keep(way):
+        def finished(runs):
+            shuffled[way] = [r.permuted_autocorrelation.copy() for r in runs]
+            return real_finished(runs)
+
+        return finished
+
+    real_finished = _residuals._finished
+    out = {}
+    for way, compiled in (("numpy", False), ("compiled", True)):
+        monkeypatch.setattr(_residuals, "_compiled_shuffles", lambda *_, c=compiled: c)
+        monkeypatch.setattr(_residuals, "_finished", keep(way))
+        out[way] = _residuals.analyse_many(fits, permutations=199)
+    for a, b in zip(shuffled["numpy"], shuffled["compiled"]):
+        assert np.array_equal(np.isnan(a), np.isnan(b))
+        np.testing.assert_allclose(b, a, rtol=0, atol=2e-6)
+    for a, b in zip(out["numpy"], out["compiled"]):
+        np.testing.assert_array_equal(a.q, b.q)
+        np.testing.assert_array_equal(a.p_value, b.p_value)
+        for ra, rb in zip(a.runs, b.runs):
+            np.testing.assert_array_equal(ra.p_value, rb.p_value)
+    assert len({a.test_lag for a in out["numpy"]}) > 1
+
+
+def test_an_accelerator_compiles_a_batchs_shuffles_not_a_single_fits(monkeypatch):
+    """The kernel serves batches on an accelerator; a single fit's few runs (numpy: ~10 ms)
+    would pay its compile, and a CPU runs numpy's faster blocks whatever the size."""
+    from greybox import _platform
+
+    class Job:
+        g = np.zeros(400)
+
+    single, wave = [Job()] * 6, [Job()] * 64 * 6  # the chevron's runs; a wave of 64 devices
+    b = _residuals.PERMUTATIONS
+    for accelerator, want in ((False, (False, False)), (True, (False, True))):
+        monkeypatch.setattr(_platform, "on_accelerator", lambda a=accelerator: a)
+        got = (_residuals._compiled_shuffles(single, b), _residuals._compiled_shuffles(wave, b))
+        assert got == want

@@ -152,6 +152,7 @@ def _frame_grid(t_bytes: bytes) -> FrameGrid:
 
 LAG_BLOCK = 1 << 18  # elements of one block of rows of `_permuted_autocorrelation` (2 MB:
 # it stays in cache; 32 MB blocks were 25 % slower on a batch of 128 devices x 6 runs)
+COMPILED_SHUFFLES_MIN = 1 << 24  # shuffle elements from which an accelerator runs the kernel
 SHUFFLE_THREADS_MAX = 8  # the block products are memory-bound: more threads add little
 MAX_SLICES = 64  # a shuffled row with more runs of occupied slots is scattered column-wise
 # The shuffles multiply in single precision: half the memory traffic, twice the speed on long
@@ -409,30 +410,42 @@ def _permuted_autocorrelation(jobs, permutations: int) -> None:
     whatever the blocking and the other jobs. Blocks are independent (each writes its own
     rows of its jobs' `out`) and numpy's copies and products release the interpreter, so on a
     machine with cores to spare (`shuffle_threads`) they run side by side, a bounded window
-    of blocks at a time; the numbers do not depend on it."""
+    of blocks at a time; the numbers do not depend on it. On an accelerator the same pass
+    is one compiled kernel (`shuffle_kernel`, `_compiled_shuffles`)."""
     if not jobs:
         return
+    if _compiled_shuffles(jobs, permutations):
+        from greybox._estimate import shuffle_kernel
+
+        shuffle_kernel.fill(jobs, permutations, _orders_of(int(permutations)))
+    else:
+        _numpy_shuffles(jobs, int(permutations))
+    for job in jobs:
+        job.out[0] = job.observed
+        job.out[:, job.npairs == 0] = np.nan
+
+
+def _numpy_shuffles(jobs, permutations: int) -> None:
+    """`_permuted_autocorrelation`'s rows 1.. by numpy blocks, in threads where
+    `shuffle_threads` allows."""
     h = max(job.npairs.size for job in jobs)
-    blocks = _blocks(_pieces(jobs, int(permutations)))
+    blocks = _blocks(_pieces(jobs, permutations))
     workers = shuffle_threads()
     if workers == 1:
         scratch = _Scratch()
         for block in blocks:
             _block_autocorrelation(*block, h, scratch)
-    else:
-        local = threading.local()
+        return
+    local = threading.local()
 
-        def run(block):
-            if not hasattr(local, "scratch"):
-                local.scratch = _Scratch()
-            _block_autocorrelation(*block, h, local.scratch)
+    def run(block):
+        if not hasattr(local, "scratch"):
+            local.scratch = _Scratch()
+        _block_autocorrelation(*block, h, local.scratch)
 
-        with ThreadPoolExecutor(workers, thread_name_prefix="greybox-shuffles") as pool:
-            while window := list(itertools.islice(blocks, 4 * workers)):  # bounded memory
-                list(pool.map(run, window))
-    for job in jobs:
-        job.out[0] = job.observed
-        job.out[:, job.npairs == 0] = np.nan
+    with ThreadPoolExecutor(workers, thread_name_prefix="greybox-shuffles") as pool:
+        while window := list(itertools.islice(blocks, 4 * workers)):  # bounded memory
+            list(pool.map(run, window))
 
 
 class _Scratch:
@@ -447,6 +460,32 @@ class _Scratch:
         grid = self.buffer[: size * width].reshape(size, width)
         grid.fill(0.0)
         return grid
+
+
+def _compiled_shuffles(jobs, permutations: int) -> bool:
+    """Whether the shuffle pass of `jobs` runs as one compiled kernel (`shuffle_kernel`): on
+    an accelerator, for a batch's worth of shuffles (COMPILED_SHUFFLES_MIN elements), where
+    numpy's pass was most of a batch's host work. A single fit's pass (the chevron's six runs:
+    ~2.4 million elements, ~10 ms of numpy) stays numpy there: compiling the kernel would
+    cost it more than it saves. On a CPU numpy's blocks are faster
+    (`benchmarks/shuffle_pass.py`)."""
+    from greybox import _platform
+
+    elements = int(permutations) * sum(job.g.size for job in jobs)
+    return elements >= COMPILED_SHUFFLES_MIN and _platform.on_accelerator()
+
+
+def _orders_of(b: int):
+    """(key, n) -> the (b, n) rank orders of stream `key`: the cached ones, or for a long
+    run (beyond the cache) the same stream drawn whole, as `_pieces` draws it block by block."""
+
+    def orders(key, n):
+        cached = _shuffle_orders(key, n, b)
+        if cached is not None:
+            return cached
+        return np.random.default_rng(list(key)).random((b, n)).argsort(axis=1)
+
+    return orders
 
 
 def shuffle_threads() -> int:

@@ -252,10 +252,16 @@ def test_shuffle_blocks_in_threads_give_the_same_p_values(monkeypatch):
             np.testing.assert_array_equal(ra.p_value, rb.p_value)
 
 
-def test_compiled_shuffle_kernel_gives_numpys_statistics_on_a_batch(monkeypatch):
+@pytest.mark.parametrize("calls", ["one", "several"])
+def test_compiled_shuffle_kernel_gives_numpys_statistics_on_a_batch(monkeypatch, calls):
     """The shuffle pass as the compiled kernel (what an accelerator runs) against numpy's
     blocks, on fits of different run lengths, lags, gaps and dropped readings analysed
-    together: every shuffled r(k) to single precision, every p-value and Q the same."""
+    together: every shuffled r(k) to single precision, every p-value and Q the same; also
+    when the kernel's memory bound splits the runs over several calls."""
+    from greybox._estimate import shuffle_kernel
+
+    if calls == "several":  # order tables of at most 2 streams a call
+        monkeypatch.setattr(shuffle_kernel, "CALL_ELEMENTS", 199 * 256 * 2)
     rng = np.random.default_rng(21)
     fits = []
     for n_runs, n in [(2, 60), (3, 140), (1, 45), (2, 33)]:

@@ -31,6 +31,7 @@ import numpy as np
 from greybox._compile import jax_jit
 
 BLOCK_ELEMENTS = 1 << 25  # grid elements (single precision) of the runs vmapped together
+CALL_ELEMENTS = 1 << 26  # elements of one call's order table and of its results, each
 
 
 def _pow2(n: int, least: int = 1) -> int:
@@ -47,6 +48,31 @@ def fill(jobs, permutations: int, orders) -> None:
     width = _pow2(max(job.g.size for job in jobs), 16)
     n_max = _pow2(max(int(job.occ.sum()) for job in jobs), 16)
     h = max(job.npairs.size for job in jobs)
+    for part in _calls(jobs, b, n_max, h):
+        _fill_call(part, b, orders, width, n_max, h)
+
+
+def _calls(jobs, b: int, n_max: int, h: int):
+    """`jobs` in calls whose order table (distinct streams x B x n_max) and results (runs x
+    B x h, padded) stay within CALL_ELEMENTS each: long runs with readings dropped at random
+    (a stream per run and reading count) must not make one table of gigabytes. One call for
+    a batch's wave of short runs (64 chevron devices: 384 runs, ~60 streams)."""
+    max_keys = max(1, CALL_ELEMENTS // (b * n_max))
+    max_jobs = 1 << (max(1, CALL_ELEMENTS // (b * h)).bit_length() - 1)  # padded: at most this
+    part, keys = [], set()
+    for job in sorted(jobs, key=lambda j: (j.key, int(j.occ.sum()))):
+        key = (job.key, int(job.occ.sum()))
+        if part and (len(part) == max_jobs or (key not in keys and len(keys) == max_keys)):
+            yield part
+            part, keys = [], set()
+        part.append(job)
+        keys.add(key)
+    yield part
+
+
+def _fill_call(jobs, b: int, orders, width: int, n_max: int, h: int) -> None:
+    """One kernel call for `jobs` (grids of at most `width` slots, at most `n_max` readings,
+    `h` lags): inputs padded to powers of two, the result written into each job's `out`."""
     fits = max(1, BLOCK_ELEMENTS // (b * (width + 1)))  # runs a block holds
     per_call = min(1 << (fits.bit_length() - 1), _pow2(len(jobs)))
     count = per_call * _pow2(-(-len(jobs) // per_call))

@@ -272,16 +272,15 @@ def test_compiled_shuffle_kernel_gives_numpys_statistics_on_a_batch(monkeypatch,
             e[1:] += 0.3 * e[:-1]
             runs.append((f"r{i}", t, e, rng.random((n, 2)) > 0.05, None))
         fits.append(runs)
-    shuffled = {}
+    shuffled, real_finished = {}, _residuals._finished
 
-    def keep(way):
+    def keep(way):  # the runs' shuffled r(k), before `_finished` drops them
         def finished(runs):
             shuffled[way] = [r.permuted_autocorrelation.copy() for r in runs]
             return real_finished(runs)
 
         return finished
 
-    real_finished = _residuals._finished
     out = {}
     for way, compiled in (("numpy", False), ("compiled", True)):
         monkeypatch.setattr(_residuals, "_compiled_shuffles", lambda *_, c=compiled: c)
@@ -304,9 +303,11 @@ def test_an_accelerator_compiles_a_batchs_shuffles_not_a_single_fits(monkeypatch
     from greybox import _platform
 
     class Job:
-        g = np.zeros(400)
+        def __init__(self, slots):
+            self.g = np.zeros(slots)
 
-    single, wave = [Job()] * 6, [Job()] * 64 * 6  # the chevron's runs; a wave of 64 devices
+    single = [Job(400)] * 6  # the chevron demo's six runs of ~330 frames
+    wave = [Job(50)] * 64 * 6  # a batch's wave: 64 devices of six ~50-frame runs
     b = _residuals.PERMUTATIONS
     for accelerator, want in ((False, (False, False)), (True, (False, True))):
         monkeypatch.setattr(_platform, "on_accelerator", lambda a=accelerator: a)

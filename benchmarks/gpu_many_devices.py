@@ -107,7 +107,9 @@ fitting), a worker's host work on one core (`greybox._platform.one_core`) and ac
 workers' chunks from the card's memory (`distributed.worker_budget`); the client's whole
 gathering, `many_devices.py --dask`: 0.77-0.83 ms a result, against 1.41 as Dask ships
 objects. With the workers at the single process's ~9 ms a device and the client at ~0.8 ms
-a result, 15 workers would be past 50,000 /min; not yet shown.
+a result, 15 workers would be past 50,000 /min; not yet shown. Then (2026-11-28, no device
+lent): a batch's residual shuffles run as one compiled kernel on an accelerator
+(`shuffle_pass`; the 7.9 ms above were numpy's pass), not yet timed there either.
 
 Usage: .venv/bin/python benchmarks/gpu_many_devices.py [--devices 32768] [--workers 15] [--smoke]
 On a lent GPU machine (no package registry there; its image holds jax, equinox, diffrax,
@@ -116,7 +118,8 @@ optimistix, lineax, numpy, scipy and matplotlib): carry as wheels dask and distr
 flexcache 0.3, flexparser 0.4 and platformdirs 4.14.8, install them with `pip install
 --no-index --no-deps --target /tmp/site`, then `PYTHONPATH=/tmp/site:$PWD
 XLA_PYTHON_CLIENT_PREALLOCATE=false python3 benchmarks/gpu_many_devices.py --devices 32768
---complete 256 --check 4 --workers 15 --skip-qr` (about 6 minutes).
+--complete 256 --check 4 --workers 15 --skip-qr` (about 6 minutes); before it,
+`benchmarks/shuffle_pass.py` (seconds) times the shuffle kernel against numpy on the box.
 Last line: one JSON object.
 """
 

@@ -315,6 +315,17 @@ ORDER_CACHE_ELEMENTS = 1 << 22  # a stream's B x n orders above this are drawn b
 _orders = _Cache(64 << 20)  # shuffle orders kept for reuse (a batch's devices share them)
 
 
+def _stream(key: tuple) -> np.random.Generator:
+    """The random stream of the shuffles of `key` (seed, run, output): `default_rng(list(key))`."""
+    return np.random.default_rng(list(key))
+
+
+def _drawn_orders(rng: np.random.Generator, rows: int, n: int) -> np.ndarray:
+    """The next `rows` shuffles of `rng`'s stream: one `rng.random(n)` row each, ranked. Drawn
+    at once or block by block, a stream gives the same shuffles."""
+    return rng.random((rows, n)).argsort(axis=1)
+
+
 def _shuffle_orders(key: tuple, n: int, b: int) -> np.ndarray | None:
     """(b, n) rank orders of the shuffles of stream `key` (`default_rng(list(key))`, one
     `rng.random(n)` row per shuffle, ranked), cached: they depend only on the stream and the
@@ -324,8 +335,7 @@ def _shuffle_orders(key: tuple, n: int, b: int) -> np.ndarray | None:
         return None
 
     def make():
-        rng = np.random.default_rng(list(key))
-        order = rng.random((b, n)).argsort(axis=1)  # platform ints: a gather with int32
+        order = _drawn_orders(_stream(key), b, n)  # platform ints: a gather with int32
         order.setflags(write=False)  # indices converts them on every use (2x its cost)
         return order
 
@@ -375,13 +385,13 @@ def _pieces(jobs, b: int):
         slots_n = int(job.occ.sum())
         rows = max(1, LAG_BLOCK // max(job.g.size, 1))
         cached = _shuffle_orders(job.key, slots_n, b)
-        rng = None if cached is not None else np.random.default_rng(list(job.key))
+        rng = None if cached is not None else _stream(job.key)
         for start in range(0, b, rows):
             stop = min(start + rows, b)
             if cached is not None:
                 yield job, 1 + start, cached[start:stop]
             else:
-                yield job, 1 + start, rng.random((stop - start, slots_n)).argsort(axis=1)
+                yield job, 1 + start, _drawn_orders(rng, stop - start, slots_n)
 
 
 def _blocks(pieces):
@@ -483,7 +493,7 @@ def _orders_of(b: int):
         cached = _shuffle_orders(key, n, b)
         if cached is not None:
             return cached
-        return np.random.default_rng(list(key)).random((b, n)).argsort(axis=1)
+        return _drawn_orders(_stream(key), b, n)
 
     return orders
 

@@ -35,7 +35,13 @@ CALL_ELEMENTS = 1 << 26  # elements of one call's order table and of its results
 
 
 def _pow2(n: int, least: int = 1) -> int:
+    """The least power of two >= n (and >= `least`)."""
     return max(least, 1 << max(int(n) - 1, 0).bit_length())
+
+
+def _pow2_within(n: int) -> int:
+    """The largest power of two <= n (1 for n < 2)."""
+    return 1 << (max(int(n), 1).bit_length() - 1)
 
 
 def fill(jobs, permutations: int, orders) -> None:
@@ -58,7 +64,7 @@ def _calls(jobs, b: int, n_max: int, h: int):
     (a stream per run and reading count) must not make one table of gigabytes. One call for
     a batch's wave of short runs (64 chevron devices: 384 runs, ~60 streams)."""
     max_keys = max(1, CALL_ELEMENTS // (b * n_max))
-    max_jobs = 1 << (max(1, CALL_ELEMENTS // (b * h)).bit_length() - 1)  # padded: at most this
+    max_jobs = _pow2_within(CALL_ELEMENTS // (b * h))  # a power of two: padded, at most this
     part, keys = [], set()
     for job in sorted(jobs, key=lambda j: (j.key, int(j.occ.sum()))):
         key = (job.key, int(job.occ.sum()))
@@ -73,8 +79,7 @@ def _calls(jobs, b: int, n_max: int, h: int):
 def _fill_call(jobs, b: int, orders, width: int, n_max: int, h: int) -> None:
     """One kernel call for `jobs` (grids of at most `width` slots, at most `n_max` readings,
     `h` lags): inputs padded to powers of two, the result written into each job's `out`."""
-    fits = max(1, BLOCK_ELEMENTS // (b * (width + 1)))  # runs a block holds
-    per_call = min(1 << (fits.bit_length() - 1), _pow2(len(jobs)))
+    per_call = min(_pow2_within(BLOCK_ELEMENTS // (b * (width + 1))), _pow2(len(jobs)))
     count = per_call * _pow2(-(-len(jobs) // per_call))
     vals = np.zeros((count, n_max), np.float32)
     slots = np.full((count, n_max), width, np.int32)  # padding lands past the grid's end

@@ -19,8 +19,8 @@ a stochastic device through the continuous-discrete (extended) Kalman filter.
   filter's scan measured 18x the cost of a gradient and 3x its compile time on the RC3
   test; the differences of the gradient cost 2 P gradients and compile nothing new.)
 - Covariance: the inverse Hessian of -log L + priors at the optimum (determined subspace,
-  `greybox._estimate.identifiability`); the status is "not converged" with the combination named when
-  the Hessian is not positive definite there.
+  `greybox._estimate.identifiability`); the status is "not converged" with the combination
+  named when the Hessian is not positive definite there.
 - Verdicts: a process-noise or random-walk intensity that fell towards zero (below a tenth
   of its start) and whose zero the data do not reject (the boundary likelihood-ratio test at
   5 %: setting it to 0 costs less than 1.355 in log L) is
@@ -44,11 +44,12 @@ import numpy as np
 
 from greybox._compile import jit
 from greybox._estimate import problem as _problem
-from greybox._model.freeparams import apply_raw
 from greybox._estimate.identifiability import analyse
 from greybox._estimate.metrics import fit_percent
 from greybox._estimate.noise_models import DIFFUSE_SD, ProcessNoise
+from greybox._model.freeparams import apply_raw
 from greybox._model.parameters import set_values
+from greybox._simulate.simulate import as_arrays, require_x64
 from greybox.stochastic._sde_device import (
     _NOISE_FIELDS,
     NoiseStructure,
@@ -60,7 +61,6 @@ from greybox.stochastic._sde_device import (
     _t0,
     stochastic_device,
 )
-from greybox._simulate.simulate import as_arrays, require_x64
 
 MAX_STEPS = 500  # damped Newton steps per start
 DECREMENT_TOL = _problem.DECREMENT_TOL  # Newton decrement at which a start has converged
@@ -712,8 +712,25 @@ def fit_likelihood(
 
 def assemble(su: Setup, runs, say):
     """The `FitResult` of one device from its solver outputs `runs` (one per start)."""
+    return assemble_many([(su, runs)], say)[0]
+
+
+def assemble_many(items, say) -> list:
+    """`assemble` of each (setup, runs) of `items` (the devices of a batch), as one call each
+    gives, with the residual tests of every run of every device in one vectorised pass
+    (`residuals.analyse_many`: their shuffles shared)."""
     from greybox._estimate import fit as _fit
-    from greybox._estimate.residuals import analyse as analyse_residuals
+    from greybox._estimate.residuals import analyse_many
+
+    parts = [_assembled(su, runs, say) for su, runs in items]
+    tests = analyse_many([innovations for _, innovations in parts])
+    return [_fit.FitResult(**fields, residuals=t) for (fields, _), t in zip(parts, tests)]
+
+
+def _assembled(su: Setup, runs, say) -> tuple[dict, list]:
+    """(the `FitResult` fields of one device but its residual tests, its innovations as
+    `residuals.analyse` takes them)."""
+    from greybox._estimate import fit as _fit
 
     sd, free, obj, raw0, noise, experiments = (
         su.sd, su.free, su.obj, su.raw0, su.noise, su.experiments
@@ -815,7 +832,7 @@ def assemble(su: Setup, runs, say):
         for e, d in zip(experiments, diags)
     ]
     report_cov = np.asarray(report.covariance_raw)
-    return _fit.FitResult(
+    fields = dict(
         model=base,
         experiment_models=run_models,
         experiments=experiments,
@@ -840,7 +857,6 @@ def assemble(su: Setup, runs, say):
         status=status,
         valid=status in _fit.VALID_STATUSES,
         noise_ceiling={d.name: np.full(len(sigma), np.nan) for d in diags},
-        residuals=analyse_residuals(innovations),
         covariance_gauss_newton_raw=report_cov,
         covariance_hac_raw=np.full_like(report_cov, np.nan),
         se_method="inverse Hessian",
@@ -870,6 +886,7 @@ def assemble(su: Setup, runs, say):
         whiteness={d.name: d.whiteness for d in diags},
         runs=diags,
     )
+    return fields, innovations
 
 
 def _scored_readings(e, score_first: bool) -> int:

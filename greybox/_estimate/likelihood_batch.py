@@ -17,8 +17,9 @@ likelihood with the likelihood back end's one compiled optimiser, over chunks of
   gives, to rounding). The last chunk is padded with copies of its last item,
   so a group compiles once. Reviving vanished noise intensities (`likelihood.revive`) reuses
   the same compiled chunk.
-- Each device's `FitResult` is assembled by `likelihood.assemble`, as `fit` assembles it
-  (verdicts, covariance, per-run diagnostics: host-side and per device, not batched).
+- Each device's `FitResult` is assembled as `fit` assembles it (`likelihood.assemble_many`:
+  verdicts, covariance, per-run diagnostics host-side and per device; the residual tests of
+  a group's devices in one vectorised pass, their shuffles shared).
 """
 
 from __future__ import annotations
@@ -55,7 +56,9 @@ def _key(obj) -> tuple:
     return (tree, jtu.tree_structure(static), static, tuple((x.shape, x.dtype) for x in leaves))
 
 
-def fit_likelihood_batch(named_setups, *, chunk_size=None, progress=None) -> tuple[dict, int, int, int]:
+def fit_likelihood_batch(
+    named_setups, *, chunk_size=None, progress=None
+) -> tuple[dict, int, int, int]:
     """({name: FitResult}, groups, chunk size, compiled calls) for `named_setups`
     ((name, `likelihood.Setup`), ...)."""
     say = progress or (lambda _m: None)
@@ -93,7 +96,8 @@ def fit_likelihood_batch(named_setups, *, chunk_size=None, progress=None) -> tup
                 raws = jnp.asarray(np.stack([np.asarray(r, dtype=float) for _, r in part]))
                 out = jax.device_get(_newton_many(dyn, static, raws, budget))
                 calls += 1
-                outs += [{k: v[j] for k, v in out.items()} for j in range(min(chunk, len(pairs) - c))]
+                kept = min(chunk, len(pairs) - c)
+                outs += [{k: v[j] for k, v in out.items()} for j in range(kept)]
             say(f"{label}: {len(pairs)} solves done")
             return outs
 
@@ -111,12 +115,10 @@ def fit_likelihood_batch(named_setups, *, chunk_size=None, progress=None) -> tup
             say,
             names,
         )
-        at = 0
-        for m, su in enumerate(sus):
-            n = len(su.starts)
-            name = named_setups[members[m]][0]
-            results[name] = _lik.assemble(su, runs[at : at + n], lambda _m: None)
-            at += n
+        ends = np.cumsum([len(su.starts) for su in sus])
+        per_device = [(su, runs[e - len(su.starts) : e]) for su, e in zip(sus, ends)]
+        for m, result in enumerate(_lik.assemble_many(per_device, lambda _m: None)):
+            results[named_setups[members[m]][0]] = result
         say(f"{label}: {len(sus)} devices assembled")
     return results, len(groups), chunk_used, calls
 

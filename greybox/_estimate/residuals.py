@@ -365,7 +365,8 @@ class _Shuffled:
         precision's underflow and overflow)."""
         return (self.g / np.sqrt(self.c0)).astype(SHUFFLE_DTYPE)
 
-    def runs_of_slots(self) -> tuple[np.ndarray, np.ndarray]:
+    @functools.cached_property
+    def slot_runs(self) -> tuple[np.ndarray, np.ndarray]:
         """(the occupied slots in order, the index in them where each stretch of consecutive
         occupied slots starts, closed by their count): a shuffled row is written stretch by
         stretch (slice copies) rather than column by column (a scatter, 2-3x slower)."""
@@ -439,6 +440,11 @@ def _numpy_shuffles(jobs, permutations: int) -> None:
     """`_permuted_autocorrelation`'s rows 1.. by numpy blocks, in threads where
     `shuffle_threads` allows."""
     h = max(job.npairs.size for job in jobs)
+    # the jobs of one stream and count of values (the same run of many devices) one after
+    # another: they gather through the same cached order table while it is in cache
+    # (3,072 runs: 0.87 -> 0.72 s); each job writes only its own rows, so the order of the
+    # jobs changes no number
+    jobs = sorted(jobs, key=lambda job: (job.key, int(job.occ.sum())))
     blocks = _blocks(_pieces(jobs, permutations))
     workers = shuffle_threads()
     if workers == 1:
@@ -513,7 +519,7 @@ def _block_autocorrelation(block, size, width, h, scratch) -> None:
     grid = scratch.grid(size, width)
     r = 0
     for job, _, order in block:
-        slots, first = job.runs_of_slots()
+        slots, first = job.slot_runs
         k = order.shape[0]
         shuffled = job.unit[slots][order]
         if first.size > MAX_SLICES:

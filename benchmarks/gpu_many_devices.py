@@ -433,41 +433,17 @@ def _worker_phases():
 
 
 def process_batch(n, n_check, say) -> dict:
-    """`fit_batch` with process noise (the likelihood back end, batched) of `n` scalar
-    Ornstein-Uhlenbeck devices of 200 frames (tests/ou_device.py; readings from the numpy
-    simulator tests/ou_reference.py, parameters spread around its truth), two starts each,
-    warm; and the first `n_check` again on the CPU."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    """`many_devices.process_noise_batch` of `n` devices (its figures), and the first
+    `n_check` again on the CPU (`process_cpu_agreement_max_rel`)."""
     from tests import ou_device as od
-    from tests import ou_reference as ou
 
-    rng = np.random.default_rng(11)
-    start = {"Ci": 2.5e6, "Rea": 6.0e-3, "q": 3.0e-6, "sd": 0.06}
-    devices = []
-    for k in range(n):
-        truth = {p: v * np.exp(0.2 * rng.normal()) for p, v in ou.TRUTH.items()}
-        y = ou.simulate(truth, 200, 1000 + k)
-        devices.append(greybox.population.Device(f"ou{k:05d}", od.model(start), [od.experiment(y)]))
-    noise = greybox.ProcessNoise(od.STRUCTURE)
-    t0 = time.perf_counter()
-    greybox.fit_batch(devices, od.FREE, noise=noise, n_starts=2)
-    first_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    res = greybox.fit_batch(devices, od.FREE, noise=noise, n_starts=2)
-    warm_s = time.perf_counter() - t0
-    say(f"process-noise fit_batch of {n}: first {first_s:.1f} s, warm {warm_s:.1f} s")
+    devices, res, figures = md.process_noise_batch(n, say)
     check = devices[:n_check]
+    noise = greybox.ProcessNoise(od.STRUCTURE)
     with jax.default_device(jax.devices("cpu")[0]):
         cpu = greybox.fit_batch(check, od.FREE, noise=noise, n_starts=2)
     worst = md.max_rel_diff({n: res[n] for n in cpu.results}, cpu.results)
-    converged = sum(res[d.name].status == "converged" for d in devices)
-    return {
-        "process_devices": n,
-        "process_fits_per_min": round(60.0 * n / warm_s, 1),
-        "process_first_s": round(first_s, 2),
-        "process_converged": int(converged),
-        "process_cpu_agreement_max_rel": worst,
-    }
+    return {**figures, "process_cpu_agreement_max_rel": worst}
 
 
 def _warm_chunk_s(group, head, raw, sig, chunk, opts, solver=None):

@@ -64,6 +64,30 @@ def test_batch_reaches_the_numpy_likelihood_maximum(devices, batch):
                 assert ou.loglik(dict(est, **{k: est[k] * f}), y) < r.log_likelihood
 
 
+def test_a_device_with_a_vanished_intensity_is_assembled_last_and_as_fit_alone(devices, batch):
+    """The middle device has no process noise (q = 0): its intensity vanishes, so the batch
+    holds it back for the revival check (`likelihood_batch._Assembler`) while the others are
+    assembled; it still comes back in its place and as `fit` gives it alone: "not needed",
+    the others' estimates those of the first batch."""
+    quiet = greybox.population.Device(
+        "quiet", od.model(START), [od.experiment(ou.simulate(dict(ou.TRUTH, q=0.0), 200, 40))]
+    )
+    mixed = [devices[0], quiet, devices[2]]
+    said = []
+    got = greybox.fit_batch(mixed, od.FREE, noise=NOISE, n_starts=2, progress=said.append)
+    assert list(got.results) == ["d0", "quiet", "d2"]
+    alone = greybox.fit(quiet.model, quiet.experiments, od.FREE, noise=NOISE, n_starts=2)
+    assert got["quiet"].status == alone.status == "converged"
+    assert "not needed" in got["quiet"].message and "process.air" in got["quiet"].message
+    assert got["quiet"].message == alone.message
+    assert got["quiet"].estimate("process.air").value < 1e-3 * START["q"]
+    for a, b in zip(alone.parameters, got["quiet"].parameters):
+        assert b.value == pytest.approx(a.value, rel=1e-6, abs=1e-12), a.name
+    for name in ("d0", "d2"):
+        assert np.array_equal(got[name].raw, batch[name].raw)
+    assert said[-1] == "3 devices assembled"
+
+
 def test_batch_refuses_a_sigma_with_process_noise(devices):
     with pytest.raises(ValueError, match="sigma"):
         greybox.fit_batch(devices[:1], od.FREE, noise=NOISE, sigma=0.1)

@@ -19,12 +19,14 @@ likelihood with the likelihood back end's one compiled optimiser, over chunks of
   the same compiled chunk.
 - Each device's `FitResult` is assembled as `fit` assembles it (`likelihood.assemble_many`:
   verdicts, covariance, per-run diagnostics host-side and per device; the residual tests of
-  a group's devices in one vectorised pass, their shuffles shared).
+  a chunk's devices in one vectorised pass, their shuffles shared), in a host thread while
+  the next chunk solves (`_Assembler`).
 """
 
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -60,74 +62,141 @@ def fit_likelihood_batch(
     named_setups, *, chunk_size=None, progress=None
 ) -> tuple[dict, int, int, int]:
     """({name: FitResult}, groups, chunk size, compiled calls) for `named_setups`
-    ((name, `likelihood.Setup`), ...)."""
+    ((name, `likelihood.Setup`), ...). This thread runs the compiled chunks one after
+    another while one host thread assembles the devices already solved (`_Assembler`): a
+    compiled call releases the interpreter, so on two or more cores the assembly of one
+    chunk's devices overlaps the next chunk's solves, as in `fit_batch`'s output-error
+    path."""
     say = progress or (lambda _m: None)
     groups: dict = {}
     for i, (_, su) in enumerate(named_setups):
         groups.setdefault(_key(su.obj), []).append(i)
     results, calls, chunk_used = {}, 0, 0
-    for g, members in enumerate(groups.values()):
-        sus = [named_setups[i][1] for i in members]
-        static = eqx.partition(sus[0].obj, eqx.is_array)[1]
-        stacked = jtu.tree_map(
-            lambda *xs: np.stack([np.asarray(x) for x in xs]),
-            *[eqx.filter(su.obj, eqx.is_array) for su in sus],
-        )
-        budget = jnp.asarray(max(su.budget for su in sus))
-        if len({su.budget for su in sus}) != 1:
-            raise ValueError("max_steps: every device of a batch takes the same step budget")
-        items = [(m, s) for m, su in enumerate(sus) for s in su.starts]
-        n_items = len(items)
-        chunk = int(chunk_size) if chunk_size else min(MAX_CHUNK, n_items)
-        chunk = max(1, math.ceil(n_items / math.ceil(n_items / chunk)))
-        chunk_used = max(chunk_used, chunk)
-        label = f"group {g + 1}/{len(groups)}"
-        say(f"{label}: {len(sus)} devices, {n_items} likelihood solves, chunks of {chunk}")
+    host = ThreadPoolExecutor(max_workers=1, thread_name_prefix="greybox-assemble")
+    try:
+        assembled = []
+        for g, members in enumerate(groups.values()):
+            sus = [named_setups[i][1] for i in members]
+            names = [named_setups[i][0] for i in members]
+            static = eqx.partition(sus[0].obj, eqx.is_array)[1]
+            stacked = jtu.tree_map(
+                lambda *xs: np.stack([np.asarray(x) for x in xs]),
+                *[eqx.filter(su.obj, eqx.is_array) for su in sus],
+            )
+            budget = jnp.asarray(max(su.budget for su in sus))
+            if len({su.budget for su in sus}) != 1:
+                raise ValueError("max_steps: every device of a batch takes the same step budget")
+            items = [(m, s) for m, su in enumerate(sus) for s in su.starts]
+            n_items = len(items)
+            chunk = int(chunk_size) if chunk_size else min(MAX_CHUNK, n_items)
+            chunk = max(1, math.ceil(n_items / math.ceil(n_items / chunk)))
+            chunk_used = max(chunk_used, chunk)
+            label = f"group {g + 1}/{len(groups)}"
+            say(f"{label}: {len(sus)} devices, {n_items} likelihood solves, chunks of {chunk}")
 
-        def solve(pairs, label=label, stacked=stacked, static=static, budget=budget):
-            """One solver output per (member, raw start), in chunks of `chunk`."""
-            nonlocal calls
-            outs = []
-            for c in range(0, len(pairs), chunk):
-                part = pairs[c : c + chunk]
-                part = part + [part[-1]] * (chunk - len(part))
-                idx = np.asarray([m for m, _ in part])
-                dyn = jtu.tree_map(lambda x: jnp.asarray(np.take(x, idx, axis=0)), stacked)
-                raws = jnp.asarray(np.stack([np.asarray(r, dtype=float) for _, r in part]))
-                out = jax.device_get(_newton_many(dyn, static, raws, budget))
-                calls += 1
-                kept = min(chunk, len(pairs) - c)
-                outs += [{k: v[j] for k, v in out.items()} for j in range(kept)]
-            say(f"{label}: {len(pairs)} solves done")
-            return outs
+            def solve(pairs, stacked=stacked, static=static, budget=budget, chunk=chunk):
+                """One solver output per (member, raw start), in chunks of `chunk`."""
+                nonlocal calls
+                outs = []
+                for c in range(0, len(pairs), chunk):
+                    part = pairs[c : c + chunk]
+                    part = part + [part[-1]] * (chunk - len(part))
+                    idx = np.asarray([m for m, _ in part])
+                    dyn = jtu.tree_map(lambda x: jnp.asarray(np.take(x, idx, axis=0)), stacked)
+                    raws = jnp.asarray(np.stack([np.asarray(r, dtype=float) for _, r in part]))
+                    out = jax.device_get(_newton_many(dyn, static, raws, budget))
+                    calls += 1
+                    kept = min(chunk, len(pairs) - c)
+                    outs += [{k: v[j] for k, v in out.items()} for j in range(kept)]
+                return outs
 
-        first = solve(items)
-        # revive per item: an item's "member" in `revive`'s solve is its own index here
-        flats = [sus[m].flat for m, _ in items]
-        raw0s = [sus[m].raw0 for m, _ in items]
-        names = [f"{named_setups[members[m]][0]} start {k + 1}" for m, k in _start_numbers(items)]
-        runs = _lik.revive(
-            first,
-            flats,
-            raw0s,
-            lambda pairs: solve([(items[i][0], r) for i, r in pairs]),
-            lambda i, raws: _lik.totals_at(sus[items[i][0]].obj, raws),
-            say,
-            names,
-        )
+            group = _Assembler(sus, names, items, solve, host, say)
+            n_chunks = math.ceil(n_items / chunk)
+            for c in range(n_chunks):  # the same chunks as one call of `solve(items)`
+                group.solved(solve(items[c * chunk : (c + 1) * chunk]))
+                say(f"{label}: chunk {c + 1}/{n_chunks} solved")
+            assembled += group.finish()
+        for future in assembled:
+            results.update(future.result())
+    finally:  # an error or an interrupt: drop the devices not yet assembled
+        host.shutdown(wait=True, cancel_futures=True)
+    say(f"{len(results)} devices assembled")
+    return {name: results[name] for name, _ in named_setups}, len(groups), chunk_used, calls
+
+
+class _Assembler:
+    """The devices of one group, assembled as their solves come in: a device whose starts are
+    all solved goes to the host thread at once (`likelihood.assemble_many`, the devices of
+    one chunk together), unless a noise intensity vanished in one of its starts; those
+    devices are revived together at the end (`likelihood.revive`: the same items, in the
+    same order, as reviving the whole group at once, so the same re-solves in the same
+    chunks) and then assembled."""
+
+    def __init__(self, sus, names, items, solve, host, say):
+        self.sus, self.names, self.items = sus, names, items
+        self.solve, self.host, self.say = solve, host, say
         ends = np.cumsum([len(su.starts) for su in sus])
-        per_device = [(su, runs[e - len(su.starts) : e]) for su, e in zip(sus, ends)]
-        for m, result in enumerate(_lik.assemble_many(per_device, lambda _m: None)):
-            results[named_setups[members[m]][0]] = result
-        say(f"{label}: {len(sus)} devices assembled")
-    return results, len(groups), chunk_used, calls
+        self.spans = [(int(e) - len(su.starts), int(e)) for su, e in zip(sus, ends)]
+        self.outs: list = []
+        self.next = 0  # the first device not yet handed on
+        self.deferred: list = []
+        self.futures: list = []
+
+    def solved(self, outs) -> None:
+        """Take the next solver outputs (in item order) and hand on the devices now complete."""
+        self.outs += outs
+        ready = []
+        while self.next < len(self.sus) and self.spans[self.next][1] <= len(self.outs):
+            m = self.next
+            lo, hi = self.spans[m]
+            su = self.sus[m]
+            if any(_lik._gone(su.flat, su.raw0, self.outs[i]["raw"]) for i in range(lo, hi)):
+                self.deferred.append(m)
+            else:
+                ready.append((m, self.outs[lo:hi]))
+            self.next += 1
+        self._submit(ready)
+
+    def finish(self) -> list:
+        """Revive the deferred devices, hand them on; the futures of every device's result."""
+        if self.deferred:
+            idx = [i for m in self.deferred for i in range(*self.spans[m])]
+            members = [self.items[i][0] for i in idx]
+            labels = [f"{self.names[m]} start {k + 1}" for m, k in _start_numbers(members)]
+            runs = _lik.revive(
+                [self.outs[i] for i in idx],
+                [self.sus[m].flat for m in members],
+                [self.sus[m].raw0 for m in members],
+                lambda pairs: self.solve([(members[j], r) for j, r in pairs]),
+                lambda j, raws: _lik.totals_at(self.sus[members[j]].obj, raws),
+                self.say,
+                labels,
+            )
+            ready, at = [], 0
+            for m in self.deferred:
+                n = len(self.sus[m].starts)
+                ready.append((m, runs[at : at + n]))
+                at += n
+            self._submit(ready)
+        return self.futures
+
+    def _submit(self, ready) -> None:
+        if not ready:
+            return
+        sus = [(self.sus[m], runs) for m, runs in ready]
+        names = [self.names[m] for m, _ in ready]
+
+        def assemble():
+            return dict(zip(names, _lik.assemble_many(sus, lambda _m: None)))
+
+        self.futures.append(self.host.submit(assemble))
 
 
-def _start_numbers(items):
-    """(member, start number within the member) of each item."""
+def _start_numbers(members):
+    """(member, start number within the member) of each item's member."""
     seen: dict = {}
     out = []
-    for m, _ in items:
+    for m in members:
         out.append((m, seen.get(m, 0)))
         seen[m] = seen.get(m, 0) + 1
     return out

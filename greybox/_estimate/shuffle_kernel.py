@@ -52,7 +52,7 @@ def fill(jobs, permutations: int, orders) -> None:
     if not jobs or not b:
         return
     width = _pow2(max(job.g.size for job in jobs), 16)
-    n_max = _pow2(max(int(job.occ.sum()) for job in jobs), 16)
+    n_max = _pow2(max(job.order_key[1] for job in jobs), 16)
     h = max(job.npairs.size for job in jobs)
     for part in _calls(jobs, b, n_max, h):
         _fill_call(part, b, orders, width, n_max, h)
@@ -66,8 +66,8 @@ def _calls(jobs, b: int, n_max: int, h: int):
     max_keys = max(1, CALL_ELEMENTS // (b * n_max))
     max_jobs = _pow2_within(CALL_ELEMENTS // (b * h))  # a power of two: padded, at most this
     part, keys = [], set()
-    for job in sorted(jobs, key=lambda j: (j.key, int(j.occ.sum()))):
-        key = (job.key, int(job.occ.sum()))
+    for job in sorted(jobs, key=lambda j: j.order_key):
+        key = job.order_key
         if part and (len(part) == max_jobs or (key not in keys and len(keys) == max_keys)):
             yield part
             part, keys = [], set()
@@ -86,11 +86,11 @@ def _fill_call(jobs, b: int, orders, width: int, n_max: int, h: int) -> None:
     npairs, bias = np.ones((count, h), np.float32), np.zeros((count, 1), np.float32)
     index, keys = np.zeros(count, np.int32), {}
     for i, job in enumerate(jobs):
-        s = np.flatnonzero(job.occ)
+        s = job.slot_runs[0]
         vals[i, : s.size], slots[i, : s.size] = job.unit[s], s
         npairs[i, : job.npairs.size] = np.maximum(job.npairs, 1)
         bias[i] = 1.0 / (job.n - 1)
-        index[i] = keys.setdefault((job.key, s.size), len(keys))
+        index[i] = keys.setdefault(job.order_key, len(keys))
     table = np.zeros((_pow2(len(keys)), b, n_max), np.int32)
     for (key, n), k in keys.items():
         table[k, :, :n] = orders(key, n)

@@ -55,7 +55,6 @@ from greybox.stochastic._sde_device import (
     NoiseStructure,
     StochasticDevice,
     _grid,
-    _loglik_jit,
     _record_loglik,
     _run_arrays,
     _t0,
@@ -559,8 +558,8 @@ def _diagnose(model, e, role: str, lags: int, k_step: int, settings_applied=Fals
 
     m = model if settings_applied else e.apply_settings(model)
     m = as_arrays(m)
-    _, yp, sd1, ys, sds, _, yk, sdk = _run_arrays(m, e, k_step)
-    ll = float(_loglik_jit(m, _grid(e), jnp.asarray(e.t_s), _t0(e), jnp.asarray(e.y)))
+    _, yp, sd1, ys, sds, _, yk, sdk, ll = _run_arrays(m, e, k_step)
+    ll = float(ll)
     y = np.asarray(e.y)
     yp, ys, yk = np.asarray(yp), np.asarray(ys), np.asarray(yk)
     z = (y - yp) / np.asarray(sd1)

@@ -498,8 +498,8 @@ def measurement_update(m_p, P_p, y_i, y_hat, H, R):
 
 
 def _run(model: LinearGaussianSDE, grid: FilterGrid, y, keep_path: bool):
-    """Forward pass over the L grid steps: (log L, per-step moments when `keep_path` else the
-    per-step log-likelihood terms (L,), Ad, y)."""
+    """Forward pass over the L grid steps: (log L, the per-step log-likelihood terms (L,),
+    after them (with `keep_path`) the per-step moments m_p, P_p, m_f, P_f, y_hat, S, Ad, y)."""
     y = _as_rows(model, grid, y)
     dtype = jnp.result_type(model.A, y)
     Ad, Bd, Qd = discretise_steps(model.A, model.B, model.Qc, grid, dtype)
@@ -517,16 +517,21 @@ def _run(model: LinearGaussianSDE, grid: FilterGrid, y, keep_path: bool):
         y_hat = model.observe(m_p, uo_i)
         H = jax.jacfwd(model.observe)(m_p, uo_i) if model.output is not None else model.C
         m_f, P_f, ll_i = measurement_update(m_p, P_p, y_i, y_hat, H, model.R)
-        out = ll_i  # without the path: each step's log-likelihood term
+        out = (ll_i,)  # each step's log-likelihood term, then (with the path) its moments
         if keep_path:
-            S_full = H @ P_p @ H.T + model.R
-            out = (m_p, P_p, m_f, P_f, y_hat, S_full)
+            out += (m_p, P_p, m_f, P_f, y_hat, H @ P_p @ H.T + model.R)
         return (m_f, P_f, ll + ll_i), out
 
     init = (jnp.asarray(model.x0, dtype), jnp.asarray(model.P0, dtype), jnp.zeros((), dtype))
     u_steps = jnp.asarray(grid.u, dtype)
     (_, _, ll), path = jax.lax.scan(step, init, (Ad, Bd, Qd, u_steps, y_step, u_obs))
     return ll, path, Ad, y
+
+
+def scored_log_likelihood(ll, terms, grid: FilterGrid, score_first: bool):
+    """log L of a record as fitted: the filter's `ll` and per-step `terms`; without
+    `score_first` the first frame is conditioned on, not scored: log p(y_2..y_N | y_1)."""
+    return ll if score_first else ll - terms[grid.step[0]]
 
 
 @jit
@@ -550,7 +555,7 @@ def kalman_filter(model: LinearGaussianSDE, grid: FilterGrid, y) -> FilterResult
 
     Arguments as for `log_likelihood`.
     """
-    ll, (m_p, P_p, m_f, P_f, y_hat, S), _, y = _run(model, grid, y, keep_path=True)
+    ll, (_, m_p, P_p, m_f, P_f, y_hat, S), _, y = _run(model, grid, y, keep_path=True)
     k = grid.step
     v = y - y_hat[k]
     sd = jnp.sqrt(jnp.diagonal(S[k], axis1=1, axis2=2))
@@ -576,7 +581,7 @@ def rts_smoother(model: LinearGaussianSDE, grid: FilterGrid, y) -> SmootherResul
     (pseudo-inverse: states without process noise give a singular P_p). Arguments as for
     `log_likelihood`.
     """
-    ll, (m_p, P_p, m_f, P_f, _, _), Ad, _ = _run(model, grid, y, keep_path=True)
+    ll, (_, m_p, P_p, m_f, P_f, _, _), Ad, _ = _run(model, grid, y, keep_path=True)
 
     def back(carry, inputs):
         m_s, P_s = carry

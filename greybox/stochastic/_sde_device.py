@@ -59,8 +59,8 @@ from greybox.stochastic._kalman import (
     FilterGrid,
     LinearGaussianSDE,
     discretise,
-    kalman_filter,
     measurement_update,
+    scored_log_likelihood,
 )
 from greybox._simulate.simulate import as_arrays, require_x64
 
@@ -488,8 +488,9 @@ def _ekf_predictor(model: StochasticDevice, dtype):
 
 
 def _ekf_run(model: StochasticDevice, grid: FilterGrid, y, keep_path: bool):
-    """Extended Kalman filter over the grid; (loglik, path or the per-step log-likelihood
-    terms)."""
+    """Extended Kalman filter over the grid: (log L, the per-step log-likelihood terms, after
+    them (with `keep_path`) the per-step moments m_p, P_p, m_f, P_f, y_hat, S), as the
+    linear filter's `_run`."""
     dtype = jnp.result_type(float)
     R = model.measurement_cov(dtype)
     dt_all, t_starts = _step_starts(grid, dtype)
@@ -506,7 +507,9 @@ def _ekf_run(model: StochasticDevice, grid: FilterGrid, y, keep_path: bool):
         y_hat = h(m_p)
         H = jax.jacfwd(h)(m_p)
         m_f, P_f, ll_i = measurement_update(m_p, P_p, y_i, y_hat, H, R)
-        out = (m_p, P_p, m_f, P_f, y_hat, H @ P_p @ H.T + R) if keep_path else ll_i
+        out = (ll_i,)
+        if keep_path:
+            out += (m_p, P_p, m_f, P_f, y_hat, H @ P_p @ H.T + R)
         return (m_f, P_f, ll + ll_i), out
 
     init = (model.initial_mean(dtype), model.initial_cov(dtype), jnp.zeros((), dtype))
@@ -519,15 +522,19 @@ def _record_loglik(model: StochasticDevice, grid: FilterGrid, t_s, t0, y):
     """log p(y) of one record (y the readings (N, q) in SI, NaN = dropped); without
     `model.score_first` the first frame is conditioned on: log p(y_2..y_N | y_1)."""
     y_adj = y - _readout_terms(model.device, t_s, t0, model.n_outputs)
-    if model.use_ekf:
-        ll, terms = _ekf_run(model, grid, y_adj, keep_path=False)
-    else:
-        from greybox.stochastic._kalman import _run
+    ll, (terms,) = _filter_path(model, grid, y_adj, keep_path=False)
+    return scored_log_likelihood(ll, terms, grid, model.score_first)
 
-        ll, terms, _, _ = _run(model.linear_sde(y_adj.dtype), grid, y_adj, keep_path=False)
-    if model.score_first:
-        return ll
-    return ll - terms[grid.step[0]]
+
+def _filter_path(model: StochasticDevice, grid: FilterGrid, y_adj, keep_path: bool):
+    """(log L, per-step path) of the filter that fits `model`: the extended Kalman filter, or
+    the linear one (see `_ekf_run`)."""
+    if model.use_ekf:
+        return _ekf_run(model, grid, y_adj, keep_path)
+    from greybox.stochastic._kalman import _run
+
+    ll, path, _, _ = _run(model.linear_sde(y_adj.dtype), grid, y_adj, keep_path)
+    return ll, path
 
 
 @dataclasses.dataclass(frozen=True)
@@ -573,7 +580,9 @@ def _k_step_plan(grid: FilterGrid, k: int):
 @jit
 def _filter_arrays(model: StochasticDevice, grid: FilterGrid, t_s, t0, y, plan, n_loop: int):
     """One run: log L, one-step prediction and sd, simulation and sd, filtered means,
-    k-step prediction and sd (every prediction in reading units, readout terms added)."""
+    k-step prediction and sd (every prediction in reading units, readout terms added), and
+    log L as fitted (`scored_log_likelihood`: the first frame conditioned on unless
+    `score_first`), from the same filter pass."""
     q = model.n_outputs
     dtype = y.dtype
     off = _readout_terms(model.device, t_s, t0, q)
@@ -582,17 +591,15 @@ def _filter_arrays(model: StochasticDevice, grid: FilterGrid, t_s, t0, y, plan, 
     R = model.measurement_cov(dtype)
 
     def one(data):
-        if model.use_ekf:
-            ll, (m_p, P_p, m_f, P_f, y_hat, S) = _ekf_run(model, grid, data, keep_path=True)
-            return ll, y_hat[k], S[k], m_f[k], P_f[k]
-        res = kalman_filter(model.linear_sde(dtype), grid, data)
-        return res.log_likelihood, res.y_pred, res.y_pred_cov, res.filtered_mean, res.filtered_cov
+        ll, (terms, _, _, m_f, P_f, y_hat, S) = _filter_path(model, grid, data, keep_path=True)
+        scored = scored_log_likelihood(ll, terms, grid, model.score_first)
+        return ll, scored, y_hat[k], S[k], m_f[k], P_f[k]
 
-    ll, yp, Sp, mf, Pf = jax.vmap(one)(jnp.stack([y_adj, jnp.full_like(y_adj, jnp.nan)]))
+    ll, scored, yp, Sp, mf, Pf = jax.vmap(one)(jnp.stack([y_adj, jnp.full_like(y_adj, jnp.nan)]))
     sd1 = jnp.sqrt(jnp.diagonal(Sp[0], axis1=1, axis2=2))
     sds = jnp.sqrt(jnp.diagonal(Sp[1], axis1=1, axis2=2))
     yk, sdk = _k_step_arrays(model, grid, mf[0], Pf[0], plan, n_loop, R)
-    return ll[0], yp[0] + off, sd1, yp[1] + off, sds, mf[0], yk + off, sdk
+    return ll[0], yp[0] + off, sd1, yp[1] + off, sds, mf[0], yk + off, sdk, scored[0]
 
 
 def _k_step_arrays(model, grid, mf, Pf, plan, n_loop, R):
@@ -657,7 +664,7 @@ def device_filter(
     require_x64("device_filter")
     e = experiment
     m = as_arrays(e.apply_settings(model))
-    ll, yp, sd1, ys, sds, mf, yk, sdk = _run_arrays(m, e, k_step)
+    ll, yp, sd1, ys, sds, mf, yk, sdk, _ = _run_arrays(m, e, k_step)
     y = np.asarray(e.y)
     v = y - yp
     return DeviceFilterResult(

@@ -498,8 +498,9 @@ def measurement_update(m_p, P_p, y_i, y_hat, H, R):
 
 
 def _run(model: LinearGaussianSDE, grid: FilterGrid, y, keep_path: bool):
-    """Forward pass over the L grid steps: (log L, the per-step log-likelihood terms (L,),
-    after them (with `keep_path`) the per-step moments m_p, P_p, m_f, P_f, y_hat, S, Ad, y)."""
+    """Forward pass over the L grid steps: (log L, path, Ad, y), the path a tuple of the
+    per-step log-likelihood terms (L,) and, with `keep_path`, the per-step m_p, P_p, m_f,
+    P_f, y_hat, S after them."""
     y = _as_rows(model, grid, y)
     dtype = jnp.result_type(model.A, y)
     Ad, Bd, Qd = discretise_steps(model.A, model.B, model.Qc, grid, dtype)

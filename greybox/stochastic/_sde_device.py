@@ -488,9 +488,9 @@ def _ekf_predictor(model: StochasticDevice, dtype):
 
 
 def _ekf_run(model: StochasticDevice, grid: FilterGrid, y, keep_path: bool):
-    """Extended Kalman filter over the grid: (log L, the per-step log-likelihood terms, after
-    them (with `keep_path`) the per-step moments m_p, P_p, m_f, P_f, y_hat, S), as the
-    linear filter's `_run`."""
+    """Extended Kalman filter over the grid: (log L, path), the path as the linear filter's
+    (`_kalman._run`): the per-step log-likelihood terms, and with `keep_path` the per-step
+    m_p, P_p, m_f, P_f, y_hat, S after them."""
     dtype = jnp.result_type(float)
     R = model.measurement_cov(dtype)
     dt_all, t_starts = _step_starts(grid, dtype)

@@ -55,6 +55,7 @@ from greybox._compile import jit
 from greybox._model.data import Experiment
 from greybox._model.device import AbstractLinearDevice, AbstractODEDevice
 from greybox._model.freeparams import FreeParameter, apply_raw
+from greybox._simulate.simulate import as_arrays, require_x64
 from greybox.stochastic._kalman import (
     FilterGrid,
     LinearGaussianSDE,
@@ -62,7 +63,6 @@ from greybox.stochastic._kalman import (
     measurement_update,
     scored_log_likelihood,
 )
-from greybox._simulate.simulate import as_arrays, require_x64
 
 __all__ = [
     "DISTURBANCES",

@@ -63,6 +63,7 @@ from greybox.stochastic._kalman import (
     measurement_update,
     scored_log_likelihood,
 )
+from greybox.stochastic._kalman import _run as _linear_run
 
 __all__ = [
     "DISTURBANCES",
@@ -531,9 +532,7 @@ def _filter_path(model: StochasticDevice, grid: FilterGrid, y_adj, keep_path: bo
     the linear one (see `_ekf_run`)."""
     if model.use_ekf:
         return _ekf_run(model, grid, y_adj, keep_path)
-    from greybox.stochastic._kalman import _run
-
-    ll, path, _, _ = _run(model.linear_sde(y_adj.dtype), grid, y_adj, keep_path)
+    ll, path, _, _ = _linear_run(model.linear_sde(y_adj.dtype), grid, y_adj, keep_path)
     return ll, path
 
 

@@ -4,6 +4,8 @@ known population and flags a planted outlier, and a Dask batch survives a killed
 import os
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -105,6 +107,61 @@ def test_chunk_size_respects_memory_budget(batch):
     # evened out: two chunks of 16,384 rather than 29,000 and a padded 3,768
     assert chunk_size_for(b, 29000 * b, 32768, 65536) == 16384
     assert chunk_size_for(b, 256 * b, 1000, 256) == 250
+    # padding free (a CPU): the largest power of two within the budget, whatever the work
+    assert chunk_size_for(b, 1e6 * b, 3, 64, padding_free=True) == 64
+    assert chunk_size_for(b, 10 * b, 1000, 64, padding_free=True) == 8
+    assert chunk_size_for(b, b / 2, 3, 64, padding_free=True) == 1
+
+
+def test_a_batch_of_another_size_reuses_the_solver_and_skips_its_padding(batch):
+    """On a CPU every chunk has one size whatever the batch's (its padding items skipped),
+    so a batch of 3 devices after the fixture's 14 compiles no solver, and each of its
+    devices gets the fixture's result bit for bit (the same compiled solve)."""
+    from greybox._platform import on_accelerator
+
+    if on_accelerator():
+        pytest.skip("an accelerator sizes chunks to the work (a padding item costs a solve)")
+    devices, _, out, _ = batch
+    compiled = []
+
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiled.append(kw.get("fun_name", ""))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        small = fit_batch(devices[3:6], SPEC.free_parameters())
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert not [n for n in compiled if "_solve_many" in n], compiled
+    assert small.chunk_size == out.chunk_size
+    for d in devices[3:6]:
+        np.testing.assert_array_equal(small[d.name].raw, out[d.name].raw)
+
+
+def test_padding_items_are_skipped_on_a_cpu():
+    """`map_over_items` with `active`: the items marked False run nothing (counted by a host
+    callback inside the mapped function) and come back as zeros; the others are `fn`'s."""
+    from greybox._platform import map_over_items, on_accelerator
+
+    if on_accelerator():
+        pytest.skip("vmapped, padding items run with the others")
+    ran = []
+
+    def fn(x, y):
+        jax.debug.callback(lambda v: ran.append(float(v)), x)
+        return {"sum": x + y.sum(), "scaled": 2.0 * y}
+
+    x = jnp.array([1.0, 2.0, 3.0, 4.0])
+    y = jnp.arange(12.0).reshape(4, 3) + 1.0
+    out = jax.jit(lambda x, y, a: map_over_items(fn, x, y, active=a))(
+        x, y, jnp.array([True, True, True, False])
+    )
+    jax.effects_barrier()
+    assert sorted(ran) == [1.0, 2.0, 3.0]
+    np.testing.assert_array_equal(out["sum"], [7.0, 17.0, 27.0, 0.0])
+    np.testing.assert_array_equal(out["scaled"][:3], 2.0 * y[:3])
+    np.testing.assert_array_equal(out["scaled"][3], 0.0)
 
 
 def test_a_result_survives_pickling_whole(batch):

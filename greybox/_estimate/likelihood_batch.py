@@ -15,8 +15,9 @@ likelihood with the likelihood back end's one compiled optimiser, over chunks of
   converged, each pass evaluating one point for every item whatever phase it is in; an
   item that is done keeps its state, so each item's result is the one the unbatched solve
   gives, to rounding). The last chunk is padded with copies of its last item,
-  so a group compiles once. Reviving vanished noise intensities (`likelihood.revive`) reuses
-  the same compiled chunk.
+  so a group compiles once; on a CPU the padding items are skipped, so every chunk there has
+  one size (`MAX_CHUNK`) and a batch of any size reuses an earlier batch's compiled solver.
+  Reviving vanished noise intensities (`likelihood.revive`) reuses the same compiled chunk.
 - Each device's `FitResult` is assembled as `fit` assembles it (`likelihood.assemble_many`:
   verdicts, covariance, per-run diagnostics host-side and per device; the residual tests of
   a chunk's devices in one vectorised pass, their shuffles shared), in a host thread while
@@ -36,20 +37,21 @@ import numpy as np
 
 from greybox._compile import jit
 from greybox._estimate import likelihood as _lik
-from greybox._platform import map_over_items
+from greybox._platform import map_over_items, on_accelerator
 
 MAX_CHUNK = 64  # likelihood solves per compiled call (each carries its own Hessian work)
 
 
 @jit
-def _newton_many(dynamic, static, raws, budget):
+def _newton_many(dynamic, static, raws, budget, active):
     """`likelihood._newton` over a chunk of stacked objectives and start points (vmapped on
-    an accelerator, one after another on a CPU: `map_over_items`)."""
+    an accelerator, one after another on a CPU: `map_over_items`, which skips the items that
+    `active` marks as padding)."""
 
     def one(dyn, raw):
         return _lik._newton(eqx.combine(dyn, static), raw, budget)
 
-    return map_over_items(one, dynamic, raws)
+    return map_over_items(one, dynamic, raws, active=active)
 
 
 def _key(obj) -> tuple:
@@ -88,8 +90,13 @@ def fit_likelihood_batch(
                 raise ValueError("max_steps: every device of a batch takes the same step budget")
             items = [(m, s) for m, su in enumerate(sus) for s in su.starts]
             n_items = len(items)
-            chunk = int(chunk_size) if chunk_size else min(MAX_CHUNK, n_items)
-            chunk = max(1, math.ceil(n_items / math.ceil(n_items / chunk)))
+            if chunk_size:
+                chunk = int(chunk_size)
+            elif on_accelerator():  # a padding item costs a solve there: chunks evened out
+                chunk = min(MAX_CHUNK, n_items)
+                chunk = max(1, math.ceil(n_items / math.ceil(n_items / chunk)))
+            else:  # padding is skipped: one chunk size, so one compiled solver per structure
+                chunk = MAX_CHUNK
             chunk_used = max(chunk_used, chunk)
             label = f"group {g + 1}/{len(groups)}"
             say(f"{label}: {len(sus)} devices, {n_items} likelihood solves, chunks of {chunk}")
@@ -104,9 +111,10 @@ def fit_likelihood_batch(
                     idx = np.asarray([m for m, _ in part])
                     dyn = jtu.tree_map(lambda x: jnp.asarray(np.take(x, idx, axis=0)), stacked)
                     raws = jnp.asarray(np.stack([np.asarray(r, dtype=float) for _, r in part]))
-                    out = jax.device_get(_newton_many(dyn, static, raws, budget))
-                    calls += 1
                     kept = min(chunk, len(pairs) - c)
+                    active = jnp.asarray(np.arange(chunk) < kept)
+                    out = jax.device_get(_newton_many(dyn, static, raws, budget, active))
+                    calls += 1
                     outs += [{k: v[j] for k, v in out.items()} for j in range(kept)]
                 return outs
 

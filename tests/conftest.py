@@ -67,14 +67,13 @@ jax.config.update(
 # Each is an XLA_FLAGS entry only where this XLA knows it (an unknown entry would abort
 # every process): probed once, as a compile option of a trivial program, in the process
 # that starts the session (the workers and subprocesses inherit the environment).
-_BUILD = {"xla_cpu_use_fusion_emitters": "false", "xla_cpu_parallel_codegen_split_count": "1"}
+_BUILD = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_parallel_codegen_split_count": 1}
 
 
-def _xla_knows(name: str, value: str) -> bool:
-    option = {"false": False, "true": True}.get(value, value)
-    option = int(option) if isinstance(option, str) and option.isdigit() else option
+def _xla_knows(name: str, value) -> bool:
+    """Whether this XLA takes `name` as a compile option (then also as an XLA_FLAGS entry)."""
     try:
-        jax.jit(lambda x: x + 1.0, compiler_options={name: option}).lower(0.0).compile()
+        jax.jit(lambda x: x + 1.0, compiler_options={name: value}).lower(0.0).compile()
     except Exception:  # noqa: BLE001 (refused: this XLA has no such option)
         return False
     return True
@@ -82,7 +81,7 @@ def _xla_knows(name: str, value: str) -> bool:
 
 for _name, _value in _BUILD.items():
     if _name not in os.environ["XLA_FLAGS"] and _xla_knows(_name, _value):
-        os.environ["XLA_FLAGS"] += f" --{_name}={_value}"
+        os.environ["XLA_FLAGS"] += f" --{_name}={str(_value).lower()}"
 
 
 def pytest_sessionfinish(session, exitstatus):

@@ -54,13 +54,14 @@ from greybox._compile import jit
 from greybox._estimate import fit as _fit
 from greybox._estimate.blas import small_blas
 from greybox._estimate.problem import best_start
+from greybox._estimate.problem import solve_bytes as bytes_per_item
 from greybox._estimate.residuals import analyse_many as analyse_residuals
 from greybox._model.data import Experiment
 from greybox._model.device import check_method
 from greybox._model.freeparams import FreeParameter
 from greybox._model.parameters import get_value
 from greybox._platform import default_device, map_over_items, on_accelerator
-from greybox._simulate.simulate import pad_schedules, require_x64, schedules_for, zoh_scan_kind
+from greybox._simulate.simulate import pad_schedules, require_x64, schedules_for
 
 MAX_CHUNK = 64  # solves per compiled call on a CPU (one after another there, `map_over_items`):
 # more saves little dispatch, and smaller waves overlap the host work better
@@ -158,27 +159,6 @@ def batch_table(results: Mapping) -> list[dict]:
             row[f"fit%[{j}]:min"] = float(np.nanmin(fits[:, j]))
         rows.append(row)
     return rows
-
-
-def bytes_per_item(problem) -> int:
-    """Estimated peak working bytes of one solve (one device, one start) inside a vmapped
-    call: `greybox._estimate.memory.solve_bytes` (the model shared with `greybox fit`'s pre-check)."""
-    from greybox._estimate import memory as _memory
-
-    n_exp, n_frames, n_y = problem.y.shape
-    return int(
-        _memory.solve_bytes(
-            runs=n_exp,
-            frames=n_frames,
-            states=int(problem.model.n_states),
-            outputs=n_y,
-            inputs=problem.sched["u_grid"].shape[-1],
-            raw=problem.n_raw,
-            intervals=problem.sched["dt"].shape[1],
-            priors=len(problem.priors),
-            associative_scan=zoh_scan_kind(problem.sched["dt"].shape[1]) == "associative",
-        )
-    )
 
 
 def chunk_size_for(

@@ -63,6 +63,7 @@ from greybox._estimate.residuals import (
     padded_stack,
 )
 from greybox._estimate.sandwich import HACMeat, hac_meats, model_error_residuals_many
+from greybox._estimate.starts import run_starts
 from greybox._estimate.residuals import analyse as analyse_residuals
 from greybox._simulate.simulate import (
     as_arrays,
@@ -1000,18 +1001,26 @@ def _fit_least_squares(
     n_starts = _problem.n_starts_for(n_starts, problem.shared)
     rng = np.random.default_rng(seed)
     starts = [raw0] + [_perturbed(problem, raw0, rng) for _ in range(int(n_starts) - 1)]
-    runs = []
-    for i, start in enumerate(starts):
+
+    def announce(i):
         say(
             f"start {i + 1}/{len(starts)}: Levenberg-Marquardt ({method}, {loss} loss, "
             f"{problem.n_raw} parameters, {problem.n_data} frames)"
         )
-        out = jax.device_get(solve(jnp.asarray(start), jnp.asarray(sig)))
-        runs.append(out)
+
+    def report(i, out):
         say(
             f"start {i + 1}/{len(starts)}: cost {float(out['cost']):.6g}, "
             f"{_ending(out)} after {int(out['steps'])} steps"
         )
+
+    runs = run_starts(
+        lambda start: jax.device_get(solve(jnp.asarray(start), jnp.asarray(sig))),
+        starts,
+        announce,
+        report,
+        _problem.solve_bytes(problem),
+    )
     best_index = _problem.best_start(runs)
     best = runs[best_index]
     steps = int(best["steps"])

@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from greybox._estimate import memory as _memory
 from greybox._model.freeparams import apply_raw
 from greybox._model.parameters import get_value, set_values
+from greybox._simulate.simulate import zoh_scan_kind
 
 DECREMENT_TOL = 1e-9  # Newton decrement (twice the -log L, or cost, still to gain) at which a
 # start has converged: both objectives judge their end points by it
@@ -141,3 +143,23 @@ def best_start(runs) -> int:
     """Index of the finite start with the lowest cost (0 when none is finite)."""
     finite = finite_starts(runs)
     return min(finite, key=lambda i: float(runs[i]["cost"])) if finite else 0
+
+
+def solve_bytes(problem) -> int:
+    """Estimated peak working bytes of one solve of `problem` (one device, one start), also
+    inside a vmapped chunk: `greybox._estimate.memory.solve_bytes` (the model shared with
+    `greybox fit`'s pre-check) at the problem's padded shapes."""
+    n_exp, n_frames, n_y = problem.y.shape
+    return int(
+        _memory.solve_bytes(
+            runs=n_exp,
+            frames=n_frames,
+            states=int(problem.model.n_states),
+            outputs=n_y,
+            inputs=problem.sched["u_grid"].shape[-1],
+            raw=problem.n_raw,
+            intervals=problem.sched["dt"].shape[1],
+            priors=len(problem.priors),
+            associative_scan=zoh_scan_kind(problem.sched["dt"].shape[1]) == "associative",
+        )
+    )

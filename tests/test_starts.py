@@ -1,0 +1,85 @@
+"""A multi-start fit's starts run side by side on a CPU's cores (`greybox._estimate.starts`).
+
+Truth: the same fit with its starts one after another (one usable core): the same estimate
+and the same cost from every start, bit for bit, since each start is the same compiled solve
+of the same inputs; and the side-by-side fit really did hand its starts to worker threads.
+"""
+
+import numpy as np
+import pytest
+
+import greybox
+from greybox._estimate import starts as _starts
+from greybox._model.freeparams import FreeParameter
+
+SPEC = greybox.get_device("chevron_laser")
+
+
+@pytest.fixture(scope="module")
+def device():
+    model = greybox.devices.with_camera(SPEC.model(), exposure_s=10e-3)
+    truth = greybox.parameters.set_values(model, ["absorptance", "thermal.tau_s"], [0.6, 0.05])
+    runs = [
+        greybox.waveforms.record(
+            truth,
+            greybox.PulseTrain(p, 0.3, n_pulses=3, delay_s=0.05, tail_s=0.2),
+            name=f"r{j}",
+            defects=greybox.waveforms.CameraDefects(noise_m=0.05e-6),
+            seed=j,
+        )[0]
+        for j, p in enumerate((0.01, 0.02))
+    ]
+    free = [
+        FreeParameter("absorptance", "1", lower=0.0, upper=1.0),
+        FreeParameter("thermal.tau_s", "s", lower=0.0),
+        FreeParameter("thermal.resistance_K_per_W", "K/W", lower=0.0),
+        FreeParameter("camera.offset_m", "m"),
+    ]
+    return model, runs, free
+
+
+def test_starts_side_by_side_equal_one_after_another(device, monkeypatch):
+    if _starts.on_accelerator():
+        pytest.skip("an accelerator runs the starts one after another")
+    model, runs, free = device
+    monkeypatch.setattr(_starts, "usable_cores", lambda: 1)
+    alone = greybox.fit(model, runs, free, n_starts=4)
+
+    submitted = []
+
+    class Recording(_starts.ThreadPoolExecutor):
+        def submit(self, fn, *args, **kwargs):
+            submitted.append(args)
+            return super().submit(fn, *args, **kwargs)
+
+    monkeypatch.setattr(_starts, "usable_cores", lambda: 2)
+    monkeypatch.setattr(_starts, "ThreadPoolExecutor", Recording)
+    said = []
+    side = greybox.fit(model, runs, free, n_starts=4, progress=said.append)
+    assert len(submitted) == 3  # starts 2-4 went to the worker threads
+    assert side.multistart_costs == alone.multistart_costs
+    np.testing.assert_array_equal(side.raw, alone.raw)
+    ended = [line.split(":")[0] for line in said if "after" in line and "steps" in line]
+    assert ended == [f"start {i}/4" for i in range(1, 5)]  # reported in start order
+
+
+@pytest.mark.parametrize(("solve_bytes", "workers"), [(0.6e9, 1), (0.4e9, 2), (0.1e9, 4)])
+def test_side_by_side_starts_stay_within_their_memory(monkeypatch, solve_bytes, workers):
+    """Beside the one solve `greybox fit`'s memory pre-check counts, the starts side by side
+    take at most SIDE_BY_SIDE_BYTES (1 GB) more: 0.6 GB solves run one after another, 0.4 GB
+    ones two at a time, 0.1 GB ones as many as there are starts left (4 of 5), on 8 cores."""
+    if _starts.on_accelerator():
+        pytest.skip("an accelerator runs the starts one after another")
+    made = []
+
+    class Counting(_starts.ThreadPoolExecutor):
+        def __init__(self, max_workers, **kwargs):
+            made.append(max_workers)
+            super().__init__(max_workers, **kwargs)
+
+    monkeypatch.setattr(_starts, "usable_cores", lambda: 8)
+    monkeypatch.setattr(_starts, "ThreadPoolExecutor", Counting)
+    noop = lambda *_: None  # noqa: E731
+    out = _starts.run_starts(lambda s: 2.0 * s, [1.0, 2.0, 3.0, 4.0, 5.0], noop, noop, solve_bytes)
+    assert out == [2.0, 4.0, 6.0, 8.0, 10.0]
+    assert made == ([] if workers == 1 else [workers])

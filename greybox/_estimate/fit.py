@@ -1014,12 +1014,16 @@ def _fit_least_squares(
             f"{_ending(out)} after {int(out['steps'])} steps"
         )
 
+    try:
+        working = _problem.solve_bytes(problem)
+    except Exception:  # noqa: BLE001 (a device that knows its size only per run: one at a time)
+        working = float("inf")
     runs = run_starts(
         lambda start: jax.device_get(solve(jnp.asarray(start), jnp.asarray(sig))),
         starts,
         announce,
         report,
-        _problem.solve_bytes(problem),
+        working,
     )
     best_index = _problem.best_start(runs)
     best = runs[best_index]

@@ -831,7 +831,8 @@ def _physical_ranges(doc: TomlDocument, data: dict, spec, options: dict) -> dict
 
 def fit_memory_estimate(fs) -> float:
     """Estimated peak resident bytes of fitting `fs` (`greybox._estimate.memory`: base + one solve of
-    the runs padded to the longest; every start and the noise re-fit reuse it)."""
+    the runs padded to the longest; every start and the noise re-fit reuse it, and the starts
+    a CPU runs side by side add at most `greybox._estimate.starts.SIDE_BY_SIDE_BYTES`)."""
     from greybox._estimate import memory as _memory
 
     runs = list(fs.estimation) + list(fs.validation)

@@ -2,8 +2,9 @@
 
 import numpy as np
 
-from greybox._simulate.synthetic import CameraDefects, record
+import greybox
 from greybox._model.waveforms import PulseTrain
+from greybox._simulate.synthetic import CameraDefects, record
 
 # (power mW, period s) of the thesis's six stitched estimation runs
 THESIS_RUNS = ((5, 0.2), (10, 0.4), (10, 0.6), (15, 0.8), (20, 1.0), (30, 0.5))
@@ -30,6 +31,29 @@ def chevron_runs(
         exps.append(e)
         cleans.append(c)
     return exps, cleans
+
+
+def two_run_chevron(seed):
+    """A small chevron device (`population.Device`): two 3-pulse runs (10 and 20 mW, 0.3 s
+    period) of a camera-read chevron whose absorptance is drawn around 0.6 (tau 45 ms)."""
+    spec = greybox.get_device("chevron_laser")
+    rng = np.random.default_rng(seed)
+    model = greybox.devices.with_camera(spec.model(), exposure_s=10e-3)
+    truth = greybox.parameters.set_values(
+        model, ["absorptance", "thermal.tau_s"], [0.6 * np.exp(0.1 * rng.normal()), 0.045]
+    )
+    runs = [
+        record(
+            truth,
+            PulseTrain(p, 0.3, n_pulses=3, delay_s=0.05, tail_s=0.2),
+            name=f"r{j}",
+            defects=CameraDefects(noise_m=0.05e-6),
+            seed=seed * 10 + j,
+        )[0]
+        for j, p in enumerate((0.01, 0.02))
+    ]
+    return greybox.population.device_from_spec(spec, f"d{seed}", runs, model=model)
+
 
 # a two-run chevron experiment.toml (estimation + validation) for loader and docs tests
 GOOD_TOML = """\

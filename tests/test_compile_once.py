@@ -8,32 +8,11 @@ and the second fit's estimates against a fit of that device alone.
 """
 
 import jax
-import numpy as np
 import pytest
 
 import greybox
 from greybox._model.freeparams import FreeParameter
-
-SPEC = greybox.get_device("chevron_laser")
-
-
-def _device(seed):
-    rng = np.random.default_rng(seed)
-    model = greybox.devices.with_camera(SPEC.model(), exposure_s=10e-3)
-    truth = greybox.parameters.set_values(
-        model, ["absorptance", "thermal.tau_s"], [0.6 * np.exp(0.1 * rng.normal()), 0.045]
-    )
-    runs = [
-        greybox.waveforms.record(
-            truth,
-            greybox.PulseTrain(p, 0.3, n_pulses=3, delay_s=0.05, tail_s=0.2),
-            name=f"r{j}",
-            defects=greybox.waveforms.CameraDefects(noise_m=0.05e-6),
-            seed=seed * 10 + j,
-        )[0]
-        for j, p in enumerate((0.01, 0.02))
-    ]
-    return greybox.population.device_from_spec(SPEC, f"d{seed}", runs, model=model)
+from tests.helpers import two_run_chevron
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +28,7 @@ def compiles():
 
 
 def test_second_device_compiles_no_solver(compiles):
-    a, b = _device(1), _device(2)
+    a, b = two_run_chevron(1), two_run_chevron(2)
     starts = {p.path: p.initial for p in a.free if p.initial is not None}
     assert starts and any(
         q.initial != starts.get(q.path) for q in b.free if q.initial is not None
@@ -87,7 +66,7 @@ def test_a_new_structure_traces_its_simulation_once_and_its_derivative_once(monk
         return simulate(*args, **kwargs)
 
     monkeypatch.setattr(fit_module, "observe_schedule", counted)
-    d = _device(3)
+    d = two_run_chevron(3)
     # a Huber constant no other test uses: a structure compiled here, not found in a cache
     res = greybox.fit(d.model, d.experiments, d.free, loss="huber", huber_c=1.2345)
     assert res.converged

@@ -11,31 +11,19 @@ import pytest
 import greybox
 from greybox._estimate import starts as _starts
 from greybox._model.freeparams import FreeParameter
-
-SPEC = greybox.get_device("chevron_laser")
+from tests.helpers import two_run_chevron
 
 
 @pytest.fixture(scope="module")
 def device():
-    model = greybox.devices.with_camera(SPEC.model(), exposure_s=10e-3)
-    truth = greybox.parameters.set_values(model, ["absorptance", "thermal.tau_s"], [0.6, 0.05])
-    runs = [
-        greybox.waveforms.record(
-            truth,
-            greybox.PulseTrain(p, 0.3, n_pulses=3, delay_s=0.05, tail_s=0.2),
-            name=f"r{j}",
-            defects=greybox.waveforms.CameraDefects(noise_m=0.05e-6),
-            seed=j,
-        )[0]
-        for j, p in enumerate((0.01, 0.02))
-    ]
+    d = two_run_chevron(1)
     free = [
         FreeParameter("absorptance", "1", lower=0.0, upper=1.0),
         FreeParameter("thermal.tau_s", "s", lower=0.0),
         FreeParameter("thermal.resistance_K_per_W", "K/W", lower=0.0),
         FreeParameter("camera.offset_m", "m"),
     ]
-    return model, runs, free
+    return d.model, d.experiments, free
 
 
 def test_starts_side_by_side_equal_one_after_another(device, monkeypatch):

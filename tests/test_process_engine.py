@@ -301,9 +301,15 @@ def test_process_noise_not_needed_leaves_fit_valid(data):
 
 def test_validate_scores_new_runs_at_the_estimate(data, fitted):
     """`greybox.validate` on a new record: its innovations' log-likelihood at the fitted
-    parameters equals the numpy filter's, and every horizon is reported."""
+    parameters equals the numpy filter's, and every horizon is reported. Its residual test
+    is the fit's, on the one-step innovations: white on a record of the true structure
+    (numpy-simulated), where the free-run simulation residuals are not (the process noise
+    makes the record wander from the deterministic response)."""
+    from greybox._estimate.residuals import analyse
+
     new = ref.simulate(seed=5, n=300)
-    val = greybox.validate(fitted, [_experiment(new)])
+    e = _experiment(new)
+    val = greybox.validate(fitted, [e])
     (run,) = val.runs
     assert run.role == "validation"
     assert run.log_likelihood == pytest.approx(ref.loglik(_estimate(fitted), new), abs=1e-6)
@@ -313,6 +319,11 @@ def test_validate_scores_new_runs_at_the_estimate(data, fitted):
         "10-step prediction",
     ]
     assert val.fit_percent["rc3"].shape == (2,)
+    assert val.residuals.all_white and np.all(val.residuals.p_value > 0.01), val.residuals.verdict
+    innovations = analyse([(e.name, e.t_s, e.y - run.y_one_step, e.mask, e.frame_inputs())])
+    assert np.allclose(val.residuals.q, innovations.q)
+    wander = analyse([(e.name, e.t_s, e.y - run.y_simulation, e.mask, e.frame_inputs())])
+    assert not wander.all_white and np.nanmax(wander.p_value) < 0.01 / 2, wander.verdict
 
 
 # ------------------------------------------------------------------------------------------
@@ -364,6 +375,13 @@ def test_process_noise_result_folder(cli_fit):
     assert head["verdict"] == "valid", head  # the true structure, white innovations
     assert report.splitlines()[2] == f"**{head['text']}**"
     assert doc["runs"]["rc3"]["whiteness"]["Ti"]["test"] == "Ljung-Box"
+    # one residual test throughout: the one the headline used, on the innovations of the
+    # estimation and the validation runs, in report.md and params.json alike
+    for key, runs in (("residuals", "estimation"), ("residuals_validation", "validation")):
+        tested = doc[key]
+        assert tested["tested"].startswith("innovations") and tested["white"], tested
+        assert f"**Innovations ({runs} runs): {tested['verdict']}.**" in report
+    assert "20 lags" not in report
     assert (out / "figures" / "innovations_Ti.png").is_file()
     # the validation run: filtered at the estimate, scored at every horizon
     assert {tuple(line.split(",")[:2]) for line in metrics[1:]} == {

@@ -214,21 +214,14 @@ def score(name: str, options: dict, result, validation=None, nests=()) -> Candid
             getattr(validation, "parameters", ()),
         ),
     )
-    if _is_process(result):
-        white = all(all(w.p_value > 0.01 for w in r.whiteness) for r in result.runs)
-        verdict = (
-            "innovations white (Ljung-Box, p > 0.01 per output)"
-            if white
-            else "innovations NOT white (Ljung-Box, p <= 0.01 on an output): the structure "
-            "misses dynamics"
-        )
+    if _is_process(result):  # the residual test every fit uses, on the innovations
         return CandidateScore(
             n_params=int(result.raw.size),
             n_data=int(result.n_observations),
             loglik=float(result.log_likelihood),
             aic=float(result.aic),
             bic=float(result.bic),
-            residual_verdict=verdict,
+            residual_verdict=f"innovations: {result.residuals.verdict}",
             noise_model="process noise",
             **common,
         )

@@ -154,7 +154,8 @@ class FitResult:
       is then its RMS); `goodness_of_fit`: the test against known noise (None if estimated).
     - per run name: `fit_percent`, `fit_percent_robust`, `noise_ceiling` ((n_y,) arrays, one
       figure per output channel), `n_outliers` (readings flagged).
-    - `residuals`: the residual analysis (whiteness, correlations with the inputs).
+    - `residuals`: the residual analysis (whiteness, correlations with the inputs) of the
+      simulation residuals; with process noise, of the one-step innovations.
     - `multistart_costs`: ((cost, converged) per start, at the first noise scale);
       `best_start`: the start whose estimate is reported; `n_starts_at_best`: how many
       starts reached its cost.
@@ -166,7 +167,8 @@ class FitResult:
       with the fit's solver settings, so writing a result simulates nothing again).
     - process noise only (NaN / empty for least squares): `log_likelihood` (data term; the
       first frame conditioned on when the initial state is known), `aic`, `bic`,
-      `whiteness` ({run: Ljung-Box per output of the standardised innovations}), `runs`
+      `whiteness` ({run: per output, the chi-square Ljung-Box of that run's standardised
+      innovations over `noise.whiteness_lags` lags; the verdict's test is `residuals`}), `runs`
       (`RunDiagnostics` per run). `n_observations`: readings scored (least squares: n_data).
       For process noise `covariance_raw` is the inverse Hessian of -log L + priors,
       `residuals` the analysis of the one-step innovations, `sigma` the fitted measurement sd
@@ -1504,7 +1506,8 @@ class ValidationResult:
     validation run, as MATLAB `compare` estimates initial conditions; `fit_percent` is
     simulation fit %, never one-step prediction. Per run name: `fit_percent`,
     `fit_percent_robust`, `noise_ceiling` ((n_y,) per output), `n_outliers`; `residuals`: the
-    residual analysis of the validation runs; `goodness_of_fit`: against the known noise
+    residual analysis of the validation runs (with process noise: of their one-step
+    innovations, as the fit's); `goodness_of_fit`: against the known noise
     (None when the fit estimated it); `parameters`: the per-run values re-fitted on the
     validation runs (`ParameterEstimate`s with `experiment` set to the run; empty when the
     fit has no per-run parameter).
@@ -1547,7 +1550,12 @@ def validate(
         preds = [d.y_simulation for d in diags]
         scores = _validation_scores(experiments, preds, result.sigma, False, 0)
         refit = tuple(p for _, ps in pairs for p in ps)
-        return dataclasses.replace(scores, parameters=refit, runs=diags)
+        # the residual test of a process-noise model is on its one-step innovations, on the
+        # validation runs as on the estimation runs (its simulation is expected to wander)
+        innovations = _residual_runs(experiments, [d.y_one_step for d in diags])
+        return dataclasses.replace(
+            scores, residuals=analyse_residuals(innovations), parameters=refit, runs=diags
+        )
     known = result.noise_known
     z, sd, ok = _shared_response(result, experiments, fit_kwargs)
     if not per_exp:

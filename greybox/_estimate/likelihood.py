@@ -80,7 +80,9 @@ class RunDiagnostics:
     """One run at the fitted parameters (q outputs), every number labelled by its horizon.
 
     - `log_likelihood` (as scored by the fit: the first frame conditioned on when the initial
-      state is known); `whiteness`: Ljung-Box of the standardised innovations per output;
+      state is known); `whiteness`: per output, the chi-square Ljung-Box of this run's
+      standardised innovations alone (a per-run figure; the fit's verdict on whiteness is
+      its `residuals`, the residual test every fit uses, on the innovations);
     - `one_step_fit_percent`, `simulation_fit_percent`, `k_step_fit_percent` (per output, %;
       the k-step-ahead prediction `k_step` frames ahead);
     - `y_one_step`, `y_simulation`, `y_k_step` (N, q) readings [SI], with their sds
@@ -112,10 +114,6 @@ class RunDiagnostics:
             ("one-step prediction", self.y_one_step, self.one_step_fit_percent),
             (f"{self.k_step}-step prediction", self.y_k_step, self.k_step_fit_percent),
         )
-
-    @property
-    def white(self) -> bool:
-        return all(w.p_value > 0.01 for w in self.whiteness)
 
 
 class _Objective(eqx.Module):

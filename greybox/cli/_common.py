@@ -201,11 +201,9 @@ def _process_lines(outcome: FitOutcome) -> list[str]:
     lines = []
     for run, role, out, horizon, _, _, fp, *_ in metric_rows(outcome.metrics):
         lines.append(f"{run} ({role}) {out} {horizon} fit % {'n/a' if fp is None else f'{fp:.2f}'}")
-    white = all(all(w.p_value > 0.01 for w in d.whiteness) for d in r.runs)
     lines.append(
         f"log L {r.log_likelihood:.8g} ({r.n_observations} readings), AIC {r.aic:.8g}, "
-        f"BIC {r.bic:.8g}; innovations {'white' if white else 'NOT white'} (estimation, "
-        f"Ljung-Box p > 0.01); "
-        f"{r.status if r.valid else r.status.upper() + ': ' + r.message}"
+        f"BIC {r.bic:.8g}; {r.status if r.valid else r.status.upper() + ': ' + r.message}"
     )
+    lines.append(f"innovations (estimation runs): {r.residuals.verdict}")
     return lines

@@ -33,10 +33,15 @@ previous version, is read as well: it is /3 without ``noise_model``):
 - Output error only: ``sigma`` (noise scale per output [SI] and whether it was estimated),
   ``fit_percent`` (every valid frame) and ``fit_percent_robust`` (flagged outliers left
   out): ``{"horizon": "simulation", "estimation": {run: %}, "validation": {run: %}}``;
-  ``runs``: frames, valid frames, outliers flagged per run; ``residuals``.
+  ``runs``: frames, valid frames, outliers flagged per run.
+- ``residuals`` and ``residuals_validation``: the residual test of the estimation and the
+  validation runs (the one the headline's verdict uses; ``tested``: the free-run residuals,
+  or with process noise the one-step innovations): verdict, Q and p per output, lags
+  outside the band, per run Q and p.
 - Process noise only: ``log_likelihood``, ``aic``, ``bic``, ``n_observations``; ``runs``:
-  per run its role, log-likelihood, the innovations' Ljung-Box test per output and fit %
-  per horizon (simulation, one-step, k-step prediction).
+  per run its role, log-likelihood, that run's own chi-square Ljung-Box of its
+  standardised innovations per output (``whiteness``, `ProcessNoise.whiteness_lags` lags)
+  and fit % per horizon (simulation, one-step, k-step prediction).
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
+from greybox._estimate.residuals import PERMUTATIONS
 from greybox._model.errors import InputError
 from greybox._model.freeparams import FreeParameter
 from greybox.io._noise_table import NoiseTable
@@ -160,6 +166,8 @@ def _process_document(fitset, result, validation) -> dict:
         runs.setdefault(r.name, {}).update(diagnostics_doc(r, outputs))
     ident = getattr(result, "identifiability", None)
     doc = _common_document(fitset, result)
+    doc["residuals"] = _residual_tests(result, outputs, innovations=True)
+    doc["residuals_validation"] = _residual_tests(validation, outputs, innovations=True)
     doc["model"]["fitted"] = {
         p.path: _num(p.value) for p in result.parameters if p.experiment is None
     }
@@ -207,6 +215,42 @@ def _process_document(fitset, result, validation) -> dict:
     return doc
 
 
+def _residual_tests(res, outputs, innovations: bool = False) -> dict | None:
+    """The residual test of a fit or a validation (`res.residuals`, None where it has none):
+    on the simulation residuals or, with process noise (`innovations`), on the one-step
+    innovations."""
+    a = getattr(res, "residuals", None)
+    if a is None:
+        return None
+    return {
+        "tested": "innovations (measured - one-step prediction)"
+        if innovations
+        else "residuals (measured - free-run simulation)",
+        "verdict": a.verdict,
+        "white": bool(a.all_white),
+        "test": "Ljung-Box over lags 1..test_lag_frames, pooled over runs; p-value from "
+        f"{PERMUTATIONS} within-run shuffles (chi-square with test_lag_frames dof beyond their "
+        "resolution); whiteness rejected at p < 0.01 / n_outputs",
+        "test_lag_frames": a.test_lag,
+        "max_lag_frames": a.max_lag,
+        "frame_interval_s": _num(a.frame_interval_s),
+        "outputs": [
+            {
+                "name": outputs[j] if j < len(outputs) else f"output {j + 1}",
+                "q": _num(a.q[j]),
+                "dof": a.dof,
+                "p_value": _num(a.p_value[j]),
+                "white": bool(a.white[j]),
+                "lags_outside_band": list(a.lags_outside[j]),
+            }
+            for j in range(len(a.q))
+        ],
+        "runs": {r.name: {"q": _nums(r.q), "p_value": _nums(r.p_value)} for r in a.runs},
+        "cross_correlation": a.cross_lines(),
+        "notes": list(a.notes),
+    }
+
+
 def params_document(fitset, result, validation=None) -> dict:
     """The `params.json` content (a plain dict) for a fit of `fitset` (an `ExperimentSet`),
     least squares or process noise (`result.noise`)."""
@@ -240,34 +284,6 @@ def params_document(fitset, result, validation=None) -> dict:
             "outputs": outputs,
             "estimation": {k: _nums(v) for k, v in getattr(result, field).items()},
             "validation": {k: _nums(v) for k, v in val.items()},
-        }
-
-    def residual_tests(res) -> dict | None:
-        if res is None:
-            return None
-        a = res.residuals
-        return {
-            "verdict": a.verdict,
-            "white": bool(a.all_white),
-            "test": "Ljung-Box over lags 1..test_lag_frames, pooled over runs, chi-square "
-            "with test_lag_frames dof; whiteness rejected at p < 0.01 / n_outputs",
-            "test_lag_frames": a.test_lag,
-            "max_lag_frames": a.max_lag,
-            "frame_interval_s": _num(a.frame_interval_s),
-            "outputs": [
-                {
-                    "name": outputs[j] if j < len(outputs) else f"output {j + 1}",
-                    "q": _num(a.q[j]),
-                    "dof": a.dof,
-                    "p_value": _num(a.p_value[j]),
-                    "white": bool(a.white[j]),
-                    "lags_outside_band": list(a.lags_outside[j]),
-                }
-                for j in range(len(a.q))
-            ],
-            "runs": {r.name: {"q": _nums(r.q), "p_value": _nums(r.p_value)} for r in a.runs},
-            "cross_correlation": a.cross_lines(),
-            "notes": list(a.notes),
         }
 
     def gof(res) -> dict | None:
@@ -324,8 +340,8 @@ def params_document(fitset, result, validation=None) -> dict:
             "fit_percent_robust", "valid frames not flagged as outliers"
         ),
         "noise_ceiling": per_output("noise_ceiling", "all valid frames"),
-        "residuals": residual_tests(result),
-        "residuals_validation": residual_tests(validation),
+        "residuals": _residual_tests(result, outputs),
+        "residuals_validation": _residual_tests(validation, outputs),
         "runs": runs,
         "n_data": int(result.n_data),
         "convergence": {

@@ -14,7 +14,7 @@ import numpy as np
 
 from greybox._estimate.metrics import OUTLIER_SIGMAS
 from greybox._estimate.metrics import noise_ceiling as noise_ceiling
-from greybox._estimate.residuals import OUTLIER_SCALES, _ranges
+from greybox._estimate.residuals import OUTLIER_SCALES, PERMUTATIONS, _ranges
 from greybox._estimate.result_text import display_unit as display_unit
 from greybox._estimate.result_text import estimate_texts as estimate_texts
 from greybox._estimate.result_text import fmt as fmt
@@ -168,9 +168,19 @@ def status_lines(result, validation=None) -> list[str]:
     return lines
 
 
-def residual_lines(result, validation=None, outputs=None) -> list[str]:
+RESIDUALS_ARE = "Residuals are measured - model (free-run simulation)"
+INNOVATIONS_ARE = (
+    "The residuals tested are the innovations: measured - the filter's one-step prediction "
+    "(white when the model, its process noise included, leaves only noise)"
+)
+
+
+def residual_lines(
+    result, validation=None, outputs=None, residuals_are: str = RESIDUALS_ARE
+) -> list[str]:
     """The residual analysis in words: the test, its verdict per output and set of runs,
-    lags outside the band, correlation with the inputs, and how frames were handled."""
+    lags outside the band, correlation with the inputs, and how frames were handled;
+    `residuals_are` says what was tested."""
     names = _output_names(result.n_outputs, outputs)
     lines = []
     for label, res in (("estimation", result), ("validation", validation)):
@@ -189,11 +199,13 @@ def residual_lines(result, validation=None, outputs=None) -> list[str]:
         lines += [f"  - Note: {n}." for n in a.notes]
     lines += [
         "",
-        "Residuals are measured - model. Autocorrelation over lags 1-"
+        f"{residuals_are}. Autocorrelation over lags 1-"
         f"{result.residuals.max_lag} frames and cross-correlation with each input, with 99 % "
         "bands, as MATLAB `resid`; Ljung-Box statistic over lags 1-"
-        f"{result.residuals.test_lag} pooled over the runs of each set, compared with "
-        "chi-square (whiteness rejected at p < 0.01, split over the outputs). Frames sit on "
+        f"{result.residuals.test_lag} pooled over the runs of each set, its p-value from "
+        f"{PERMUTATIONS} shuffles of each run's residuals among its frames (the chi-square "
+        "tail beyond their resolution; whiteness rejected at p < 0.01, split over the "
+        "outputs). Frames sit on "
         "a uniform grid at the median frame interval; dropped frames leave empty slots and "
         "only pairs "
         "of valid frames enter a correlation; readings further than "
@@ -508,26 +520,29 @@ def process_report(
     headline verdict (`greybox._estimate.verdict`, its residual test on the one-step innovations),
     status, likelihood and criteria, parameters with intervals and verdicts, fit % per run,
     output and horizon (simulation, one-step, k-step prediction), the innovations'
-    whiteness."""
+    whiteness (the headline's residual test, on the estimation and the validation runs)."""
     from greybox._estimate.verdict import fit_headline
 
     k = result.k_step
-    names = _output_names(len(outputs or ()) or 1, outputs)
     structure = result.noise.structure
     groups = ", ".join(f"{g} (states {list(i)})" for g, i in structure.process_groups) or "none"
     fixed = dict(getattr(noise_table, "fixed", {}) or {})
     status = result.status
     head = f"**Fit status: {status}** ({STATUS_MEANING.get(status, '')})"
-    runs = (*result.runs, *(getattr(validation, "runs", ()) or ()))
-    white = all(all(w.p_value > 0.01 for w in r.whiteness) for r in result.runs)
+    # the headline's residual test, on the innovations, is the one the report shows
+    tested = validation if getattr(validation, "residuals", None) is not None else None
     lines = [
         f"# greybox fit: {title} (stochastic grey-box fit)",
         "",
         *fit_headline(result, physical_ranges or {}).lines,
         "",
         head + ("." if status == "converged" else f": {result.message}."),
-        f"**Innovations (estimation runs): {'white' if white else 'NOT white'}** "
-        "(Ljung-Box, p > 0.01 per output and run).",
+        f"**Innovations (estimation runs): {result.residuals.verdict}.**",
+        *(
+            [f"**Innovations (validation runs): {tested.residuals.verdict}.**"]
+            if tested is not None
+            else []
+        ),
         "",
     ]
     if source:
@@ -579,18 +594,10 @@ def process_report(
         )
     lines += [
         "",
-        "## Innovations whiteness (Ljung-Box, 20 lags, white when p > 0.01)",
+        "## Innovations whiteness",
         "",
-        "| run | role | output | Q | p | verdict |",
-        "|---|---|---|---|---|---|",
+        *residual_lines(result, tested, outputs, INNOVATIONS_ARE),
     ]
-    for run in runs:
-        for c, w in zip(names, run.whiteness):
-            verdict = "white" if w.p_value > 0.01 else "NOT white"
-            lines.append(
-                f"| {run.name} | {run.role} | {c} | {w.statistic:.1f} | {w.p_value:.3g} | "
-                f"{verdict} |"
-            )
     if figures:
         lines += ["", "## Figures", ""]
         lines += [f"- [{f}]({f})" for f in figures]

@@ -9,6 +9,14 @@ against a plain numpy/scipy filter that computes the value alone (Van Loan with
 same data and agree to ~1e-15.
 Target: speedup = numpy_loglik_s / loglik_grad_s >= 3.
 
+Also (`ekf_speed`): the extended Kalman filter's -log L and gradient on the shipped TCLab
+two-heater record (the board with radiation, 600 frames, 12 parameters), `ekf_grad_over_value`
+the gradient's cost in values, both evaluated as the fit's solver does (in its loop).
+2026-11-28 (2 cores): value+gradient 102 -> 74 ms once the discretisation's doubling branch
+was checkpointed and its Van Loan matrix concatenated from blocks; the same numbers to the
+last bit; the fit's solve (`likelihood._newton`, 69 steps) 9.7 -> 7.2 s warm, and a
+`greybox fit` of that folder with process noise 16.0 -> 12.6 s.
+
 `--coverage N`: N replicates of the thermal RC device with a random-walk ambient (the model of
 tests/test_kalman.py; 400 frames, fixed design, new noise per replicate) fitted by maximum
 likelihood; reports the fraction of 95 % intervals that contain the truth, per parameter
@@ -37,6 +45,7 @@ import argparse  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -331,6 +340,82 @@ def coverage_device(n_reps, n_frames: int = 600):
     )
 
 
+TCLAB = Path(__file__).resolve().parents[1] / "experiments" / "tclab" / "two_heaters"
+TCLAB_NOISE = (  # the process-noise structure of experiments/tclab/stochastic.md
+    '\n[noise]\nprocess = { heaters = [0, 1] }\ndisturbances = ["ambient_random_walk"]\n'
+)
+
+
+def ekf_speed(n_frames=600, repeats=3):
+    """The extended Kalman filter's -log L and its gradient on a real record: the shipped
+    TCLab two-heater folder (the board with radiation, so the filter is extended: 4 local
+    linearisations per step, each a Van Loan discretisation) with the process noise of
+    experiments/tclab/stochastic.md, its first `n_frames` estimation frames, at the start
+    values, as `greybox.fit` evaluates them (its compile options). The gradient's cost in
+    evaluations of the value alone (`ekf_grad_over_value`) is the figure that does not
+    depend on the machine: reverse mode through the filter's scan."""
+    import shutil
+    import tempfile
+
+    from greybox._compile import jit
+    from greybox._estimate import likelihood as lik
+    from greybox.io import load_experiment_set
+    from greybox.io._noise_table import noise_model
+
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) / "two_heaters"
+        shutil.copytree(TCLAB, folder)
+        for name in ("estimation.csv", "validation.csv"):
+            lines = (folder / name).read_text().splitlines()
+            (folder / name).write_text("\n".join(lines[: n_frames + 1]) + "\n")
+        toml = folder / "experiment.toml"
+        text = toml.read_text().split("# Candidate structures")[0]
+        text = text.replace('method = "adaptive"\n', "").replace('loss = "l2"\n', "")
+        toml.write_text(text.replace("[fit]\n", '[fit]\nnoise_model = "process"\n') + TCLAB_NOISE)
+        fs = load_experiment_set(folder)
+    model, noise, noise_free = noise_model(fs.noise, fs.model, fs.spec)
+    su = lik.setup(model, fs.estimation, [*fs.free, *noise_free], noise)
+    assert su.sd.use_ekf, "the board with radiation needs the extended filter"
+    raw = jnp.asarray(su.raw0)
+    calls = 5
+
+    def in_a_loop(f):
+        """`calls` evaluations of `f` inside one compiled loop, the objective an argument:
+        as the fit's solver evaluates it (one pass of its while loop each; compiled at the
+        top level of a program instead, XLA schedules the same gradient differently)."""
+
+        def run(r, obj):
+            def body(i, acc):
+                out = f(obj, r + 1e-12 * i)
+                return acc + jax.tree.leaves(out)[-1]
+
+            return jax.lax.fori_loop(0, calls, body, jnp.zeros_like(r))
+
+        return jit(run)
+
+    value = in_a_loop(lambda obj, r: jnp.broadcast_to(obj.data_nll(r), r.shape))
+    grad = in_a_loop(lambda obj, r: jax.value_and_grad(obj.data_nll)(r))
+    jax.block_until_ready((value(raw, su.obj), grad(raw, su.obj)))
+
+    def best_of(f):
+        best = float("inf")
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            jax.block_until_ready(f(raw, su.obj))
+            best = min(best, (time.perf_counter() - t0) / calls)
+        return best
+
+    v_s, g_s = best_of(value), best_of(grad)
+    print(
+        f"EKF (TCLab board with radiation, {n_frames} frames, {su.sd.n_states} states, "
+        f"{raw.size} parameters): value {v_s * 1e3:.1f} ms, value+gradient {g_s * 1e3:.1f} ms "
+        f"({g_s / v_s:.1f} values)"
+    )
+    return dict(
+        ekf_value_s=round(v_s, 6), ekf_grad_s=round(g_s, 6), ekf_grad_over_value=round(g_s / v_s, 2)
+    )
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--coverage", type=int, default=0, metavar="N", help="replicates")
@@ -343,6 +428,7 @@ def main():
     parser.add_argument("--smoke", action="store_true", help=SMOKE_HELP)
     args = parser.parse_args()
     out = speed(200, 1) if args.smoke else speed()
+    out |= ekf_speed(60, 1) if args.smoke else ekf_speed()
     if args.coverage:
         out |= coverage(args.coverage)
     if args.coverage_device:

@@ -42,7 +42,13 @@ KEYS = {
         "process_fit_silence",
         "process_fit_longest_silence_s",
     },
-    "kalman.py": {"loglik_grad_s", "numpy_loglik_s", "speedup", "loglik_rel_diff"},
+    "kalman.py": {
+        "loglik_grad_s",
+        "numpy_loglik_s",
+        "speedup",
+        "loglik_rel_diff",
+        "ekf_grad_over_value",
+    },
     "many_devices.py": {
         "loop_fits_per_s",
         "batch_fits_per_min",

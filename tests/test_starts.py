@@ -1,4 +1,5 @@
-"""A multi-start fit's starts run side by side on a CPU's cores (`greybox._estimate.starts`).
+"""A multi-start fit's starts run side by side on a CPU's cores (`greybox._estimate.starts`),
+least squares and likelihood (process noise) alike.
 
 Truth: the same fit with its starts one after another (one usable core): the same estimate
 and the same cost from every start, bit for bit, since each start is the same compiled solve
@@ -26,13 +27,11 @@ def device():
     return d.model, d.experiments, free
 
 
-def test_starts_side_by_side_equal_one_after_another(device, monkeypatch):
-    if _starts.on_accelerator():
-        pytest.skip("an accelerator runs the starts one after another")
-    model, runs, free = device
+def _alone_and_side_by_side(monkeypatch, fit, n_starts):
+    """(`fit(progress)` with one usable core, the same with two, the starts the second
+    handed to worker threads, its progress lines)."""
     monkeypatch.setattr(_starts, "usable_cores", lambda: 1)
-    alone = greybox.fit(model, runs, free, n_starts=4)
-
+    alone = fit(lambda _m: None)
     submitted = []
 
     class Recording(_starts.ThreadPoolExecutor):
@@ -43,12 +42,42 @@ def test_starts_side_by_side_equal_one_after_another(device, monkeypatch):
     monkeypatch.setattr(_starts, "usable_cores", lambda: 2)
     monkeypatch.setattr(_starts, "ThreadPoolExecutor", Recording)
     said = []
-    side = greybox.fit(model, runs, free, n_starts=4, progress=said.append)
-    assert len(submitted) == 3  # starts 2-4 went to the worker threads
+    side = fit(said.append)
+    assert len(submitted) == n_starts - 1  # every start but the first went to the threads
     assert side.multistart_costs == alone.multistart_costs
     np.testing.assert_array_equal(side.raw, alone.raw)
     ended = [line.split(":")[0] for line in said if "after" in line and "steps" in line]
-    assert ended == [f"start {i}/4" for i in range(1, 5)]  # reported in start order
+    assert ended == [f"start {i}/{n_starts}" for i in range(1, n_starts + 1)]  # in order
+    return alone, side
+
+
+def test_starts_side_by_side_equal_one_after_another(device, monkeypatch):
+    if _starts.on_accelerator():
+        pytest.skip("an accelerator runs the starts one after another")
+    model, runs, free = device
+    _alone_and_side_by_side(
+        monkeypatch, lambda say: greybox.fit(model, runs, free, n_starts=4, progress=say), 4
+    )
+
+
+def test_likelihood_starts_side_by_side_equal_one_after_another(monkeypatch):
+    """A process-noise fit (the scalar OU device, 200 frames from the numpy simulator of
+    tests/ou_reference.py, three starts): the same bit for bit, covariance included."""
+    if _starts.on_accelerator():
+        pytest.skip("an accelerator runs the starts one after another")
+    from tests import ou_device as od
+    from tests import ou_reference as ou
+
+    start = {"Ci": 2.5e6, "Rea": 6.0e-3, "q": 3.0e-6, "sd": 0.06}  # as tests/test_process_batch
+    runs = [od.experiment(ou.simulate(ou.TRUTH, 200, 10))]
+    noise = greybox.ProcessNoise(od.STRUCTURE)
+
+    def fit(say):
+        return greybox.fit(od.model(start), runs, od.FREE, noise=noise, n_starts=3, progress=say)
+
+    alone, side = _alone_and_side_by_side(monkeypatch, fit, 3)
+    assert side.status == "converged"
+    np.testing.assert_array_equal(side.covariance_raw, alone.covariance_raw)
 
 
 @pytest.mark.parametrize(("solve_bytes", "workers"), [(0.6e9, 1), (0.4e9, 2), (0.1e9, 4)])

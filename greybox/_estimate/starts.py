@@ -1,4 +1,5 @@
-"""The starts of a multi-start least-squares fit, side by side on a CPU's cores.
+"""The starts of a multi-start fit (least squares or likelihood), side by side on a CPU's
+cores.
 
 A fit's starts are independent solves of one compiled function. The first runs alone (its
 call compiles the solver); the others then run in threads, as many at a time as the process

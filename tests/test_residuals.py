@@ -373,3 +373,12 @@ def test_known_noise_shows_the_misfit_as_a_ratio(well_specified):
         fit(start_model(), known, default_free_parameters(), sigma=NOISE_M)
     with pytest.raises(ValueError, match="every run or for none"):
         fit(start_model(), [known[0], exps[1]], default_free_parameters())
+
+
+def test_p_values_read_as_sentences():
+    """A p-value below double precision's reach reads "p < 1e-300", never "p = < 1e-300"."""
+    from greybox._estimate.residuals import p_phrase, p_value_text
+
+    assert p_phrase(0.0123) == "p = 0.012"
+    assert p_phrase(0.0) == "p < 1e-300" and p_value_text(0.0) == "< 1e-300"
+    assert p_phrase(float("nan")) == "p = n/a" and p_value_text(None) == "n/a"

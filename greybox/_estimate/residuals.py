@@ -927,7 +927,7 @@ class ResidualAnalysis:
             return "residual test not possible (too few valid readings)"
         if self.all_white:
             p = np.nanmin(self.p_value)
-            return f"residuals consistent with white noise ({how}: p = {_p_text(p)})"
+            return f"residuals consistent with white noise ({how}: {p_phrase(p)})"
         parts = []
         for j in np.flatnonzero(~self.white & np.isfinite(self.q)):
             lags = list(self.lags_outside[j]) or [
@@ -935,7 +935,7 @@ class ResidualAnalysis:
             ]
             parts.append(
                 f"{self._lag_text(lags)}{self._label(j)} (Q = {self.q[j]:.4g} on "
-                f"{self.dof} dof, p = {_p_text(self.p_value[j])})"
+                f"{self.dof} dof, {p_phrase(self.p_value[j])})"
             )
         return (
             "residuals not white: structure the model misses dynamics at "
@@ -961,10 +961,18 @@ def _seconds(x: float) -> str:
     return f"{x * 1e3:.3g} ms" if abs(x) < 1 else f"{x:.3g} s"
 
 
-def _p_text(p: float) -> str:
-    if not np.isfinite(p):
+def p_value_text(p) -> str:
+    """A p-value for a table cell: "n/a", "< 1e-300" (below double precision's reach) or two
+    significant digits."""
+    if p is None or not np.isfinite(p):
         return "n/a"
     return "< 1e-300" if p < 1e-300 else f"{p:.2g}"
+
+
+def p_phrase(p) -> str:
+    """A p-value in a sentence: "p = 0.012", "p < 1e-300" or "p = n/a"."""
+    text = p_value_text(p)
+    return f"p {text}" if text.startswith("<") else f"p = {text}"
 
 
 def analyse(
@@ -1151,7 +1159,7 @@ class GoodnessOfFit:
         robust = ", ".join(f"{r:.3g}" for r in self.robust_ratio)
         return (
             f"estimated / known noise = {ratios} (robust: {robust}); chi-square "
-            f"{self.chi2:.5g} on {self.dof} dof, p = {_p_text(self.p_value)}"
+            f"{self.chi2:.5g} on {self.dof} dof, {p_phrase(self.p_value)}"
         )
 
 

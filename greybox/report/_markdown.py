@@ -14,7 +14,13 @@ import numpy as np
 
 from greybox._estimate.metrics import OUTLIER_SIGMAS
 from greybox._estimate.metrics import noise_ceiling as noise_ceiling
-from greybox._estimate.residuals import OUTLIER_SCALES, PERMUTATIONS, _ranges
+from greybox._estimate.residuals import (
+    OUTLIER_SCALES,
+    PERMUTATIONS,
+    _ranges,
+    p_phrase,
+    p_value_text,
+)
 from greybox._estimate.result_text import display_unit as display_unit
 from greybox._estimate.result_text import estimate_texts as estimate_texts
 from greybox._estimate.result_text import fmt as fmt
@@ -136,7 +142,7 @@ def _run_rows(result, validation, runs, outputs=None) -> list[str]:
                     fmt(res.fit_percent[e.name][j], 3),
                     fmt(res.fit_percent_robust[e.name][j], 3),
                     fmt(res.noise_ceiling[e.name][j], 3),
-                    _p_cell(t.p_value[j]) if t is not None else "n/a",
+                    p_value_text(t.p_value[j]) if t is not None else "n/a",
                 ]
                 rows.append("| " + " | ".join(cells) + " |")
 
@@ -144,12 +150,6 @@ def _run_rows(result, validation, runs, outputs=None) -> list[str]:
     if validation is not None:
         add(validation, "validation")
     return rows
-
-
-def _p_cell(p) -> str:
-    if p is None or not np.isfinite(p):
-        return "n/a"
-    return "< 1e-300" if p < 1e-300 else f"{p:.2g}"
 
 
 def status_lines(result, validation=None) -> list[str]:
@@ -192,8 +192,8 @@ def residual_lines(
             lags = a.lags_outside[j]
             out = f"lags outside the band: {_ranges(lags)}" if lags else "no lag outside the band"
             lines.append(
-                f"  - {names[j]}: Q = {fmt(a.q[j], 4)} on {a.dof} dof, p = "
-                f"{_p_cell(a.p_value[j])}; {out}."
+                f"  - {names[j]}: Q = {fmt(a.q[j], 4)} on {a.dof} dof, "
+                f"{p_phrase(a.p_value[j])}; {out}."
             )
         lines += [f"  - {c}." for c in a.cross_lines()]
         lines += [f"  - Note: {n}." for n in a.notes]

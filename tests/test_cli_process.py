@@ -71,6 +71,12 @@ def test_compare_prefers_three_states_and_lr_tests_match_chi_square(compared):
         assert all(len(e["ci95"]) == 2 and e["verdict"] for e in c["estimates"])
     md = (out / "compare.md").read_text()
     assert "Likelihood-ratio tests" in md and "### three states" in md
+    # candidates that differ in their [noise] say how in the table and in compare.json
+    assert cands["two states"]["noise"] == (
+        "process noise on air (states [0]), envelope (states [1]); disturbances: none"
+    )
+    row = next(line for line in md.splitlines() if line.startswith("| two states |"))
+    assert f"noise: {cands['two states']['noise']}" in row
     # each candidate's headline verdict; the preferred one is valid and plausible
     assert cands["three states"]["headline"]["verdict"] == "valid"
     assert all(c["headline"]["text"] in md for c in cands.values())

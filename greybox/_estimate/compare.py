@@ -69,6 +69,7 @@ class CandidateScore:
     # each fitted value: {"name", "path", "unit", "value", "se", "ci95", "verdict", "run"}
     estimates: tuple = ()
     noise_model: str = "output error"  # or "process noise"
+    noise: str = ""  # process noise: its structure in one line (`NoiseStructure.describe`)
     nests: tuple = ()  # names of candidates declared nested in this one
     # per-run paths across runs: {"path", "unit", "runs", "values", "mean", "statistic",
     # "dof", "p_value", "run_specific"} (`run_agreement`)
@@ -223,6 +224,7 @@ def score(name: str, options: dict, result, validation=None, nests=()) -> Candid
             bic=float(result.bic),
             residual_verdict=f"innovations: {result.residuals.verdict}",
             noise_model="process noise",
+            noise=result.noise.structure.describe(),
             **common,
         )
     preds = _simulations(result)

@@ -246,10 +246,13 @@ def report_lines(experiment_dir, scores, best, rule: str, tests=(), verdicts=())
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     differ = [k for k in scores[0].options if len({repr(s.options[k]) for s in scores}) > 1]
+    noise_differs = len({s.noise for s in scores}) > 1  # candidates with their own [noise]
     for s in scores:
         est = _mean_fit(s.fit_estimation)
         val = _mean_fit(s.fit_validation)
-        opts = ", ".join(f"{k}={s.options[k]}" for k in differ) or "as [model]"
+        opts = [f"{k}={s.options[k]}" for k in differ]
+        opts += [f"noise: {s.noise or 'none'}"] if noise_differs else []
+        opts = ", ".join(opts) or "as [model]"
         lines.append(
             f"| {s.name} | {opts} | {s.n_params} | {s.loglik:.8g} | {s.aic:.8g} | {s.bic:.8g} | "
             f"{_pct(est)} | {_pct(val) if s.fit_validation else '-'} | {s.residual_verdict} | "
@@ -366,6 +369,7 @@ def candidate_record(s, verdict=None) -> dict:
         "options": s.options,
         "free": list(s.free),
         "noise_model": s.noise_model,
+        "noise": s.noise or None,
         "nests": list(s.nests),
         "k": s.n_params,
         "n": s.n_data,

@@ -525,7 +525,6 @@ def process_report(
 
     k = result.k_step
     structure = result.noise.structure
-    groups = ", ".join(f"{g} (states {list(i)})" for g, i in structure.process_groups) or "none"
     fixed = dict(getattr(noise_table, "fixed", {}) or {})
     status = result.status
     head = f"**Fit status: {status}** ({STATUS_MEANING.get(status, '')})"
@@ -552,8 +551,7 @@ def process_report(
         f"Device `{device_name}`. **Likelihood:** {result.likelihood} ({result.filter_name}); "
         f"{result.n_steps} optimiser steps.",
         "",
-        f"Noise model: process noise on {groups}; disturbances: "
-        f"{', '.join(structure.disturbances) or 'none'}; measurement noise per output"
+        f"Noise model: {structure.describe()}; measurement noise per output"
         + (f"; held fixed: {fixed}" if fixed else "")
         + ". Intensities are of the Wiener increments (variance per second). Initial state: "
         + (

@@ -148,6 +148,20 @@ class NoiseStructure:
         if self.substeps is not None and int(self.substeps) < 1:
             raise ValueError(f"substeps: {self.substeps} must be >= 1")
 
+    def describe(self) -> str:
+        """One line: the process-noise groups, the disturbances and any setting off its
+        default (reports and `greybox compare`'s table of candidates)."""
+        groups = ", ".join(f"{g} (states {list(i)})" for g, i in self.process_groups)
+        parts = [f"process noise on {groups or 'no state'}"]
+        parts.append(f"disturbances: {', '.join(self.disturbances) or 'none'}")
+        if self.walk_initial_sd:
+            parts.append(f"walks' initial sd {self.walk_initial_sd:g}")
+        if self.filter != "auto":
+            parts.append(f"filter {self.filter}")
+        if self.substeps is not None:
+            parts.append(f"{int(self.substeps)} EKF substeps")
+        return "; ".join(parts)
+
 
 class _Named(eqx.Module):
     """Scalars addressable by name (`noise.process.heaters`) for parameter paths."""

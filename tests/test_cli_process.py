@@ -14,6 +14,8 @@ and the command line there).
 Records are short (300 frames) so the fits stay within a few minutes on two cores.
 """
 
+import csv
+import io
 import json
 import time
 
@@ -203,3 +205,13 @@ def test_fit_many_fits_process_noise_devices(tmp_path):
     batch = json.loads((out / "devices" / "house2" / "params.json").read_text())
     assert batch["noise_model"]["kind"] == "process noise"
     assert batch["log_likelihood"] == pytest.approx(one["log_likelihood"], rel=1e-9)
+    # batch.md and batch.csv say what was minimised and give each device's headline verdict,
+    # the one its report.md opens with
+    md = (out / "batch.md").read_text()
+    assert "maximum likelihood of the one-step prediction errors" in md
+    assert "free-run simulation error" not in md
+    row = next(r for r in csv.DictReader(io.StringIO((out / "batch.csv").read_text())))
+    assert row["objective"] == "-log L (one-step prediction errors)"
+    device = json.loads((out / "devices" / row["device"] / "params.json").read_text())
+    assert row["verdict"] == device["headline"]["verdict"]
+    assert f"| {row['device']} | {row['status']} | {row['verdict']} |" in md

@@ -135,15 +135,18 @@ class BatchResult:
 
 
 def batch_table(results: Mapping) -> list[dict]:
-    """One row per device: status, cost, noise sigma, each shared parameter's value, standard
-    error and verdict, per-run parameters by run, and the simulation fit % per output (mean
-    over the device's runs, and the worst run)."""
+    """One row per device: status, what was minimised (`objective`), cost, noise sigma, each
+    shared parameter's value, standard error and verdict, per-run parameters by run, and the
+    simulation fit % per output (mean over the device's runs, and the worst run)."""
     rows = []
     for name, r in results.items():
         row = {
             "device": name,
             "status": r.status,
             "valid": bool(r.valid),
+            "objective": "-log L (one-step prediction errors)"
+            if getattr(r, "process_noise", False)
+            else "least squares (free-run simulation error)",
             "cost": float(r.cost),
             "n_steps": int(r.n_steps),
         }

@@ -20,8 +20,10 @@ solver is compiled once for all devices of the same structure instead of once pe
 Written under --out (atomically, as a whole):
   devices/<FOLDER NAME>/   params.json and report.md of that device (what `greybox fit`
                            writes; figures/ too unless --no-device-figures)
-  batch.csv, batch.md      one row per device: status, noise, every fitted value with its
-                           standard error and verdict, simulation fit % per output
+  batch.csv, batch.md      one row per device: status, the headline verdict of its
+                           report.md (structure rejected, ...), what was minimised, noise,
+                           every fitted value with its standard error and verdict,
+                           simulation fit % per output
   figures/                 histograms of each shared parameter across devices and their
                            pairwise scatter
   population.md/.json      with --random/--shared: the population model (median, spread,
@@ -279,21 +281,34 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def batch_markdown(results, population=None) -> str:
+def batch_markdown(results, population=None, headlines=None) -> str:
+    """batch.md: one row per device (status, its report's headline verdict from
+    `headlines`, {device: `verdict.Headline`}, every shared value with its standard error,
+    simulation fit %), what was fitted, and the population model if any."""
+    headlines = headlines or {}
     shared = [p for p in next(iter(results.values())).parameters if p.experiment is None]
-    head = ["device", "status", *[f"{p.name} [{p.unit}]" for p in shared], "fit % (mean, min)"]
+    head = ["device", "status", "verdict", *[f"{p.name} [{p.unit}]" for p in shared]]
+    head.append("fit % (mean, min)")
+    process = sum(bool(getattr(r, "process_noise", False)) for r in results.values())
+    objectives = [
+        *(["least squares on the free-run simulation error"] if process < len(results) else []),
+        *(["maximum likelihood of the one-step prediction errors, Kalman filter"] * bool(process)),
+    ]
     lines = [
         "# Batch fit",
         "",
-        f"{len(results)} devices, each fitted as `greybox fit` fits one (free-run simulation "
-        "error; one compiled solver for the batch). Values ± standard error; fit % is "
-        "simulation fit % per output, mean and worst run.",
+        f"{len(results)} devices, each fitted as `greybox fit` fits one ("
+        + "; ".join(objectives)
+        + "; one compiled solver per structure). Values ± standard error; verdict: the "
+        "headline of the device's report.md (the residual test, bounds, physical ranges); fit "
+        "% is simulation fit % per output, mean and worst run.",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "---|" * len(head),
     ]
     for name, r in results.items():
-        cells = [name, r.status]
+        h = headlines.get(name)
+        cells = [name, r.status, "—" if h is None else h.verdict]
         for p in shared:
             q = r.estimate(p.name)
             cells.append(
@@ -428,6 +443,7 @@ def _run(args, say) -> int:
 
         population = population_from_batch(results, kinds)
     from greybox._estimate.batch import batch_table
+    from greybox._estimate.verdict import fit_headline
 
     sets = dict(loaded)
     say(f"writing {out}")
@@ -455,13 +471,15 @@ def _run(args, say) -> int:
 
             say(f"drawing the figures of {len(deferred)} devices")
             draw_many(deferred)
-        rows = batch_table(results) + [
+        heads = {n: fit_headline(r, sets[n].physical_ranges) for n, r in results.items()}
+        rows = [dict(row, verdict=heads[row["device"]].verdict) for row in batch_table(results)]
+        rows += [
             {"device": k, "status": "failed", "valid": False, "error": v} for k, v in failed.items()
         ]
         (tmp / "batch.csv").write_text(batch_csv(rows))
         figures = write_figures(tmp, results, args.figure_format)
         (tmp / "batch.md").write_text(
-            batch_markdown(results, population)
+            batch_markdown(results, population, heads)
             + failures_markdown(failed)
             + "".join(f"\n![{Path(f).stem}]({f})\n" for f in figures)
         )

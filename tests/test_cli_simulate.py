@@ -68,6 +68,21 @@ def test_band_contains_the_true_response_to_a_new_waveform(params_file, tmp_path
     assert (out / "simulation.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
     meta = json.loads((out / "simulation.json").read_text())
     assert meta["band"]["includes_noise"] is False and meta["band"]["level"] == 0.95
+    assert meta["fit_verdict"] == json.loads(params_file.read_text())["headline"]["verdict"]
+
+
+def test_simulating_a_rejected_structure_says_so(params_file, tmp_path, capsys):
+    """The fit's verdict travels with its params.json: a structure the residual test
+    rejected is named beside the band, which covers only its values' uncertainty."""
+    doc = json.loads(params_file.read_text())
+    doc["headline"]["verdict"] = "structure rejected"
+    rejected = tmp_path / "params.json"
+    rejected.write_text(json.dumps(doc))
+    out = tmp_path / "sim"
+    argv = ["simulate", "--params", str(rejected), "--waveform", NEW_WAVE, "--out", str(out)]
+    assert main(argv) == 0
+    assert "is 'structure rejected' (its headline)" in capsys.readouterr().out
+    assert json.loads((out / "simulation.json").read_text())["fit_verdict"] == "structure rejected"
 
 
 def test_noise_option_gives_a_prediction_interval(params_file, tmp_path):

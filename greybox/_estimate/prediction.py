@@ -102,7 +102,8 @@ def process_band(
     t_start_s: float = 0.0,
 ) -> SampledBand:
     """The pointwise `level` band of `n_paths` sample paths of a process-noise model
-    (`StochasticDevice`): process noise by exact discretisation of the SDE, the shared
+    (`StochasticDevice`): process noise by the SDE's exact discretisation (a linear device;
+    otherwise its local linearisation at each step, `sample_paths`), the shared
     parameters drawn from `covariance_raw` (at `raw` when it is not finite), measurement noise
     with `measurement_noise`. `y` is the noise-free response at `raw`."""
     from greybox._simulate.simulate import simulate
@@ -129,9 +130,11 @@ def process_band(
     tail = 50 * (1 - level)
     lo, hi = np.percentile(paths, [tail, 100 - tail], axis=0)
     pct = f"{level * 100:g} %"
+    linear = not model.use_ekf
+    how = "exact discretisation of the SDE" if linear else "the SDE linearised at each step"
     kind = (
-        f"{pct} band of {n_paths} sample paths: process noise (exact discretisation of the "
-        f"SDE) and {what}" + ("; measurement noise added" if measurement_noise else "")
+        f"{pct} band of {n_paths} sample paths: process noise ({how}) and {what}"
+        + ("; measurement noise added" if measurement_noise else "")
     )
     sd = (hi - lo) / (2 * float(jax.scipy.stats.norm.ppf(0.5 + level / 2)))
     return SampledBand(t, y, lo, hi, sd, sd, level, measurement_noise, kind)

@@ -36,7 +36,9 @@ Output (in --out, written atomically):
                    recorded runs and are not part of a new waveform)
   simulation.png   each output with its band, the inputs beneath (--figure-format for svg/pdf)
   simulation.json  what the band is (confidence band or prediction interval), the
-                   waveform, the columns, the params file used
+                   waveform, the columns, the params file used and its fit's verdict
+                   (`fit_verdict`: valid, structure rejected, ...; anything but valid is
+                   also said in a line)
 --out must be absent, empty or an earlier greybox result (it holds a .greybox-result
 marker); any other folder is refused before any work unless --force. A response or band
 that is not finite (an overflowing waveform, a damaged params.json) is refused, not
@@ -301,8 +303,10 @@ def _run(args, tick) -> int:
         outputs, inputs, file_units, t, (y, lo, hi), wave
     )
     first = peaks[outputs[0].name]
+    headline = (fitted.document or {}).get("headline") or {}  # the fit's verdict, if recorded
     meta = {
         "params": str(args.params),
+        "fit_verdict": headline.get("verdict"),
         "device": fitted.device_name,
         "waveform": {"spec": specs if len(specs) > 1 else specs[0], "description": text},
         "noise_model": fitted.noise_model,
@@ -341,6 +345,12 @@ def _run(args, tick) -> int:
         f"{width:.3g} {first['unit']}"
     )
     print(f"band: {band.kind}")
+    if headline.get("verdict") not in (None, "valid"):
+        print(
+            f"note: the fit in {args.params} is '{headline['verdict']}' (its headline): the "
+            "band covers the uncertainty of its values within its structure, not what the "
+            "structure misses"
+        )
     if args.duration_s is None and np.size(getattr(wave, "times_s", (0, 0))) == 1:
         print(
             f"note: every input is constant, so the waveform has no length of its own: "

@@ -256,3 +256,28 @@ def test_documented_error_is_reproduced_verbatim(lines, tmp_path, monkeypatch, c
     assert len(actual) == len(lines), actual
     for doc, got in zip(lines, actual):
         assert _matches(doc, got), f"\ndocumented: {doc}\nactual:     {got}"
+
+
+def test_every_repository_path_the_docs_name_exists():
+    """A file or folder of the repository the docs name (`greybox/...`, `benchmarks/...`,
+    `tests/...`, `experiments/...`, in backticks) is where they say: a module renamed or
+    moved must take its mention along (DEVELOPING.md's layout table had kept fourteen old
+    module names and one old path). A bare module name (`verdict.py`) must be some file's
+    name. Built artefacts (`greybox/_builtin_models`, packed into wheels) are exempt."""
+    built = {"greybox/_builtin_models"}
+    named = re.compile(r"`((?:greybox|benchmarks|tests|experiments|models)/[\w./-]*)`")
+    module = re.compile(r"`(\w+\.py)`")  # a bare module name: some file of the repository
+    tops = ("greybox", "tests", "benchmarks", "experiments", "models", "notebooks", ".ci")
+    basenames = {f.name for top in tops for f in (ROOT / top).rglob("*.py")}
+    basenames |= {f.name for f in ROOT.glob("*.py")}
+    missing = []
+    for doc in DOCS:
+        text = (ROOT / doc).read_text()
+        for path in named.findall(text):
+            path = path.rstrip("/.")
+            if path in built or any(c in path for c in "{*"):
+                continue
+            if not (ROOT / path).exists():
+                missing.append(f"{doc}: {path}")
+        missing += [f"{doc}: {name}" for name in module.findall(text) if name not in basenames]
+    assert not missing, "\n".join(missing)

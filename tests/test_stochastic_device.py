@@ -482,3 +482,36 @@ def test_covariance_hessian_equals_exact_second_derivatives(stochastic_fit, data
     exact = np.asarray(jax.jit(jax.jacfwd(jax.jacfwd(problem.data_nll)))(out["raw"]))
     fd = np.asarray(out["hessian"]) - np.asarray(out["prior_hessian"])
     assert np.max(np.abs(fd - exact)) <= 1e-6 * np.max(np.abs(exact))
+
+
+def test_runs_of_similar_lengths_share_one_compiled_filter():
+    """A fit's diagnostics (`device_filter`: one-step, k-step and simulation predictions)
+    run each record padded to a bucketed length, so two records of 180 and 200 frames
+    compile the filter once; the padding changes nothing: each record's one-step
+    innovations and log-likelihood are the independent numpy filter's
+    (tests/ou_reference.py), to rounding."""
+    import jax
+
+    from tests import ou_device as od
+    from tests import ou_reference as ou
+
+    compiled = []
+
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiled.append(kw.get("fun_name", ""))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    model = od.model(ou.TRUTH)
+    for n, seed in ((180, 3), (200, 4)):
+        y = ou.simulate(ou.TRUTH, n, seed)
+        before = len(compiled)
+        run = greybox.stochastic.device_filter(model, od.experiment(y))
+        v, _ = ou.innovations(ou.TRUTH, y)
+        np.testing.assert_allclose(run.innovation[1:, 0], v, rtol=1e-9, atol=1e-12)
+        assert run.y_one_step.shape == (n, 1) and run.y_k_step.shape == (n, 1)
+        sd = ou.TRUTH["sd"]  # the first reading's own term: the initial state is known
+        first = -0.5 * ((y[0] - ou.T0) ** 2 / sd**2 + np.log(2 * np.pi * sd**2))
+        assert run.log_likelihood == pytest.approx(ou.loglik(ou.TRUTH, y) + first, rel=1e-12)
+        filters = [f for f in compiled[before:] if "_filter_arrays" in f]
+        assert len(filters) == (1 if n == 180 else 0), compiled[before:]

@@ -381,14 +381,7 @@ class FilterGrid(eqx.Module):
         self.t0_s = np.asarray(t0)
         self.t_s = t
         self.dt_s = ends - starts
-        distinct, index = np.unique(self.dt_s, return_inverse=True)
-        k = 1 << max(distinct.size - 1, 0).bit_length()
-        if 4 * k <= self.dt_s.size:  # worth a gather
-            self.dt_distinct = np.concatenate([distinct, np.full(k - distinct.size, distinct[-1])])
-            self.dt_index = index.reshape(-1).astype(np.int32)
-        else:  # every step its own (a jittered record)
-            self.dt_distinct = self.dt_s
-            self.dt_index = np.arange(self.dt_s.size, dtype=np.int32)
+        self.dt_distinct, self.dt_index = _distinct_steps(self.dt_s)
         self.u = _level(bt, lv, starts)
         pos = np.searchsorted(t, ends)
         is_frame = (pos < t.size) & (t[np.minimum(pos, t.size - 1)] == ends)
@@ -403,6 +396,49 @@ class FilterGrid(eqx.Module):
     @property
     def n_steps(self) -> int:
         return self.dt_s.shape[0]
+
+    def padded(self, n_frames: int, n_steps: int) -> FilterGrid:
+        """This grid with inert frames and steps appended up to `n_frames` and `n_steps`, so
+        that records of similar lengths share one compiled filter: a padded step lasts 0 s
+        (its discretisation is exactly the identity) and reads no frame (it adds nothing to
+        the log-likelihood), a padded frame repeats the last frame's time and maps to the last
+        step; read it with NaN readings and drop its rows from what the filter returns."""
+        n, L = self.n_frames, self.n_steps
+        if n_frames < n or n_steps < L:
+            raise ValueError(f"padded: ({n_frames}, {n_steps}) from ({n}, {L}) frames and steps")
+
+        def more(x, rows):  # x with its last row repeated up to `rows` rows
+            x = np.asarray(x)
+            return np.concatenate([x, np.repeat(x[-1:], rows - x.shape[0], axis=0)])
+
+        dt = np.concatenate([np.asarray(self.dt_s), np.zeros(n_steps - L)])
+        distinct, index = _distinct_steps(dt)
+        step = np.concatenate([np.asarray(self.step), np.full(n_frames - n, n_steps - 1)])
+        frame = np.concatenate([np.asarray(self.frame), np.full(n_steps - L, -1)])
+        return eqx.tree_at(
+            lambda g: (g.t_s, g.dt_s, g.dt_distinct, g.dt_index, g.u, g.frame, g.step, g.u_frame),
+            self,
+            (
+                more(self.t_s, n_frames),
+                dt,
+                distinct,
+                index,
+                more(self.u, n_steps),
+                frame.astype(np.int32),
+                step.astype(np.int32),
+                more(self.u_frame, n_frames),
+            ),
+        )
+
+
+def _distinct_steps(dt_s) -> tuple[np.ndarray, np.ndarray]:
+    """(`dt_distinct`, `dt_index`) of a grid's step lengths (see `FilterGrid`)."""
+    distinct, index = np.unique(dt_s, return_inverse=True)
+    k = 1 << max(distinct.size - 1, 0).bit_length()
+    if 4 * k <= dt_s.size:  # worth a gather
+        distinct = np.concatenate([distinct, np.full(k - distinct.size, distinct[-1])])
+        return distinct, index.reshape(-1).astype(np.int32)
+    return dt_s, np.arange(dt_s.size, dtype=np.int32)  # every step its own (a jittered record)
 
 
 def _level(times, levels, t):

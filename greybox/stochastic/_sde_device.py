@@ -55,7 +55,7 @@ from greybox._compile import jit
 from greybox._model.data import Experiment
 from greybox._model.device import AbstractLinearDevice, AbstractODEDevice
 from greybox._model.freeparams import FreeParameter, apply_raw
-from greybox._simulate.simulate import as_arrays, require_x64
+from greybox._simulate.simulate import _bucket, as_arrays, require_x64
 from greybox.stochastic._kalman import (
     FilterGrid,
     LinearGaussianSDE,
@@ -454,6 +454,23 @@ def _grid(e: Experiment) -> FilterGrid:
     return FilterGrid(e.t_s, pw.times_s, levels, t0_s=_t0(e))
 
 
+def padded_record(e: Experiment) -> tuple:
+    """(grid, frame times, readings) of `e` padded to bucketed lengths (`FilterGrid.padded`,
+    `simulate._bucket`; NaN readings on the padded frames): one compiled filter serves the
+    records of similar lengths (the runs of a fit and of its validation, whose diagnostics
+    run once each: `_run_arrays`). Padding changes no log-likelihood (its steps are exact
+    identities, its frames unread) but costs their steps, so the fit's solver, which runs
+    the filter hundreds of times, keeps each record's own length. The first `e.n_frames`
+    rows of what the filter returns per frame are the record's."""
+    grid = _grid(e)
+    n, L = grid.n_frames, grid.n_steps
+    grid = grid.padded(_bucket(n), _bucket(L))
+    t_s = np.asarray(grid.t_s)
+    y = np.asarray(e.y, dtype=float)
+    y = np.concatenate([y, np.full((grid.n_frames - n, y.shape[1]), np.nan)])
+    return grid, t_s, y
+
+
 def _readout_terms(device, t_s, t0, q: int):
     """Offset + drift of the readout at the frames (N, q) [SI]."""
     offsets, _ = device.readout.quadrature()
@@ -578,16 +595,23 @@ class DeviceFilterResult:
     y_k_step_sd: np.ndarray | None = None
 
 
-def _k_step_plan(grid: FilterGrid, k: int):
+def _k_step_plan(grid: FilterGrid, k: int, n_frames: int | None = None):
     """(start frame (N,) or -1 for the prior, first step (N,), last step (N,), loop length):
     the k-step-ahead prediction of frame j starts from the filtered state at frame j - k (the
-    prior at t0 for j < k) and predicts through the grid steps up to frame j."""
+    prior at t0 for j < k) and predicts through the grid steps up to frame j. Of a padded
+    grid (`n_frames` real frames) the padded frames repeat the last real frame's plan, and
+    the loop length is rounded up to a power of two (a static size: similar records share
+    one compiled filter; the steps beyond a frame's are masked)."""
     step = np.asarray(grid.step, dtype=np.int64)
-    j = np.arange(step.size)
+    real = step.size if n_frames is None else int(n_frames)
+    j = np.minimum(np.arange(step.size), real - 1)
     start = np.where(j >= k, j - k, -1)
     first = np.where(start >= 0, step[np.maximum(start, 0)] + 1, 0)
-    n = int(np.max(step - first + 1, initial=1))
-    return start.astype(np.int32), first.astype(np.int32), step.astype(np.int32), max(n, 1)
+    last = step[j]
+    n = max(int(np.max(last - first + 1, initial=1)), 1)
+    if n_frames is not None:
+        n = 1 << (n - 1).bit_length()
+    return start.astype(np.int32), first.astype(np.int32), last.astype(np.int32), n
 
 
 @jit
@@ -660,13 +684,15 @@ def _run_arrays(m: StochasticDevice, e: Experiment, k_step: int):
     k_step = int(k_step)
     if k_step < 1:
         raise ValueError(f"k_step: {k_step} must be >= 1 (frames ahead)")
-    grid = _grid(e)
-    *plan, n_loop = _k_step_plan(grid, k_step)
-    return jax.device_get(
+    n = e.n_frames
+    grid, t_s, y = padded_record(e)
+    start, first, last, n_loop = _k_step_plan(grid, k_step, n)
+    out = jax.device_get(
         _filter_arrays(
-            m, grid, jnp.asarray(e.t_s), _t0(e), jnp.asarray(e.y), tuple(plan), int(n_loop)
+            m, grid, jnp.asarray(t_s), _t0(e), jnp.asarray(y), (start, first, last), n_loop
         )
     )
+    return tuple(x[:n] if np.ndim(x) and np.shape(x)[0] == grid.n_frames else x for x in out)
 
 
 def device_filter(

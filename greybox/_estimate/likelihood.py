@@ -59,6 +59,7 @@ from greybox.stochastic._sde_device import (
     _record_loglik,
     _run_arrays,
     _t0,
+    padded_record,
     stochastic_device,
 )
 
@@ -531,15 +532,22 @@ def start_noise(model: StochasticDevice, experiments, free) -> StochasticDevice:
     return set_values(model, paths, vals)
 
 
-def _build(model, experiments, free):
+def _build(model, experiments, free, pad: bool = False):
+    """The objective over `experiments`, each run at its own length or, with `pad`, padded
+    to a bucketed one (`padded_record`: the same log-likelihood; runs of similar lengths
+    then share one compiled solver, at the cost of the padded steps in every evaluation)."""
     setting_paths, settings = _problem.settings_matrix(model, experiments, free)
     shared, per_exp = _problem.split(free)
+    if pad:
+        records = [padded_record(e) for e in experiments]
+    else:
+        records = [(_grid(e), np.asarray(e.t_s), np.asarray(e.y)) for e in experiments]
     return _Objective(
         model=as_arrays(model),
-        grids=tuple(_grid(e) for e in experiments),
-        t_s=tuple(jnp.asarray(e.t_s) for e in experiments),
+        grids=tuple(grid for grid, _, _ in records),
+        t_s=tuple(jnp.asarray(t) for _, t, _ in records),
         t0=tuple(jnp.asarray(_t0(e)) for e in experiments),
-        y=tuple(jnp.asarray(e.y) for e in experiments),
+        y=tuple(jnp.asarray(y) for _, _, y in records),
         settings=jnp.asarray(settings),
         setting_paths=setting_paths,
         shared=shared,
@@ -636,8 +644,10 @@ def setup(
     seed: int = 0,
     max_steps: int | None = None,
     start_values=None,
+    pad_records: bool = False,
 ) -> Setup:
-    """The `Setup` of one device (what `fit_likelihood` solves; `fit_batch` stacks many)."""
+    """The `Setup` of one device (what `fit_likelihood` solves; `fit_batch` stacks many);
+    `pad_records`: its runs padded to bucketed lengths (`_build`)."""
     from greybox._estimate import fit as _fit
 
     experiments = tuple(experiments)
@@ -650,7 +660,7 @@ def setup(
     if noise.start_noise:
         sd = start_noise(sd, experiments, free)
     free = _problem.with_scales(free, sd)
-    obj = _build(sd, experiments, free)
+    obj = _build(sd, experiments, free, pad=pad_records)
     raw0 = _problem.initial_raw(obj.flat, sd)
     n_start = _problem.n_starts_for(n_starts, obj.shared)
     rng = np.random.default_rng(seed)
@@ -929,19 +939,20 @@ def _prior_jacobian(flat, raw) -> np.ndarray:
 def validate_runs(result, experiments) -> tuple:
     """`RunDiagnostics` (role "validation") of new runs at the fitted shared parameters;
     per-run free parameters, if any, are re-fitted on each run (physics and noise fixed)."""
-    from greybox._estimate.fit import fit
-
     noise = result.noise
     per = tuple(p for p in result.free if p.per_experiment)
     out = []
     for e in experiments:
         if per:
-            sub = fit(
+            # a small fit per run, its runs padded to bucketed lengths: runs of similar
+            # lengths re-fit with one compiled solver, not one per length
+            sub = fit_likelihood(
                 result.model,
                 [e],
                 per,
-                noise=dataclasses.replace(noise, start_noise=False),
+                dataclasses.replace(noise, start_noise=False),
                 n_starts=1,
+                pad_records=True,
             )
             out.append((dataclasses.replace(sub.runs[0], role="validation"), sub.parameters))
             continue

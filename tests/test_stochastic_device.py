@@ -515,3 +515,24 @@ def test_runs_of_similar_lengths_share_one_compiled_filter():
         assert run.log_likelihood == pytest.approx(ou.loglik(ou.TRUTH, y) + first, rel=1e-12)
         filters = [f for f in compiled[before:] if "_filter_arrays" in f]
         assert len(filters) == (1 if n == 180 else 0), compiled[before:]
+
+
+def test_runs_of_different_lengths_stack_into_one_likelihood():
+    """A fit's runs are padded to the longest and mapped over by one compiled filter
+    (`stacked_records`): the objective's -log L of two records of 150 and 200 frames is
+    the sum of the independent numpy filter's over each (tests/ou_reference.py)."""
+    import jax.numpy as jnp
+
+    from greybox._estimate import likelihood as lik
+    from tests import ou_device as od
+    from tests import ou_reference as ou
+
+    ys = [ou.simulate(ou.TRUTH, n, seed) for n, seed in ((150, 7), (200, 8))]
+    runs = [od.experiment(y, name=f"r{i}") for i, y in enumerate(ys)]
+    noise = greybox.ProcessNoise(od.STRUCTURE, start_noise=False)
+    su = lik.setup(od.model(ou.TRUTH), runs, od.FREE, noise)
+    assert np.shape(su.obj.y) == (2, 200, 1)  # stacked, the shorter run padded
+    truth = [ou.TRUTH[name] for name in od.NAMES]
+    raw = jnp.asarray([float(p.to_raw(v)) for p, v in zip(su.obj.flat, truth)])
+    expected = sum(ou.loglik(ou.TRUTH, y) for y in ys)
+    assert -float(su.obj.data_nll(raw)) == pytest.approx(expected, rel=1e-12)

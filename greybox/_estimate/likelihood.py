@@ -51,15 +51,16 @@ from greybox._estimate.starts import run_starts
 from greybox._model.freeparams import apply_raw
 from greybox._model.parameters import set_values
 from greybox._simulate.simulate import as_arrays, require_x64
+from greybox.stochastic._kalman import FilterGrid
 from greybox.stochastic._sde_device import (
     _NOISE_FIELDS,
     NoiseStructure,
     StochasticDevice,
-    _grid,
     _record_loglik,
     _run_arrays,
     _t0,
-    padded_record,
+    k_step_loop,
+    stacked_records,
     stochastic_device,
 )
 
@@ -122,10 +123,10 @@ class _Objective(eqx.Module):
     """-log L + priors over the raw vector (shared first, then per run)."""
 
     model: StochasticDevice
-    grids: tuple
-    t_s: tuple
-    t0: tuple
-    y: tuple
+    grids: FilterGrid  # the runs' grids stacked (leading run axis E; `stacked_records`)
+    t_s: jnp.ndarray  # (E, N)
+    t0: jnp.ndarray  # (E,)
+    y: jnp.ndarray  # (E, N, q), NaN past a run's own frames
     settings: jnp.ndarray  # (E, K)
     setting_paths: tuple = eqx.field(static=True)
     shared: tuple = eqx.field(static=True)
@@ -148,11 +149,22 @@ class _Objective(eqx.Module):
         )
 
     def data_nll(self, raw):
-        total = 0.0
-        for i in range(self.n_exp):
-            m = self.run_model(raw, i)
-            total = total - _record_loglik(m, self.grids[i], self.t_s[i], self.t0[i], self.y[i])
-        return total
+        """-log L of every run: one filter mapped over the stacked runs (`lax.map`: compiled
+        once whatever their number; one after another, so a Van Loan step's doubling branch
+        stays a branch, which vmapping would run for every step)."""
+        ns, npr = len(self.shared), len(self.per_exp)
+        base = apply_raw(self.model, self.shared, raw)
+        per = raw[ns:].reshape(self.n_exp, npr)
+
+        def one(run):
+            settings, per_row, grid, t_s, t0, y = run
+            m = _problem.run_model(base, self.setting_paths, settings, self.per_exp, per_row)
+            return _record_loglik(m, grid, t_s, t0, y)
+
+        runs = (self.settings, per, self.grids, self.t_s, self.t0, self.y)
+        if self.n_exp == 1:  # no loop around a single run's filter
+            return -one(jax.tree.map(lambda x: x[0], runs))
+        return -jnp.sum(jax.lax.map(one, runs))
 
     def prior_nll(self, raw):
         rows = [p.prior_residual(p.to_value(raw[k])) for k, p in _problem.prior_index(self.flat)]
@@ -533,21 +545,19 @@ def start_noise(model: StochasticDevice, experiments, free) -> StochasticDevice:
 
 
 def _build(model, experiments, free, pad: bool = False):
-    """The objective over `experiments`, each run at its own length or, with `pad`, padded
-    to a bucketed one (`padded_record`: the same log-likelihood; runs of similar lengths
-    then share one compiled solver, at the cost of the padded steps in every evaluation)."""
+    """The objective over `experiments`, its runs stacked (`stacked_records`: padded to the
+    longest, the same log-likelihood) and, with `pad`, their lengths bucketed: runs of
+    similar lengths then share one compiled solver, at the cost of the padded steps in
+    every evaluation."""
     setting_paths, settings = _problem.settings_matrix(model, experiments, free)
     shared, per_exp = _problem.split(free)
-    if pad:
-        records = [padded_record(e) for e in experiments]
-    else:
-        records = [(_grid(e), np.asarray(e.t_s), np.asarray(e.y)) for e in experiments]
+    grid, t_s, y = stacked_records(experiments, bucket=pad)
     return _Objective(
         model=as_arrays(model),
-        grids=tuple(grid for grid, _, _ in records),
-        t_s=tuple(jnp.asarray(t) for _, t, _ in records),
-        t0=tuple(jnp.asarray(_t0(e)) for e in experiments),
-        y=tuple(jnp.asarray(y) for _, _, y in records),
+        grids=jax.tree.map(jnp.asarray, grid),
+        t_s=jnp.asarray(t_s),
+        t0=jnp.asarray([_t0(e) for e in experiments]),
+        y=jnp.asarray(y),
         settings=jnp.asarray(settings),
         setting_paths=setting_paths,
         shared=shared,
@@ -560,12 +570,13 @@ def _vanishing(path: str) -> bool:
     return path.partition(".")[0] in _VANISHING
 
 
-def _diagnose(model, e, role: str, lags: int, k_step: int, settings_applied=False):
+def _diagnose(model, e, role: str, lags: int, k_step: int, settings_applied=False, lengths=None):
+    """`RunDiagnostics` of run `e` (`lengths`: what its filter is padded to, `_run_arrays`)."""
     from greybox._estimate.stochastic_fit import ljung_box
 
     m = model if settings_applied else e.apply_settings(model)
     m = as_arrays(m)
-    _, yp, sd1, ys, sds, _, yk, sdk, ll = _run_arrays(m, e, k_step)
+    _, yp, sd1, ys, sds, _, yk, sdk, ll = _run_arrays(m, e, k_step, lengths)
     ll = float(ll)
     y = np.asarray(e.y)
     yp, ys, yk = np.asarray(yp), np.asarray(ys), np.asarray(yk)
@@ -610,7 +621,8 @@ def _indefinite_note(H, labels) -> str | None:
 class Setup:
     """One device's likelihood problem, ready to solve: the filtered `StochasticDevice` `sd`,
     the checked `free` list (noise starts and scales applied), the objective `obj`, the raw
-    start `raw0` and the multi-start points `starts`."""
+    start `raw0` and the multi-start points `starts`; `bucketed`: its runs' lengths rounded
+    up (`_build(pad=True)`), and so its diagnostics' too."""
 
     sd: StochasticDevice
     free: tuple
@@ -620,6 +632,7 @@ class Setup:
     budget: int
     noise: ProcessNoise
     experiments: tuple
+    bucketed: bool = False
 
     @property
     def flat(self) -> list:
@@ -666,7 +679,7 @@ def setup(
     rng = np.random.default_rng(seed)
     starts = [raw0] + [_problem.perturbed(obj.shared, raw0, rng) for _ in range(n_start - 1)]
     budget = MAX_STEPS if max_steps is None else int(max_steps)
-    return Setup(sd, free, obj, raw0, starts, budget, noise, experiments)
+    return Setup(sd, free, obj, raw0, starts, budget, noise, experiments, pad_records)
 
 
 def start_state(out) -> str:
@@ -727,13 +740,12 @@ def solve_bytes(su: Setup) -> float:
     12-parameter fit, 31 MB estimated)."""
     from greybox._estimate import memory
 
-    grids = su.obj.grids
-    steps = max(int(np.shape(g.dt_s)[0]) for g in grids)
+    steps = int(np.shape(su.obj.grids.dt_s)[-1])  # per run, padded to the longest
     if su.sd.use_ekf:
         steps *= int(su.sd.ekf_substeps)
     return memory.solve_bytes(
-        runs=len(grids),
-        frames=max(int(np.shape(t)[0]) for t in su.obj.t_s),
+        runs=int(su.obj.n_exp),
+        frames=int(np.shape(su.obj.t_s)[-1]),
         states=int(su.sd.n_states),
         outputs=int(su.sd.n_outputs),
         inputs=int(su.sd.n_inputs),
@@ -850,8 +862,24 @@ def _assembled(su: Setup, runs, say) -> tuple[dict, list]:
     base = apply_raw(obj.model, obj.shared, jnp.asarray(raw))
     run_models = tuple(obj.run_model(jnp.asarray(raw), i) for i in range(len(experiments)))
     say("filtering every run at the estimate: one-step, k-step and simulation predictions")
+    # every run's filter padded to the objective's stacked length: one compile for all,
+    # no padding for a single run
+    loop = max(k_step_loop(e, noise.k_step) for e in experiments)
+    stacked = (
+        int(np.shape(obj.t_s)[-1]),
+        int(np.shape(obj.grids.dt_s)[-1]),
+        1 << (loop - 1).bit_length() if su.bucketed else loop,
+    )
     diags = tuple(
-        _diagnose(m_i, e, "estimation", noise.whiteness_lags, noise.k_step, settings_applied=True)
+        _diagnose(
+            m_i,
+            e,
+            "estimation",
+            noise.whiteness_lags,
+            noise.k_step,
+            settings_applied=True,
+            lengths=stacked,
+        )
         for m_i, e in zip(run_models, experiments)
     )
     n_obs = sum(_scored_readings(e, sd.score_first) for e in experiments)

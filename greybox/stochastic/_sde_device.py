@@ -454,21 +454,55 @@ def _grid(e: Experiment) -> FilterGrid:
     return FilterGrid(e.t_s, pw.times_s, levels, t0_s=_t0(e))
 
 
-def padded_record(e: Experiment) -> tuple:
-    """(grid, frame times, readings) of `e` padded to bucketed lengths (`FilterGrid.padded`,
-    `simulate._bucket`; NaN readings on the padded frames): one compiled filter serves the
-    records of similar lengths (the runs of a fit and of its validation, whose diagnostics
-    run once each: `_run_arrays`). Padding changes no log-likelihood (its steps are exact
-    identities, its frames unread) but costs their steps, so the fit's solver, which runs
-    the filter hundreds of times, keeps each record's own length. The first `e.n_frames`
-    rows of what the filter returns per frame are the record's."""
+def padded_record(e: Experiment, lengths: tuple | None = None) -> tuple:
+    """(grid, frame times, readings) of `e` padded to `lengths` (frames, steps; default its
+    own rounded up by `simulate._bucket`) by `FilterGrid.padded`, NaN readings on the padded
+    frames: one compiled filter serves records of similar lengths. Padding changes no
+    log-likelihood (its steps are exact identities, its frames unread) but costs their
+    steps. The first `e.n_frames` rows of what the filter returns per frame are the
+    record's."""
     grid = _grid(e)
     n, L = grid.n_frames, grid.n_steps
-    grid = grid.padded(_bucket(n), _bucket(L))
+    n_pad, l_pad = (_bucket(n), _bucket(L)) if lengths is None else lengths
+    grid = grid.padded(max(int(n_pad), n), max(int(l_pad), L))
     t_s = np.asarray(grid.t_s)
     y = np.asarray(e.y, dtype=float)
     y = np.concatenate([y, np.full((grid.n_frames - n, y.shape[1]), np.nan)])
     return grid, t_s, y
+
+
+def stacked_records(experiments, bucket: bool = False) -> tuple:
+    """(grid, frame times (E, N), readings (E, N, q)) of the runs padded to the longest one's
+    frames and steps (`FilterGrid.padded`, NaN readings on the padded frames; with `bucket`,
+    to those lengths rounded up by `simulate._bucket`) and stacked along a leading run axis,
+    their distinct step lengths brought to one count: a filter mapped over the runs
+    (`lax.map`) is compiled once whatever their number. Without `bucket` a single run keeps
+    its own length."""
+    grids = [_grid(e) for e in experiments]
+    n = max(g.n_frames for g in grids)
+    steps = max(g.n_steps for g in grids)
+    if bucket:
+        n, steps = _bucket(n), _bucket(steps)
+    grids = [g.padded(n, steps) for g in grids]
+    k = max(g.dt_distinct.shape[0] for g in grids)
+    for i, g in enumerate(grids):
+        if k == steps:  # some run has every step its own: all have (no gather)
+            distinct, index = g.dt_s, np.arange(steps, dtype=np.int32)
+        else:  # one count of distinct lengths: the last one repeated (never gathered)
+            d = np.asarray(g.dt_distinct)
+            distinct, index = np.concatenate([d, np.full(k - d.size, d[-1])]), g.dt_index
+        grids[i] = eqx.tree_at(lambda g: (g.dt_distinct, g.dt_index), g, (distinct, index))
+    grid = jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *grids)
+    y = np.full((len(experiments), n, experiments[0].y.shape[1]), np.nan)
+    for i, e in enumerate(experiments):
+        y[i, : e.n_frames] = e.y
+    return grid, np.asarray(grid.t_s), y
+
+
+def k_step_loop(e: Experiment, k_step: int) -> int:
+    """The k-step prediction's loop length for run `e` (`_k_step_plan`): the most grid steps
+    between a frame and the frame `k_step` before it."""
+    return _k_step_plan(_grid(e), int(k_step))[3]
 
 
 def _readout_terms(device, t_s, t0, q: int):
@@ -595,13 +629,13 @@ class DeviceFilterResult:
     y_k_step_sd: np.ndarray | None = None
 
 
-def _k_step_plan(grid: FilterGrid, k: int, n_frames: int | None = None):
+def _k_step_plan(grid: FilterGrid, k: int, n_frames: int | None = None, round_up=False):
     """(start frame (N,) or -1 for the prior, first step (N,), last step (N,), loop length):
     the k-step-ahead prediction of frame j starts from the filtered state at frame j - k (the
     prior at t0 for j < k) and predicts through the grid steps up to frame j. Of a padded
-    grid (`n_frames` real frames) the padded frames repeat the last real frame's plan, and
-    the loop length is rounded up to a power of two (a static size: similar records share
-    one compiled filter; the steps beyond a frame's are masked)."""
+    grid (`n_frames` real frames) the padded frames repeat the last real frame's plan;
+    `round_up`: the loop length (a static size) rounded up to a power of two, so similar
+    records share one compiled filter (the steps beyond a frame's are masked)."""
     step = np.asarray(grid.step, dtype=np.int64)
     real = step.size if n_frames is None else int(n_frames)
     j = np.minimum(np.arange(step.size), real - 1)
@@ -609,7 +643,7 @@ def _k_step_plan(grid: FilterGrid, k: int, n_frames: int | None = None):
     first = np.where(start >= 0, step[np.maximum(start, 0)] + 1, 0)
     last = step[j]
     n = max(int(np.max(last - first + 1, initial=1)), 1)
-    if n_frames is not None:
+    if round_up:
         n = 1 << (n - 1).bit_length()
     return start.astype(np.int32), first.astype(np.int32), last.astype(np.int32), n
 
@@ -680,13 +714,18 @@ def _k_step_arrays(model, grid, mf, Pf, plan, n_loop, R):
     return jax.vmap(one)(start, first, last)
 
 
-def _run_arrays(m: StochasticDevice, e: Experiment, k_step: int):
+def _run_arrays(m: StochasticDevice, e: Experiment, k_step: int, lengths=None):
+    """`_filter_arrays` of one run, padded and cut back to its frames: to `lengths` (frames,
+    steps, k-step loop: the runs of a fit to their common ones, `k_step_loop`) or to bucketed
+    ones, so runs of similar lengths share one compiled filter."""
     k_step = int(k_step)
     if k_step < 1:
         raise ValueError(f"k_step: {k_step} must be >= 1 (frames ahead)")
     n = e.n_frames
-    grid, t_s, y = padded_record(e)
-    start, first, last, n_loop = _k_step_plan(grid, k_step, n)
+    grid, t_s, y = padded_record(e, None if lengths is None else lengths[:2])
+    start, first, last, n_loop = _k_step_plan(grid, k_step, n, lengths is None)
+    if lengths is not None:
+        n_loop = max(n_loop, int(lengths[2]))
     out = jax.device_get(
         _filter_arrays(
             m, grid, jnp.asarray(t_s), _t0(e), jnp.asarray(y), (start, first, last), n_loop

@@ -59,7 +59,7 @@ from greybox.stochastic._sde_device import (
     _record_loglik,
     _run_arrays,
     _t0,
-    k_step_loop,
+    stacked_lengths,
     stacked_records,
     stochastic_device,
 )
@@ -864,12 +864,7 @@ def _assembled(su: Setup, runs, say) -> tuple[dict, list]:
     say("filtering every run at the estimate: one-step, k-step and simulation predictions")
     # every run's filter padded to the objective's stacked length: one compile for all,
     # no padding for a single run
-    loop = max(k_step_loop(e, noise.k_step) for e in experiments)
-    stacked = (
-        int(np.shape(obj.t_s)[-1]),
-        int(np.shape(obj.grids.dt_s)[-1]),
-        1 << (loop - 1).bit_length() if su.bucketed else loop,
-    )
+    stacked = stacked_lengths(experiments, noise.k_step, su.bucketed)
     diags = tuple(
         _diagnose(
             m_i,
@@ -969,6 +964,7 @@ def validate_runs(result, experiments) -> tuple:
     per-run free parameters, if any, are re-fitted on each run (physics and noise fixed)."""
     noise = result.noise
     per = tuple(p for p in result.free if p.per_experiment)
+    estimation = stacked_lengths(result.experiments, noise.k_step)
     out = []
     for e in experiments:
         if per:
@@ -984,6 +980,16 @@ def validate_runs(result, experiments) -> tuple:
             )
             out.append((dataclasses.replace(sub.runs[0], role="validation"), sub.parameters))
             continue
-        d = _diagnose(result.model, e, "validation", noise.whiteness_lags, noise.k_step)
+        # the estimation runs' compiled filter serves a validation run that fits within
+        # their lengths; a longer one is padded to bucketed lengths (shared with its kind)
+        fit_in = all(o <= f for o, f in zip(stacked_lengths([e], noise.k_step), estimation))
+        d = _diagnose(
+            result.model,
+            e,
+            "validation",
+            noise.whiteness_lags,
+            noise.k_step,
+            lengths=estimation if fit_in else None,
+        )
         out.append((d, ()))
     return tuple(out)

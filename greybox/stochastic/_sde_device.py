@@ -499,10 +499,19 @@ def stacked_records(experiments, bucket: bool = False) -> tuple:
     return grid, np.asarray(grid.t_s), y
 
 
-def k_step_loop(e: Experiment, k_step: int) -> int:
-    """The k-step prediction's loop length for run `e` (`_k_step_plan`): the most grid steps
-    between a frame and the frame `k_step` before it."""
-    return _k_step_plan(_grid(e), int(k_step))[3]
+def stacked_lengths(experiments, k_step: int, bucket: bool = False) -> tuple:
+    """(frames, steps, k-step loop) the runs' filters are padded to together: the longest
+    run's frames and steps (`stacked_records`, rounded up as it rounds them with `bucket`)
+    and the k-step prediction's longest loop (`_k_step_plan`: the most grid steps between a
+    frame and the frame `k_step` before it; with `bucket` a power of two). A fit's
+    diagnostics of all its runs share one compiled filter at these lengths."""
+    grids = [_grid(e) for e in experiments]
+    n = max(g.n_frames for g in grids)
+    steps = max(g.n_steps for g in grids)
+    loop = max(_k_step_plan(g, int(k_step))[3] for g in grids)
+    if bucket:
+        n, steps, loop = _bucket(n), _bucket(steps), 1 << (loop - 1).bit_length()
+    return n, steps, loop
 
 
 def _readout_terms(device, t_s, t0, q: int):

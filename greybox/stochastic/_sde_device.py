@@ -479,10 +479,7 @@ def stacked_records(experiments, bucket: bool = False) -> tuple:
     (`lax.map`) is compiled once whatever their number. Without `bucket` a single run keeps
     its own length."""
     grids = [_grid(e) for e in experiments]
-    n = max(g.n_frames for g in grids)
-    steps = max(g.n_steps for g in grids)
-    if bucket:
-        n, steps = _bucket(n), _bucket(steps)
+    n, steps = _longest(grids, bucket)
     grids = [g.padded(n, steps) for g in grids]
     k = max(g.dt_distinct.shape[0] for g in grids)
     for i, g in enumerate(grids):
@@ -506,12 +503,16 @@ def stacked_lengths(experiments, k_step: int, bucket: bool = False) -> tuple:
     frame and the frame `k_step` before it; with `bucket` a power of two). A fit's
     diagnostics of all its runs share one compiled filter at these lengths."""
     grids = [_grid(e) for e in experiments]
+    loop = max(_k_step_plan(g, int(k_step))[3] for g in grids)
+    return (*_longest(grids, bucket), 1 << (loop - 1).bit_length() if bucket else loop)
+
+
+def _longest(grids, bucket: bool) -> tuple[int, int]:
+    """(frames, steps) of the longest of `grids`, rounded up by `simulate._bucket` with
+    `bucket`."""
     n = max(g.n_frames for g in grids)
     steps = max(g.n_steps for g in grids)
-    loop = max(_k_step_plan(g, int(k_step))[3] for g in grids)
-    if bucket:
-        n, steps, loop = _bucket(n), _bucket(steps), 1 << (loop - 1).bit_length()
-    return n, steps, loop
+    return (_bucket(n), _bucket(steps)) if bucket else (n, steps)
 
 
 def _readout_terms(device, t_s, t0, q: int):
@@ -725,7 +726,7 @@ def _k_step_arrays(model, grid, mf, Pf, plan, n_loop, R):
 
 def _run_arrays(m: StochasticDevice, e: Experiment, k_step: int, lengths=None):
     """`_filter_arrays` of one run, padded and cut back to its frames: to `lengths` (frames,
-    steps, k-step loop: the runs of a fit to their common ones, `k_step_loop`) or to bucketed
+    steps, k-step loop: the runs of a fit to their common ones, `stacked_lengths`) or to bucketed
     ones, so runs of similar lengths share one compiled filter."""
     k_step = int(k_step)
     if k_step < 1:

@@ -1548,14 +1548,12 @@ def validate(
         pairs = validate_runs(result, experiments)
         diags = tuple(d for d, _ in pairs)
         preds = [d.y_simulation for d in diags]
-        scores = _validation_scores(experiments, preds, result.sigma, False, 0)
-        refit = tuple(p for _, ps in pairs for p in ps)
         # the residual test of a process-noise model is on its one-step innovations, on the
         # validation runs as on the estimation runs (its simulation is expected to wander)
-        innovations = _residual_runs(experiments, [d.y_one_step for d in diags])
-        return dataclasses.replace(
-            scores, residuals=analyse_residuals(innovations), parameters=refit, runs=diags
-        )
+        one_step = [d.y_one_step for d in diags]
+        scores = _validation_scores(experiments, preds, result.sigma, False, 0, one_step)
+        refit = tuple(p for _, ps in pairs for p in ps)
+        return dataclasses.replace(scores, parameters=refit, runs=diags)
     known = result.noise_known
     z, sd, ok = _shared_response(result, experiments, fit_kwargs)
     if not per_exp:
@@ -1598,9 +1596,12 @@ def _shared_response(result: FitResult, experiments, fit_kwargs) -> tuple[list, 
     return preds, sds, bool(np.all(ok))
 
 
-def _validation_scores(experiments, preds, sigma, known: bool, n_params: int):
+def _validation_scores(experiments, preds, sigma, known: bool, n_params: int, tested=None):
+    """The `ValidationResult` of simulations `preds`; its residual test is on `tested` (the
+    predictions whose residuals are tested; default `preds`)."""
     fits, robust, outl, ceilings, scaled = _scored_runs(experiments, preds, sigma)
     gof = goodness_of_fit(scaled, [e.mask for e in experiments], n_params) if known else None
+    tested = preds if tested is None else tested
     return ValidationResult(
         experiments,
         tuple(preds),
@@ -1608,7 +1609,7 @@ def _validation_scores(experiments, preds, sigma, known: bool, n_params: int):
         robust,
         outl,
         ceilings,
-        analyse_residuals(_residual_runs(experiments, preds)),
+        analyse_residuals(_residual_runs(experiments, tested)),
         gof,
     )
 

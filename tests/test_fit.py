@@ -225,6 +225,25 @@ def test_scaled_factorisation_is_exactly_invariant():
         assert rep.verdicts[2:] == ("not identifiable",) * 2
 
 
+def test_a_column_at_rounding_level_is_undetermined_alone():
+    """A coordinate whose Jacobian column is rounding noise (a likelihood fit's vanished noise
+    intensity: its column from the finite-difference Hessian is ~1e-16 of the others) is
+    the only undetermined one; the others keep the standard errors of the problem without
+    it, sqrt(diag((J^T J)^-1)) (before, the noise column scaled to unit norm mixed into
+    every direction and every parameter was called not identifiable)."""
+    from greybox._estimate.identifiability import analyse
+
+    rng = np.random.default_rng(1)
+    j = rng.normal(size=(200, 4))
+    j[:, 3] = 1e-16 * np.linalg.norm(j[:, 0]) * rng.normal(size=200)
+    free = [FreeParameter(f"p{k}", scale=1.0) for k in range(4)]
+    rep = analyse(j, np.zeros((0, 4)), free, np.ones(4), [f"p{k}" for k in range(4)])
+    np.testing.assert_array_equal(rep.undetermined, [False, False, False, True])
+    assert rep.verdicts == ("identifiable",) * 3 + ("not identifiable",)
+    se = np.sqrt(np.diag(np.linalg.inv(j[:, :3].T @ j[:, :3])))
+    np.testing.assert_allclose(np.sqrt(np.diag(rep.covariance_raw))[:3], se, rtol=1e-9)
+
+
 def test_status_says_what_happened():
     from greybox._estimate.fit import fit_status
 

@@ -31,6 +31,8 @@ WEAK_SD = 0.5  # raw-unit sd above which a direction or parameter counts as not 
 PRIOR_SHRINK = 0.25  # posterior var / prior var above this => prior-dominated
 RANK_TOL = 1e-8  # singular value of the column-scaled Jacobian, relative, treated as zero
 TINY = RANK_TOL**2  # the same threshold on eigenvalues of an information matrix J^T J
+ZERO_COLUMN = 1e-10  # column norm (relative to the largest) below which a column is zero:
+# raw coordinates are scaled to their values, so real columns differ by far less
 ON_NULL = 1e-6  # squared weight on an undetermined direction that makes a coordinate undetermined
 VERDICTS = ("identifiable", "prior-dominated", "not identifiable", "at bound", "not needed")
 
@@ -111,7 +113,13 @@ class ScaledFactor:
         jac = np.asarray(jac, dtype=float)
         n = jac.shape[1]
         d = np.linalg.norm(jac, axis=0)
-        d = np.where(d > 0, d, 1.0)  # an all-zero column stays zero: exactly undetermined
+        # a column at rounding level of the largest is zero: scaled up to unit norm, its
+        # rounding noise would mix with every other column (a likelihood fit's Jacobian from
+        # its finite-difference Hessian, where a vanished noise intensity's column is ~1e-14
+        # of the others, made every parameter "not identifiable")
+        zero = ~(d > ZERO_COLUMN * (d.max() if d.size else 0.0))
+        jac = np.where(zero[None, :], 0.0, jac)
+        d = np.where(zero, 1.0, d)  # an all-zero column stays zero: exactly undetermined
         scaled = jac / d
         # the singular values of a tall J equal those of its small R factor: QR first is cheaper
         r = np.linalg.qr(scaled, mode="r") if scaled.shape[0] > n else scaled

@@ -15,8 +15,10 @@ likelihood with the likelihood back end's one compiled optimiser, over chunks of
   converged, each pass evaluating one point for every item whatever phase it is in; an
   item that is done keeps its state, so each item's result is the one the unbatched solve
   gives, to rounding). The last chunk is padded with copies of its last item,
-  so a group compiles once; on a CPU the padding items are skipped, so every chunk there has
-  one size (`MAX_CHUNK`) and a batch of any size reuses an earlier batch's compiled solver.
+  so a group compiles once; chunks are sized as the output-error batch sizes them
+  (`batch.chunk_size_for`, within the device's memory by `likelihood.solve_bytes`): on a CPU
+  the padding items are skipped, so every chunk there has one size (`MAX_CHUNK` unless memory
+  allows fewer) and a batch of any size reuses an earlier batch's compiled solver.
   Reviving vanished noise intensities (`likelihood.revive`) reuses the same compiled chunk.
 - Each device's `FitResult` is assembled as `fit` assembles it (`likelihood.assemble_many`:
   verdicts, covariance, per-run diagnostics host-side and per device; the residual tests of
@@ -37,6 +39,7 @@ import numpy as np
 
 from greybox._compile import jit
 from greybox._estimate import likelihood as _lik
+from greybox._estimate.batch import chunk_size_for, device_budget
 from greybox._platform import map_over_items, on_accelerator
 
 MAX_CHUNK = 64  # likelihood solves per compiled call (each carries its own Hessian work)
@@ -92,11 +95,10 @@ def fit_likelihood_batch(
             n_items = len(items)
             if chunk_size:
                 chunk = int(chunk_size)
-            elif on_accelerator():  # a padding item costs a solve there: chunks evened out
-                chunk = min(MAX_CHUNK, n_items)
-                chunk = max(1, math.ceil(n_items / math.ceil(n_items / chunk)))
-            else:  # padding is skipped: one chunk size, so one compiled solver per structure
-                chunk = MAX_CHUNK
+            else:  # as the output-error batch sizes its chunks (padding skipped on a CPU)
+                memory, _ = device_budget()
+                item = _lik.solve_bytes(sus[0])
+                chunk = chunk_size_for(item, memory, n_items, MAX_CHUNK, not on_accelerator())
             chunk_used = max(chunk_used, chunk)
             label = f"group {g + 1}/{len(groups)}"
             say(f"{label}: {len(sus)} devices, {n_items} likelihood solves, chunks of {chunk}")

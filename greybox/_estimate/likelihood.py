@@ -964,7 +964,7 @@ def validate_runs(result, experiments) -> tuple:
     per-run free parameters, if any, are re-fitted on each run (physics and noise fixed)."""
     noise = result.noise
     per = tuple(p for p in result.free if p.per_experiment)
-    estimation = stacked_lengths(result.experiments, noise.k_step)
+    estimation = None if per else stacked_lengths(result.experiments, noise.k_step)
     out = []
     for e in experiments:
         if per:

@@ -504,7 +504,13 @@ def stacked_lengths(experiments, k_step: int, bucket: bool = False) -> tuple:
     diagnostics of all its runs share one compiled filter at these lengths."""
     grids = [_grid(e) for e in experiments]
     loop = max(_k_step_plan(g, int(k_step))[3] for g in grids)
-    return (*_longest(grids, bucket), 1 << (loop - 1).bit_length() if bucket else loop)
+    return (*_longest(grids, bucket), _rounded_loop(loop) if bucket else loop)
+
+
+def _rounded_loop(n: int) -> int:
+    """A k-step loop length rounded up to a power of two: a static size that records of
+    similar lengths share (the steps past a frame's own are masked)."""
+    return 1 << (int(n) - 1).bit_length()
 
 
 def _longest(grids, bucket: bool) -> tuple[int, int]:
@@ -654,7 +660,7 @@ def _k_step_plan(grid: FilterGrid, k: int, n_frames: int | None = None, round_up
     last = step[j]
     n = max(int(np.max(last - first + 1, initial=1)), 1)
     if round_up:
-        n = 1 << (n - 1).bit_length()
+        n = _rounded_loop(n)
     return start.astype(np.int32), first.astype(np.int32), last.astype(np.int32), n
 
 

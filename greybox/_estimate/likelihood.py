@@ -3,6 +3,8 @@ a stochastic device through the continuous-discrete (extended) Kalman filter.
 
 - Objective: -log L of every run (prediction-error decomposition, `_sde_device`) plus the
   log-normal priors, over the raw coordinates of the free parameters (`greybox._estimate.problem`).
+- Starts of the noise parameters without `initial`: from the data and the linearised device
+  (`greybox._estimate.noise_starts`).
 - Initial state (`InitialState`): mean = the device's initial state with the run's settings
   and per-run estimates; covariance diag(sd^2); with a known initial state (sd 0, the
   default) the first frame of each run is conditioned on, not scored, so reading the initial
@@ -43,13 +45,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from greybox._compile import jit
+from greybox._estimate import noise_starts
 from greybox._estimate import problem as _problem
 from greybox._estimate.identifiability import analyse
 from greybox._estimate.metrics import fit_percent
 from greybox._estimate.noise_models import DIFFUSE_SD, ProcessNoise
 from greybox._estimate.starts import run_starts
 from greybox._model.freeparams import apply_raw
-from greybox._model.parameters import set_values
 from greybox._simulate.simulate import as_arrays, require_x64
 from greybox.stochastic._kalman import FilterGrid
 from greybox.stochastic._sde_device import (
@@ -509,41 +511,6 @@ def _with_initial_state(sd: StochasticDevice, noise: ProcessNoise, experiments):
     )
 
 
-def start_noise(model: StochasticDevice, experiments, free) -> StochasticDevice:
-    """Data-based starting values for the free noise parameters without `initial`.
-
-    Measurement sd: the robust spread of frame-to-frame differences / sqrt 2 per output;
-    intensities: 0.1 sd^2 / (median frame interval), the noise per frame, a tenth of it."""
-    diffs, dts = [], []
-    for e in experiments:
-        diffs.append(np.diff(e.y, axis=0))
-        dts.append(np.diff(e.t_s))
-    d = np.concatenate(diffs)
-    sd = np.array(
-        [1.4826 * np.nanmedian(np.abs(d[:, j] - np.nanmedian(d[:, j]))) for j in range(d.shape[1])]
-    ) / np.sqrt(2)
-    spread = np.array(
-        [np.nanstd(np.concatenate([e.y[:, j] for e in experiments])) for j in range(d.shape[1])]
-    )
-    # quantised, slowly moving readings can have a zero median difference: their RMS then
-    rms = np.array([np.sqrt(np.nanmean(d[:, j] ** 2)) for j in range(d.shape[1])]) / np.sqrt(2)
-    sd = np.where(np.isfinite(sd) & (sd > 0), sd, rms)
-    sd = np.where(np.isfinite(sd) & (sd > 0), sd, np.maximum(1e-3 * spread, 1e-12))
-    dt = float(np.median(np.concatenate(dts))) if np.concatenate(dts).size else 1.0
-    paths, vals = [], []
-    for p in free:
-        field, _, name = p.path.partition(".")
-        if field not in _NOISE_FIELDS or p.initial is not None:
-            continue
-        if field == "measurement":
-            v = sd[model.measurement.names.index(name)]
-        else:
-            v = 0.1 * float(np.mean(sd)) ** 2 / dt
-        paths.append(p.path)
-        vals.append(float(v))
-    return set_values(model, paths, vals)
-
-
 def _build(model, experiments, free, pad: bool = False):
     """The objective over `experiments`, its runs stacked (`stacked_records`: padded to the
     longest, the same log-likelihood) and, with `pad`, their lengths bucketed: runs of
@@ -671,7 +638,7 @@ def setup(
     free = _problem.check_free(sd, free)
     free = _fit.apply_start_values(start_values, sd, free, experiments)
     if noise.start_noise:
-        sd = start_noise(sd, experiments, free)
+        sd = noise_starts.start_noise(sd, experiments, free)
     free = _problem.with_scales(free, sd)
     obj = _build(sd, experiments, free, pad=pad_records)
     raw0 = _problem.initial_raw(obj.flat, sd)

@@ -397,4 +397,5 @@ SPEC = DeviceSpec(
     options=OPTIONS,
     start_values=rest_level_offsets("camera.offset_m"),
     description=__doc__.split("\n\n")[0],
+    state_unit="K",  # temperature rises of the nodes (and of the elongation lag)
 )

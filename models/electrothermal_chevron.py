@@ -372,4 +372,5 @@ SPEC = DeviceSpec(
         ),
     ),
     description=__doc__.split("\n\n")[0],
+    state_unit="K",  # temperature rises of the thermal nodes
 )

@@ -435,4 +435,5 @@ SPEC = DeviceSpec(
     ),
     run_settings=run_settings,
     description=__doc__.split("\n\n")[0],
+    state_unit="K",  # temperatures of the heater and sensor nodes
 )

@@ -103,6 +103,10 @@ class DeviceSpec:
       gives (per-run or [experiment] settings) or that are fitted always win. Loaders call it
       once per run, so io stays device-agnostic.
     - `description`: one paragraph for ``greybox describe``.
+    - `state_unit`: the SI unit every state of the model shares ("K" for a thermal network),
+      or None (mixed, or not declared): the unit of its process-noise intensities
+      (unit^2/s). Undeclared, a process-noise fit assumes the outputs' unit when they share
+      one ([noise] `state_unit` overrides both).
     """
 
     name: str
@@ -115,6 +119,7 @@ class DeviceSpec:
     start_values: Callable | None = None
     description: str = ""
     run_settings: Callable | None = None
+    state_unit: str | None = None
 
     def option(self, name: str) -> Option:
         for o in self.options:
@@ -178,6 +183,10 @@ class DeviceSpec:
                 fail(f"{kind}: channel names repeat ({names})")
         if not callable(self.build):
             fail("build must be a function build(**options) -> device model")
+        if self.state_unit is not None and not (
+            isinstance(self.state_unit, str) and self.state_unit.strip()
+        ):
+            fail(f"state_unit must be a unit string such as 'K', or None; got {self.state_unit!r}")
         if self.run_settings is not None and not callable(self.run_settings):
             fail("run_settings must be a function (model, experiment, options) -> {path: value}")
         seen = set()

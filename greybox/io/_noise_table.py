@@ -348,8 +348,8 @@ def structure(noise: NoiseTable):
 
 
 def state_unit_default(spec) -> str | None:
-    """The outputs' SI unit when every output shares it (a thermal network read by
-    thermometers), else None."""
+    """For a spec that does not declare `state_unit`: the outputs' SI unit when every output
+    shares it (a thermal network read by thermometers), else None."""
     units = {c.si_unit for c in spec.outputs}
     return units.pop() if len(units) == 1 else None
 
@@ -358,7 +358,7 @@ def noise_units(spec, noise: NoiseTable) -> dict:
     """Display units of the noise parameters: measurement sd in the output's SI unit, walk
     intensities in (channel unit)^2/s, process intensities in (state unit)^2/s."""
     units = {}
-    su = noise.state_unit or state_unit_default(spec)
+    su = noise.state_unit or spec.state_unit or state_unit_default(spec)
     for g, _ in noise.process_groups:
         units[f"process.{g}"] = f"{su}^2/s" if su else "(state unit)^2/s"
     for c in spec.outputs:

@@ -14,6 +14,8 @@ Truth from simulators other than greybox's:
   Start 1.9e-3 (the old rule's, in the sensors' units, 9.8e-4).
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -76,3 +78,21 @@ def test_a_lagged_state_starts_where_its_noise_shows():
     dt = np.median(np.diff(data.t_s))
     sd_y = np.asarray([float(getattr(su.sd.measurement, c)) for c in ("T1", "T2")])
     assert float(su.sd.output_walk.shared) == pytest.approx(0.1 * np.min(sd_y**2) / dt, rel=1e-6)
+
+
+def test_process_noise_is_labelled_in_the_states_unit():
+    """A chevron's states are temperatures read as a displacement: its process intensities
+    are K^2/s (the spec's `state_unit`), not the output's m^2/s; [noise] state_unit wins;
+    a device that declares none keeps the outputs' shared unit."""
+    from greybox.io._noise_table import NoiseTable, noise_units
+
+    groups = (("states", (0,)),)
+    chevron = greybox.get_device("chevron_laser")
+    assert chevron.outputs[0].si_unit == "m"
+    assert noise_units(chevron, NoiseTable(process_groups=groups))["process.states"] == "K^2/s"
+    told = NoiseTable(process_groups=groups, state_unit="mK")
+    assert noise_units(chevron, told)["process.states"] == "mK^2/s"
+    undeclared = dataclasses.replace(chevron, state_unit=None)
+    assert noise_units(undeclared, NoiseTable(process_groups=groups))["process.states"] == "m^2/s"
+    with pytest.raises(greybox.DeviceSpecError, match="state_unit"):
+        dataclasses.replace(chevron, state_unit=" ").check()

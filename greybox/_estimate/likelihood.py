@@ -26,7 +26,9 @@ a stochastic device through the continuous-discrete (extended) Kalman filter.
 - Verdicts: a process-noise or random-walk intensity that fell towards zero (below a tenth
   of its start) and whose zero the data do not reject (the boundary likelihood-ratio test at
   5 %: setting it to 0 costs less than 1.355 in log L) is
-  "not needed" (no noise on that state; the fit stays valid, no interval). An intensity
+  "not needed" (no noise on that state; the fit stays valid, no interval); one whose zero
+  they reject is inside its range however far below its start it ended (the generic "shrank
+  to 1e-3 of its start" rule of a lower bound does not apply: zero is tested). An intensity
   that vanished where the cost still falls as it rises from zero (the log coordinate hides
   that slope) is first restarted from its start value (`revive`); where zero is the
   bound-constrained minimum it is not, which saved a whole second solve (6 s of a 15 s fit
@@ -760,12 +762,11 @@ def _assembled(su: Setup, runs, say) -> tuple[dict, list]:
     for k, p in enumerate(flat):
         hit = p.bound_hit(raw[k], raw0[k]) if ok_finite else None
         start = float(p.to_value(raw0[k]))
-        if (
-            ok_finite
-            and _vanishing(p.path)
-            and _zero_suffices(obj, raw, k, float(best["data_nll"]), start)
-        ):
-            hit = "not needed"
+        if ok_finite and _vanishing(p.path):
+            if _zero_suffices(obj, raw, k, float(best["data_nll"]), start):
+                hit = "not needed"
+            elif hit == "lower":  # far below its start, but the data reject zero: interior
+                hit = None
         bounds.append(hit)
     if ok_finite and np.all(np.isfinite(H_data)):
         vals, vecs = np.linalg.eigh(0.5 * (H_data + H_data.T))

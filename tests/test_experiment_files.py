@@ -4,6 +4,7 @@ Every bad input must give exit status 2, one line on stderr naming the file (and
 there is one) and the field, and leave no result folder (not even a partial one).
 """
 
+import importlib.util
 import json
 import re
 import subprocess
@@ -476,3 +477,20 @@ def test_input_outside_its_channel_range_is_refused_at_its_line(good, tmp_path, 
     )
     (good / "experiment.toml").write_text(text)
     _bad(tmp_path, capsys, good, good / "est.csv", "laser_mW", "below 0", line=9)
+
+
+def test_process_noise_folder_is_what_its_script_makes(tmp_path):
+    """experiments/chevron_process/ (results.md's data) is exactly what its generate.py makes."""
+    folder = ROOT / "experiments" / "chevron_process"
+    spec = importlib.util.spec_from_file_location(
+        "chevron_process_generate", folder / "generate.py"
+    )
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    gen.main(tmp_path)
+    made = sorted(p.name for p in tmp_path.iterdir())
+    assert made == sorted(
+        p.name for p in folder.iterdir() if p.suffix in (".csv", ".toml", ".json")
+    )
+    for name in made:
+        assert (tmp_path / name).read_text() == (folder / name).read_text(), name

@@ -74,6 +74,23 @@ DESCRIPTION = (
 )
 
 
+# `greybox compare`: where the noise enters (the truth: on the temperature)
+CANDIDATES = """
+[[candidates]]
+name = "thermal noise"
+noise = { process = "all" }
+
+[[candidates]]
+name = "offset walk"
+noise = { disturbances = ["ambient_random_walk"] }
+
+[[candidates]]
+name = "both"
+noise = { process = "all", disturbances = ["ambient_random_walk"] }
+nests = ["thermal noise", "offset walk"]
+"""
+
+
 def main(out=Path(__file__).resolve().parent):
     rng = np.random.default_rng(SEED)
     tables, offsets = [], {}
@@ -107,7 +124,7 @@ free = ["absorptance", "thermal.tau_s", "camera.offset_m"]
 process = "all"            # one intensity on the thermal state [K^2/s]
 
 """
-    (out / "experiment.toml").write_text(head + "\n".join(tables))
+    (out / "experiment.toml").write_text(head + "\n".join(tables) + CANDIDATES)
     truth = {
         "generator": "experiments/chevron_process/generate.py",
         "seed": SEED,

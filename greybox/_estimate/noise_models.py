@@ -199,7 +199,8 @@ class ProcessNoise:
       first reading counts).
     - `k_step`: horizon (frames) of the k-step prediction in the result; `whiteness_lags`:
       lags of the innovations' Ljung-Box test.
-    - `start_noise`: start free noise parameters without `initial` from the data.
+    - `start_noise`: start free noise parameters without `initial` from the data and the
+      linearised device (`greybox._estimate.noise_starts`).
     """
 
     structure: object = None

@@ -32,8 +32,10 @@ a stochastic device through the continuous-discrete (extended) Kalman filter.
   that vanished where the cost still falls as it rises from zero (the log coordinate hides
   that slope) is first restarted from its start value (`revive`); where zero is the
   bound-constrained minimum it is not, which saved a whole second solve (6 s of a 15 s fit
-  of 600 frames). A measurement sd
-  that collapsed is the status "not converged" with the reason "likelihood unbounded".
+  of 600 frames). A measurement sd that fell towards zero is judged the same way where
+  -log L levels off there (readings with no noise beyond the process noise: "not needed");
+  where it falls without bound (a reading fitted exactly, `_unbounded_at_zero`) the sd
+  collapsed: the status is "not converged" with the reason "likelihood unbounded".
 """
 
 from __future__ import annotations
@@ -77,6 +79,7 @@ NOT_NEEDED_FALL = 0.1  # ... for an intensity that fell below this fraction of i
 ZERO_PROBE = 1e-3  # a vanished intensity is raised to this fraction of its start to probe zero
 ZERO_PROBE_FALL = 1e-9  # ... and a cost fall beyond this there means zero is no minimum
 COLLAPSE_DROP = 1e-3  # a measurement sd below this fraction of its data-based start collapsed
+SD_ZERO = 1e-9  # the fraction of its start that stands for a measurement sd of zero
 INDEFINITE_TOL = 1e-6  # relative negative eigenvalue of the Hessian that counts as indefinite
 
 _VANISHING = ("process", "output_walk", "input_walk")  # paths whose zero means "not needed"
@@ -349,18 +352,39 @@ def _data_nll_jit(obj: _Objective, raw):
     return obj.data_nll(raw)
 
 
+def _nll_at_zero(obj: _Objective, raw, k: int, start: float, below: float = 1.0) -> float:
+    """-log L with noise level `k` at its zero, the others at `raw`: an intensity at 0, a
+    measurement sd at `SD_ZERO` x `below` x its `start` (at exactly 0 a reading the filter
+    conditions on is 0 / 0). NaN or +inf where zero is infeasible."""
+    p = obj.flat[k]
+    at_zero = np.asarray(raw, dtype=float).copy()
+    if p.path.startswith("measurement."):
+        at_zero[k] = float(p.to_raw(SD_ZERO * below * start))
+    else:
+        at_zero[k] = -np.inf  # value = lower bound (0) for a log or logit coordinate
+    return float(_data_nll_jit(obj, jnp.asarray(at_zero)))
+
+
+def _unbounded_at_zero(obj: _Objective, raw, k: int, start: float) -> bool:
+    """Whether -log L still falls without bound as measurement sd `k` goes to zero (a reading
+    fitted exactly: log sd -> -inf), rather than levelling off (readings with no measurement
+    noise beyond the process noise): 1e3 x closer to zero lowers it by more than one."""
+    far, near = _nll_at_zero(obj, raw, k, start), _nll_at_zero(obj, raw, k, start, 1e-3)
+    return not (np.isfinite(far) and np.isfinite(near)) or near < far - 1.0
+
+
 def _zero_suffices(obj: _Objective, raw, k: int, nll_hat: float, start: float) -> bool:
-    """Whether noise intensity `k` is "not needed": it fell towards zero (below
-    `NOT_NEEDED_FALL` of its `start` value) and setting it to zero (the others at the
-    estimate) costs less than the boundary likelihood-ratio test's 5 % critical value
-    (`NOT_NEEDED_LR`: 2 x log L, half a chi-square(1) at a boundary), so the data do not
-    reject "no noise on these states"."""
+    """Whether noise level `k` (an intensity or a measurement sd) is "not needed": it fell
+    towards zero (below `NOT_NEEDED_FALL` of its `start` value) and setting it to zero (the
+    others at the estimate) costs less than the boundary likelihood-ratio test's 5 % critical
+    value (`NOT_NEEDED_LR`: 2 x log L, half a chi-square(1) at a boundary), so the data do not
+    reject "no such noise"; a measurement sd only where the likelihood is bounded there."""
     p = obj.flat[k]
     if not float(p.to_value(raw[k])) < NOT_NEEDED_FALL * start:
         return False
-    at_zero = np.asarray(raw, dtype=float).copy()
-    at_zero[k] = -np.inf  # value = lower bound (0) for a log or logit coordinate
-    nll0 = float(_data_nll_jit(obj, jnp.asarray(at_zero)))
+    if p.path.startswith("measurement.") and _unbounded_at_zero(obj, raw, k, start):
+        return False
+    nll0 = _nll_at_zero(obj, raw, k, start)
     return bool(np.isfinite(nll0) and 2.0 * (nll0 - nll_hat) < NOT_NEEDED_LR)
 
 
@@ -762,11 +786,11 @@ def _assembled(su: Setup, runs, say) -> tuple[dict, list]:
     for k, p in enumerate(flat):
         hit = p.bound_hit(raw[k], raw0[k]) if ok_finite else None
         start = float(p.to_value(raw0[k]))
-        if ok_finite and _vanishing(p.path):
+        if ok_finite and (_vanishing(p.path) or p.path.startswith("measurement.")):
             if _zero_suffices(obj, raw, k, float(best["data_nll"]), start):
                 hit = "not needed"
-            elif hit == "lower":  # far below its start, but the data reject zero: interior
-                hit = None
+            elif hit == "lower":  # far below its start, yet not at zero: the data reject
+                hit = None  # zero (interior) or the likelihood is unbounded there (`collapsed`)
         bounds.append(hit)
     if ok_finite and np.all(np.isfinite(H_data)):
         vals, vecs = np.linalg.eigh(0.5 * (H_data + H_data.T))
@@ -783,12 +807,14 @@ def _assembled(su: Setup, runs, say) -> tuple[dict, list]:
     reason = None
     if ok_finite and keep:
         reason = _indefinite_note(H[np.ix_(keep, keep)], [names[k] for k in keep])
-    collapsed = [
+    collapsed = [  # a measurement sd that fell to where the likelihood has no upper bound
         (names[k], float(p.to_value(raw[k])))
         for k, p in enumerate(flat)
         if ok_finite
         and p.path.startswith("measurement.")
+        and bounds[k] != "not needed"
         and float(p.to_value(raw[k])) < COLLAPSE_DROP * float(p.to_value(raw0[k]))
+        and _unbounded_at_zero(obj, raw, k, float(p.to_value(raw0[k])))
     ]
     if collapsed:
         where = ", ".join(f"{n} = {v:.3g}" for n, v in collapsed)

@@ -36,8 +36,9 @@ VERDICT_MEANING = {
     "parameters is known); no interval is reported",
     "at bound": "the fit ended on one of its bounds: the estimate is the boundary, not what "
     "the data say, and no interval is reported",
-    "not needed": "a noise intensity or variance that went to zero: the data need no such "
-    "noise (no process noise on that state); the fit stays valid, no interval is reported",
+    "not needed": "a noise intensity, variance or sd that went to zero: the data need no such "
+    "noise (no process noise on that state, or no measurement noise beyond the process "
+    "noise); the fit stays valid, no interval is reported",
 }
 
 STATUS_MEANING = {

@@ -176,8 +176,8 @@ class FitResult:
 
     The status vocabulary is `STATUSES`, derived in one place (`fit_status`) for both back
     ends; besides the above, "ran out of steps" (the optimiser spent `max_steps`). A
-    parameter's verdict "not needed" (a process-noise intensity that went to zero) leaves the
-    fit valid.
+    parameter's verdict "not needed" (a noise intensity or measurement sd that went to zero)
+    leaves the fit valid.
     """
 
     model: object

@@ -221,7 +221,7 @@ def analyse(
 
     verdicts = []
     for k, p in enumerate(free_flat):
-        if bounds[k] == "not needed":  # a noise intensity at zero: an answer, not a failure
+        if bounds[k] == "not needed":  # a noise level at zero: an answer, not a failure
             verdicts.append("not needed")
             continue
         if bounds[k] is not None:

@@ -517,6 +517,41 @@ def test_runs_of_similar_lengths_share_one_compiled_filter():
         assert len(filters) == (1 if n == 180 else 0), compiled[before:]
 
 
+def test_runs_that_start_at_different_times_share_one_compiled_filter():
+    """The same record started at 300, 600 and 900 s (frames, inputs and `t_start_s`
+    shifted together): the filter is time-invariant, so each run's innovations are the
+    numpy reference's, and the start time is an argument of the compiled filter, not a
+    constant of it: after the first, no run compiles it again (it did once per start
+    time while the start was passed as a Python float)."""
+    import jax
+
+    from tests import ou_device as od
+    from tests import ou_reference as ou
+
+    compiled = []
+
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiled.append(kw.get("fun_name", ""))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    model = od.model(ou.TRUTH)
+    y = ou.simulate(ou.TRUTH, 120, 6)
+    v, _ = ou.innovations(ou.TRUTH, y)
+    t = ou.frames(y.size)
+    base = od.inputs(float(t[-1]) + ou.DT)
+    for shift in (300.0, 600.0, 900.0):
+        u = greybox.PiecewiseConstant(
+            np.asarray(base.times_s) + shift, base.values, float(t[-1]) + ou.DT + shift
+        )
+        run = greybox.Experiment("shifted", t + shift, y[:, None], u, t_start_s=shift)
+        before = len(compiled)
+        out = greybox.stochastic.device_filter(model, run)
+        np.testing.assert_allclose(out.innovation[1:, 0], v, rtol=1e-9, atol=1e-12)
+        if shift > 300.0:
+            assert not [f for f in compiled[before:] if "_filter_arrays" in f], compiled[before:]
+
+
 def test_runs_of_different_lengths_stack_into_one_likelihood():
     """A fit's runs are padded to the longest and mapped over by one compiled filter
     (`stacked_records`): the objective's -log L of two records of 150 and 200 frames is

@@ -442,10 +442,13 @@ def noise_parameters(model: StochasticDevice, units: dict | None = None) -> list
 # One record: grid, readout terms, filters
 
 
-def _t0(e: Experiment) -> float:
+def _t0(e: Experiment) -> np.float64:
     """Where the initial state holds: as `greybox.simulate`'s schedule (earliest of t_start,
-    the first frame and the first input breakpoint)."""
-    return float(min(e.t_start_s, e.t_s[0], e.inputs.to_piecewise().times_s[0]))
+    the first frame and the first input breakpoint). A numpy scalar, not a Python float: the
+    compiled filters take it as an array argument, so runs that start at different times
+    share one compiled filter (a Python float is a static argument of `jit`: one compile per
+    start time)."""
+    return np.float64(min(e.t_start_s, e.t_s[0], e.inputs.to_piecewise().times_s[0]))
 
 
 def _grid(e: Experiment) -> FilterGrid:

@@ -28,7 +28,7 @@ import numpy as np
 from greybox._compile import jit
 from greybox._model.parameters import set_values
 from greybox.stochastic._kalman import discretise
-from greybox.stochastic._sde_device import _NOISE_FIELDS, StochasticDevice
+from greybox.stochastic._sde_device import _NOISE_FIELDS, StochasticDevice, _t0
 
 SHARE = 0.1  # noise added per frame, as a fraction of the measurement variance
 _INTENSITIES = ("process", "output_walk", "input_walk")
@@ -57,36 +57,23 @@ def frame_interval(experiments) -> float:
     return float(np.median(dts)) if dts.size else 1.0
 
 
-def _mask(sd: StochasticDevice, path: str) -> np.ndarray:
-    """The diagonal of Qc that a unit intensity at `path` gives (augmented states)."""
-    field, _, name = path.partition(".")
-    n, k = sd.n_device_states, len(sd.input_walk.names)
-    mask = np.zeros(sd.n_states)
-    if field == "process":
-        idx = dict(sd.structure.process_groups)[name]
-        mask[list(idx)] = 1.0
-    elif field == "input_walk":
-        mask[n + sd.input_walk.names.index(name)] = 1.0
-    else:
-        mask[n + k + sd.output_walk.names.index(name)] = 1.0
-    return mask
-
-
 @jit
-def _rates(sd: StochasticDevice, t0, u0, horizons, masks):
-    """(paths, horizons, outputs): the output variance each unit intensity (a row of `masks`)
-    adds over each horizon from a known state, per second of horizon; the device linearised
-    at its initial mean and input `u0`."""
+def _rates(sd: StochasticDevice, t0, u0, horizons, paths: tuple):
+    """(paths, horizons, outputs): the output variance a unit intensity at each of `paths`
+    (no noise elsewhere) adds over each horizon from a known state, per second of horizon;
+    the device linearised at its initial mean and input `u0`."""
     z0 = sd.initial_mean()
     A = jax.jacfwd(lambda z: sd.augmented_field(t0, z, u0))(z0)
     C = jax.jacfwd(sd.augmented_output)(z0)
     no_input = jnp.zeros((A.shape[0], 1), A.dtype)
+    every = [f"{f}.{n}" for f in _INTENSITIES for n in getattr(sd, f).names]
 
-    def one(mask):
-        _, _, Qd = discretise(A, no_input, jnp.diag(mask), horizons)
+    def one(path):  # Qc as the device lays it out (`diffusion`), unit intensity at `path`
+        Qc = set_values(sd, every, [float(p == path) for p in every]).diffusion(A.dtype)
+        _, _, Qd = discretise(A, no_input, Qc, horizons)
         return jnp.diagonal(C @ Qd @ C.T, axis1=-2, axis2=-1) / horizons[:, None]
 
-    return jax.vmap(one)(masks)
+    return jnp.stack([one(p) for p in paths])
 
 
 def horizons(experiments, dt: float) -> np.ndarray:
@@ -107,19 +94,18 @@ def start_noise(model: StochasticDevice, experiments, free) -> StochasticDevice:
         e = experiments[0]
         pw = e.inputs.to_piecewise()
         u0 = np.asarray(pw.values, dtype=float).reshape(len(pw.times_s), -1)[0]
-        masks = np.stack([_mask(model, p) for p in intensities])
         h = horizons(experiments, dt)
-        rate = _rates(e.apply_settings(model), float(pw.times_s[0]), u0, h, masks)
+        rate = _rates(e.apply_settings(model), _t0(e), u0, h, tuple(intensities))
         # per frame, on the output and over the horizon where the noise shows most
         shown = np.max(np.asarray(rate) * dt / sd_y**2, axis=(1, 2))
+    # no effect on any output (an unobservable state): the output-unit rule, for want of one
+    fallback = SHARE * float(np.mean(sd_y)) ** 2 / dt
     for p in todo:
         paths.append(p)
         if _field(p) == "measurement":
             vals.append(float(sd_y[model.measurement.names.index(p.partition(".")[2])]))
             continue
         s = shown[intensities.index(p)]
-        # no effect on any output (an unobservable state): the output-unit rule, for want of one
-        fallback = SHARE * float(np.mean(sd_y)) ** 2 / dt
         vals.append(float(SHARE / s) if np.isfinite(s) and s > 0 else fallback)
     return set_values(model, paths, vals)
 

@@ -374,15 +374,13 @@ def _unbounded_at_zero(obj: _Objective, raw, k: int, start: float) -> bool:
 
 
 def _zero_suffices(obj: _Objective, raw, k: int, nll_hat: float, start: float) -> bool:
-    """Whether noise level `k` (an intensity or a measurement sd) is "not needed": it fell
-    towards zero (below `NOT_NEEDED_FALL` of its `start` value) and setting it to zero (the
-    others at the estimate) costs less than the boundary likelihood-ratio test's 5 % critical
-    value (`NOT_NEEDED_LR`: 2 x log L, half a chi-square(1) at a boundary), so the data do not
-    reject "no such noise"; a measurement sd only where the likelihood is bounded there."""
+    """Whether noise level `k` (an intensity, or a measurement sd where the likelihood is
+    bounded at zero) is "not needed": it fell towards zero (below `NOT_NEEDED_FALL` of its
+    `start` value) and setting it to zero (the others at the estimate) costs less than the
+    boundary likelihood-ratio test's 5 % critical value (`NOT_NEEDED_LR`: 2 x log L, half a
+    chi-square(1) at a boundary), so the data do not reject "no such noise"."""
     p = obj.flat[k]
     if not float(p.to_value(raw[k])) < NOT_NEEDED_FALL * start:
-        return False
-    if p.path.startswith("measurement.") and _unbounded_at_zero(obj, raw, k, start):
         return False
     nll0 = _nll_at_zero(obj, raw, k, start)
     return bool(np.isfinite(nll0) and 2.0 * (nll0 - nll_hat) < NOT_NEEDED_LR)
@@ -782,14 +780,18 @@ def _assembled(su: Setup, runs, say) -> tuple[dict, list]:
     # verdicts per coordinate: at bound (raw scale), not needed (a vanishing noise intensity)
     H = np.asarray(best["hessian"], dtype=float)
     H_data = H - np.asarray(best["prior_hessian"], dtype=float)
-    bounds = []
+    bounds, unbounded = [], set()  # unbounded: measurement sds whose zero has no upper bound
     for k, p in enumerate(flat):
         hit = p.bound_hit(raw[k], raw0[k]) if ok_finite else None
         start = float(p.to_value(raw0[k]))
-        if ok_finite and (_vanishing(p.path) or p.path.startswith("measurement.")):
-            if _zero_suffices(obj, raw, k, float(best["data_nll"]), start):
+        measured = p.path.startswith("measurement.")
+        if ok_finite and (_vanishing(p.path) or measured):
+            fell = float(p.to_value(raw[k])) < NOT_NEEDED_FALL * start
+            if measured and fell and _unbounded_at_zero(obj, raw, k, start):
+                unbounded.add(k)
+            elif _zero_suffices(obj, raw, k, float(best["data_nll"]), start):
                 hit = "not needed"
-            elif hit == "lower":  # far below its start, yet not at zero: the data reject
+            if hit == "lower":  # far below its start, yet not at zero: the data reject
                 hit = None  # zero (interior) or the likelihood is unbounded there (`collapsed`)
         bounds.append(hit)
     if ok_finite and np.all(np.isfinite(H_data)):
@@ -810,11 +812,7 @@ def _assembled(su: Setup, runs, say) -> tuple[dict, list]:
     collapsed = [  # a measurement sd that fell to where the likelihood has no upper bound
         (names[k], float(p.to_value(raw[k])))
         for k, p in enumerate(flat)
-        if ok_finite
-        and p.path.startswith("measurement.")
-        and bounds[k] != "not needed"
-        and float(p.to_value(raw[k])) < COLLAPSE_DROP * float(p.to_value(raw0[k]))
-        and _unbounded_at_zero(obj, raw, k, float(p.to_value(raw0[k])))
+        if k in unbounded and float(p.to_value(raw[k])) < COLLAPSE_DROP * float(p.to_value(raw0[k]))
     ]
     if collapsed:
         where = ", ".join(f"{n} = {v:.3g}" for n, v in collapsed)

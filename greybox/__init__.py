@@ -77,6 +77,7 @@ _NAMES = {
     "ExtendedKalmanFilter": ("greybox._estimate.noise_models", "ExtendedKalmanFilter"),
     "ZOH": ("greybox._estimate.noise_models", "ZOH"),
     "Adaptive": ("greybox._estimate.noise_models", "Adaptive"),
+    "Stiff": ("greybox._estimate.noise_models", "Stiff"),
     "Huber": ("greybox._estimate.noise_models", "Huber"),
     "StudentT": ("greybox._estimate.noise_models", "StudentT"),
     "L2": ("greybox._estimate.noise_models", "L2"),
@@ -176,6 +177,7 @@ if _TYPE_CHECKING:  # static analysers and IDEs see the eager imports
     from greybox._estimate.noise_models import ExtendedKalmanFilter as ExtendedKalmanFilter
     from greybox._estimate.noise_models import ZOH as ZOH
     from greybox._estimate.noise_models import Adaptive as Adaptive
+    from greybox._estimate.noise_models import Stiff as Stiff
     from greybox._estimate.noise_models import Huber as Huber
     from greybox._estimate.noise_models import StudentT as StudentT
     from greybox._estimate.noise_models import L2 as L2

@@ -66,6 +66,8 @@ from greybox._estimate.sandwich import HACMeat, hac_meats, model_error_residuals
 from greybox._estimate.starts import run_starts
 from greybox._estimate.residuals import analyse as analyse_residuals
 from greybox._simulate.simulate import (
+    SOLVER_FAILED,
+    SolverFailed,
     as_arrays,
     observe_schedule,
     pad_schedules,
@@ -930,8 +932,8 @@ def _fit_least_squares(
     - `free`: `FreeParameter`s (shared or per-experiment, bounds, priors).
 
     **Other arguments:**
-    - `method`: "zoh" (exact, linear devices) or "adaptive" (diffrax with jump times); None
-      takes the device's default.
+    - `method`: "zoh" (exact, linear devices), "adaptive" (diffrax with jump times) or
+      "stiff" (the same, implicit: time scales far apart); None takes the device's default.
     - `loss`: "huber" (default; threshold `huber_c` sigmas), "student_t" (`student_nu` dof) or "l2".
     - `sigma`: known measurement noise [SI] per output (declared): the readings are weighted
       by it, it is not re-estimated, and the residuals are tested against it. None estimates
@@ -1355,10 +1357,7 @@ def fit_status(
     if not solved:
         return (
             "not converged",
-            "an experiment's simulation failed at the final parameters (the adaptive ODE "
-            "solver ran out of steps or its step size collapsed): check the parameters, or "
-            "raise the solver's step budget (`solver_max_steps`; [fit] solver_max_steps in "
-            "experiment.toml), which is not the optimiser's max_steps",
+            f"an experiment's simulation failed at the final parameters: {SOLVER_FAILED}",
             at_best,
         )
     if pinned:
@@ -1558,10 +1557,7 @@ def validate(
     z, sd, ok = _shared_response(result, experiments, fit_kwargs)
     if not per_exp:
         if not ok:
-            raise ValueError(
-                "validate: the adaptive solver failed (max_steps reached or step size "
-                "collapsed); raise the solver's max_steps or check the parameters"
-            )
+            raise SolverFailed(f"validate: a validation run's simulation failed: {SOLVER_FAILED}")
         scores = _validation_scores(experiments, z, result.sigma, known, 0)
         return dataclasses.replace(scores, prediction_sd=tuple(sd))
     fit_kwargs.setdefault("method", result.method)

@@ -12,8 +12,9 @@ strings; TOML keeps its strings and io maps them to these objects once (`from_st
   (extended) Kalman filter, the likelihood back end. The free list may name device paths and
   noise paths (`process.<group>`, `measurement.<output>`, `output_walk.<name>`,
   `input_walk.<input>`, see `greybox.stochastic.noise_parameters`).
-- `ZOH()`, `Adaptive(rtol, atol, max_steps)`: the simulation path (exact zero-order hold for
-  linear devices; diffrax with jump times otherwise).
+- `ZOH()`, `Adaptive(rtol, atol, max_steps)`, `Stiff(rtol, atol, max_steps)`: the simulation
+  path (exact zero-order hold for linear devices; diffrax with jump times otherwise, explicit
+  or, for a stiff device, implicit).
 
 Every object is a frozen dataclass: hashable, comparable, printable, safe as a static field.
 """
@@ -89,6 +90,14 @@ class Adaptive:
     atol: float = 1e-10
     max_steps: int = 16384
     name = "adaptive"
+
+
+@dataclasses.dataclass(frozen=True)
+class Stiff(Adaptive):
+    """`Adaptive` with an implicit solver (diffrax Kvaerno5) for stiff devices: time scales
+    far apart, where the explicit solver's steps shrink to the fastest one."""
+
+    name = "stiff"
 
 
 # ---- filters and the initial state of the likelihood back end -----------------------------
@@ -274,9 +283,10 @@ def simulation_from_string(
         return None
     if method == "zoh":
         return ZOH()
-    if method == "adaptive":
-        return Adaptive(float(solver_rtol), float(solver_atol), int(solver_max_steps))
-    raise ValueError(f"method: {method!r} is unknown; use 'zoh' or 'adaptive'")
+    if method in ("adaptive", "stiff"):
+        kind = Adaptive if method == "adaptive" else Stiff
+        return kind(float(solver_rtol), float(solver_atol), int(solver_max_steps))
+    raise ValueError(f"method: {method!r} is unknown; use 'zoh', 'adaptive' or 'stiff'")
 
 
 def from_strings(

@@ -21,7 +21,10 @@ import jax.numpy as jnp
 
 from greybox.blocks._camera import AbstractReadout, Camera
 
-METHODS = ("zoh", "adaptive")
+# "stiff": the adaptive path with an implicit solver, for a device whose time scales lie
+# far apart (a fast sensor lag beside a slow plate): the explicit one takes steps of the
+# fastest scale over the whole record
+METHODS = ("zoh", "adaptive", "stiff")
 
 
 class AbstractDevice(eqx.Module):
@@ -119,7 +122,7 @@ def simulation_methods(model) -> tuple[str, ...]:
     if isinstance(model, (AbstractLinearDevice, AbstractSteppedDevice)):
         return METHODS  # a stepped device steps on the ZOH grid whatever the name
     if isinstance(model, AbstractODEDevice):
-        return ("adaptive",)
+        return ("adaptive", "stiff")
     raise TypeError(
         f"{type(model).__name__} is not a greybox device: subclass AbstractLinearDevice, "
         "AbstractStateAffineDevice, AbstractODEDevice or AbstractSteppedDevice"

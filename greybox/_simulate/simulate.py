@@ -9,6 +9,10 @@
 - ``method="adaptive"``: diffrax Tsit5 with a PID controller clipped to the input's jump times
   (`ClipStepSizeController(jump_ts=...)`), forward-mode adjoint (Levenberg-Marquardt builds
   Jacobians with jvp) and ``throw=False`` so that a failed solve never aborts an outer fit.
+- ``method="stiff"``: the same with Kvaerno5 (implicit ESDIRK, L-stable) for a device whose
+  time scales lie far apart, where Tsit5's steps are held to the fastest one for the whole
+  record (a 10 ms sensor lag beside a 60 s plate over 10 minutes: Tsit5 runs out of 2,000
+  steps, Kvaerno5 does not; tests/test_stiff_method.py).
 
 Observations are produced at arbitrary (irregular) camera timestamps; the camera's exposure is
 averaged with Gauss-Legendre nodes evaluated identically on both paths.
@@ -172,6 +176,21 @@ def pad_schedules(schedules: Sequence[Schedule], *, on_device: bool = True) -> d
     return jax.device_put(out) if on_device else out
 
 
+# what to do when the adaptive solve of a run fails: said by simulate, fit and validate
+SOLVER_FAILED = (
+    "the adaptive ODE solver ran out of steps or its step size collapsed. Where the "
+    "device's time scales lie far apart (a lag of milliseconds beside a time constant of "
+    "minutes; look for a fitted time constant far below the frame interval) use the "
+    "implicit solver (method = \"stiff\"; [fit] method in experiment.toml); otherwise raise "
+    "the solver's step budget (solver_max_steps; [fit] solver_max_steps), which is not the "
+    "optimiser's max_steps, or check the parameters"
+)
+
+
+class SolverFailed(ValueError):
+    """A run's adaptive ODE solve failed (`SOLVER_FAILED` says what to do)."""
+
+
 _EXPM_MAX_SQUARINGS = 24  # handles |A h| up to ~4e6: far beyond any RC time-constant ratio
 
 
@@ -312,8 +331,11 @@ def _adaptive_states(
     atol,
     max_steps,
     adjoint="forward",
+    stiff=False,
 ):
-    """States at the (sorted) evaluation instants, and whether the solve succeeded."""
+    """States at the (sorted) evaluation instants, and whether the solve succeeded. `stiff`:
+    Kvaerno5 (implicit, L-stable ESDIRK; its Newton iterations take their tolerances from
+    the step-size controller) instead of Tsit5."""
 
     def vector_field(t, x, args):
         return model.vector_field(t, x, input_at(breaks, levels, t))
@@ -323,7 +345,7 @@ def _adaptive_states(
     )
     sol = dfx.diffeqsolve(
         dfx.ODETerm(vector_field),
-        dfx.Tsit5(),
+        dfx.Kvaerno5() if stiff else dfx.Tsit5(),
         t_start,
         eval_t[-1],
         None,
@@ -361,7 +383,7 @@ def observe_schedule(
     if method == "zoh":
         grid, ok = _zoh_grid_states(model, x0, sched["dt"], sched["u_grid"], zoh_scan)
         states = grid[sched["eval_index"]]
-    elif method == "adaptive":
+    elif method in ("adaptive", "stiff"):
         sorted_states, ok = _adaptive_states(
             model,
             x0,
@@ -374,6 +396,7 @@ def observe_schedule(
             atol,
             max_steps,
             adjoint,
+            stiff=method == "stiff",
         )
         states = sorted_states[sched["unsort"]]
     else:
@@ -427,8 +450,9 @@ def simulate(
     - `inputs`: a waveform (`PulseTrain`, `PiecewiseConstant`, ...) in the device's input units
       (laser power in W), one channel per device input.
     - `t_s`: frame timestamps [s], shape (N,), strictly increasing, any spacing.
-    - `method`: "zoh" (exact, linear devices) or "adaptive" (diffrax Tsit5 with jump times);
-      None picks the device's default (`greybox._model.device.default_method`).
+    - `method`: "zoh" (exact, linear devices), "adaptive" (diffrax Tsit5 with jump times) or
+      "stiff" (the same with Kvaerno5, implicit: time scales far apart); None picks the
+      device's default (`greybox._model.device.default_method`).
     - `t_start_s`: time [s] at which the device is in `model.initial_state()` (default 0).
     - `rtol`, `atol`, `max_steps`: adaptive solver settings (state units: K).
     - `throw`: raise if the adaptive solve fails; with False the result is NaN instead.
@@ -445,10 +469,7 @@ def simulate(
     z, ok = _observe_jit(as_arrays(model), row, method, rtol, atol, max_steps, zoh_scan)
     if not bool(ok):
         if throw:
-            raise ValueError(
-                "simulate: the adaptive solver failed (max_steps reached or step "
-                "size collapsed); raise the solver's max_steps or check the parameters"
-            )
+            raise SolverFailed(f"simulate: {SOLVER_FAILED}")
         z = jnp.full_like(z, jnp.nan)
     z = np.asarray(z)[: np.size(t_s)]
     return z[:, 0] if z.shape[1] == 1 else z

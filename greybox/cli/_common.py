@@ -43,7 +43,7 @@ def fit_loaded(fs, say, *, start=None, validate_runs: bool = True):
     """(FitResult, ValidationResult or None) of a loaded folder (`ExperimentSet`), whatever
     its noise model: one call of `greybox.fit`, then (`validate_runs`) the validation runs.
     `start`: a function free -> free (a warm start)."""
-    from greybox._estimate.fit import fit, validate
+    from greybox._estimate.fit import fit
 
     free = list(fs.free)
     options = dict(fs.fit_options)
@@ -65,9 +65,28 @@ def fit_loaded(fs, say, *, start=None, validate_runs: bool = True):
             f"validating on {len(fs.validation)} runs (physics fixed"
             + (f"; per-run {', '.join(per_run)} re-fitted)" if per_run else ")")
         )
-        solver = {k: v for k, v in options.items() if k.startswith("solver_")}
-        validation = validate(result, fs.validation, **solver)  # the fit's solver settings
+        validation = validate_loaded(fs, result)
     return result, validation
+
+
+def validate_loaded(fs, result):
+    """`greybox.validate` of a folder's fit on its validation runs, with the fit's solver
+    settings; a validation run whose simulation fails is the user's device and settings, not
+    a greybox bug: an `InputError` at [fit] method."""
+    from greybox._estimate.fit import validate
+    from greybox._model.errors import InputError
+    from greybox._simulate.simulate import SolverFailed
+
+    solver = {k: v for k, v in fs.fit_options.items() if k.startswith("solver_")}
+    try:
+        return validate(result, fs.validation, **solver)
+    except SolverFailed as err:
+        raise InputError(
+            f"{str(err).removeprefix('validate: ')} (the fit itself finished: "
+            f"{result.status}); nothing was written",
+            file=str(fs.directory / "experiment.toml"),
+            field="[fit] method",
+        ) from err
 
 
 @dataclasses.dataclass(frozen=True)

@@ -454,9 +454,9 @@ def _run(args, say) -> int:
             fs = sets[name]
             validation = None
             if fs.validation and not args.no_validate:
-                from greybox._estimate.fit import validate
+                from greybox.cli._common import validate_loaded
 
-                validation = validate(r, fs.validation)
+                validation = validate_loaded(fs, r)  # the fit's solver settings
             write_device(
                 tmp / "devices" / name,
                 fs,

@@ -264,7 +264,7 @@ def _trial(model, row: dict, method: str):
     from greybox._model.device import AbstractSteppedDevice
     from greybox._simulate.simulate import observe_schedule
 
-    if method != "adaptive" or isinstance(model, AbstractSteppedDevice):
+    if method not in ("adaptive", "stiff") or isinstance(model, AbstractSteppedDevice):
         return observe_schedule(model, row, method=method)
     x0 = jnp.asarray(model.initial_state(), dtype=float)
     dx = model.vector_field(row["t_start"], x0, row["levels"][0])

@@ -357,6 +357,28 @@ def test_bad_free_parameter_path(good, tmp_path, capsys):
     _bad(tmp_path, capsys, good, good / "experiment.toml", "fit.free[0]", "the parameters are")
 
 
+def test_bad_start_on_a_bound(good, tmp_path, capsys):
+    """A free parameter whose start (the device's own value) lies on its bound has no image
+    under the fit's transform: exit 2 at the free list (it was an internal error). With a
+    start_values hook (chevron_laser's) the fit finds it; without one, the loader does, before
+    any fit (tests/lagged_plate_device.py; gain_K_per_W starts at 30)."""
+    toml = good / "experiment.toml"
+    text = toml.read_text()
+    free = '[fit]\nfree = [{ path = "thermal.tau_s", lower = 0.01, upper = 0.04 }]\n\n[[runs]]'
+    toml.write_text(text.replace("[[runs]]", free, 1))
+    _bad(tmp_path, capsys, good, toml, "[fit] free", "thermal.tau_s: starting value 0.04")
+    plate = ROOT / "tests" / "lagged_plate_device.py"
+    rows = ["t_s,P_W,T_K"] + [f"{k * 2.0},1.0,{295.0 + k}" for k in range(20)]
+    (good / "est.csv").write_text("\n".join(rows) + "\n")
+    toml.write_text(
+        f'[experiment]\ndevice = "{plate}:SPEC"\n\n'
+        '[fit]\nfree = [{ path = "gain_K_per_W", lower = 30.0 }]\n\n'
+        '[[runs]]\nname = "est"\nfile = "est.csv"\nrole = "estimation"\n'
+        'waveform = { type = "logged" }\n'
+    )
+    _bad(tmp_path, capsys, good, toml, "fit.free[0]", 'path = "gain_K_per_W"', line=5)
+
+
 def test_free_list_with_a_prior(good):
     text = (
         (good / "experiment.toml")

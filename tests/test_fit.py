@@ -297,7 +297,7 @@ def test_bad_inputs_raise_clear_errors(truth):
     with pytest.raises(ValueError, match="one noise sd per frame"):
         Experiment("r", t, np.zeros(10), w, sigma=np.ones(9))
     exps = [Experiment("r", t, np.zeros(10), w)]
-    with pytest.raises(ValueError, match="thermal.tau_s.*outside its bounds"):
+    with pytest.raises(ValueError, match="thermal.tau_s.*not strictly inside its bounds"):
         fit(truth, exps, [FreeParameter("thermal.tau_s", lower=0.1, upper=1.0)])
     with pytest.raises(ValueError, match="not a field"):
         fit(truth, exps, [FreeParameter("thermal.tua_s", lower=0.0)])

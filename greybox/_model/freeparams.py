@@ -45,6 +45,10 @@ def _xp(x):
     return jnp if isinstance(x, jax.Array) else np
 
 
+class StartOutsideBounds(ValueError):
+    """A free parameter's starting value is not strictly inside its bounds."""
+
+
 @dataclasses.dataclass(frozen=True)
 class FreeParameter:
     """- `path`: dotted field path in the model, e.g. ``"thermal.tau_s"``.
@@ -157,10 +161,11 @@ class FreeParameter:
         lo_ok = self.lower is None or v > self.lower
         hi_ok = self.upper is None or v < self.upper
         if not (lo_ok and hi_ok):
-            raise ValueError(
-                f"{self.path}: value {v} is outside its bounds "
-                f"({self.lower}, {self.upper}) [{self.unit}]; change the initial "
-                "value or the bounds"
+            raise StartOutsideBounds(
+                f"{self.path}: starting value {v:g} is not strictly inside its bounds "
+                f"({self.lower}, {self.upper}) [{self.unit}] (the fit maps the interior onto "
+                "the real line, so a start on a bound has no image); give it an initial "
+                "value inside them, or move the bound"
             )
 
     def to_raw(self, value):

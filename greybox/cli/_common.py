@@ -44,6 +44,8 @@ def fit_loaded(fs, say, *, start=None, validate_runs: bool = True):
     its noise model: one call of `greybox.fit`, then (`validate_runs`) the validation runs.
     `start`: a function free -> free (a warm start)."""
     from greybox._estimate.fit import fit
+    from greybox._model.errors import InputError
+    from greybox._model.freeparams import StartOutsideBounds
 
     free = list(fs.free)
     options = dict(fs.fit_options)
@@ -57,7 +59,15 @@ def fit_loaded(fs, say, *, start=None, validate_runs: bool = True):
         model = fs.model
     if start is not None:
         free = start(free)
-    result = fit(model, fs.estimation, free, progress=say, **options)
+    try:
+        result = fit(model, fs.estimation, free, progress=say, **options)
+    except StartOutsideBounds as err:  # a start the device or a hook gave, not the file
+        where = "[fit] free" if fs.candidate is None else f"candidate {fs.candidate!r}: free"
+        raise InputError(
+            f"{err} (in the table form: {{ path = ..., initial = ... }}); nothing was fitted",
+            file=str(fs.directory / "experiment.toml"),
+            field=where,
+        ) from err
     validation = None
     if fs.validation and validate_runs:
         per_run = sorted({p.path for p in fs.free if p.per_experiment})

@@ -24,6 +24,7 @@ import numpy as np
 from greybox._model.channels import Channel
 from greybox._model.errors import InputError
 from greybox.io._csv_numbers import parse_cells
+from greybox.io._toml import excerpt
 
 MAX_CSV_BYTES = 256 * 2**20  # a run CSV larger than this is refused before it is read
 MAX_LINE_CHARS = 10_000  # per line: a frame row is a few numbers
@@ -36,13 +37,6 @@ _MISSING = ("", "nan", "na")
 # line breaks other than \n and \r\n (str.splitlines counts them): such a file is read by the
 # csv module, so that line numbers stay those of an editor
 _ODD_BREAKS = ("\x0b", "\x0c", "\x1c", "\x1d", "\x1e", "\x85", "\u2028", "\u2029")
-
-
-def excerpt(text: str, limit: int = 40) -> str:
-    """A short, escaped quotation of file content for an error message (never the whole)."""
-    text = str(text)
-    short = text[:limit]
-    return repr(short) + (f"... ({len(text)} characters)" if len(text) > limit else "")
 
 
 def delimiter_name(delimiter: str) -> str:

@@ -22,15 +22,18 @@ from greybox._model.device import check_method, default_method, with_camera
 from greybox._model.errors import InputError
 from greybox._model.freeparams import FreeParameter
 from greybox._model.parameters import check_scalar_path
-from greybox._model.plausibility import out_of_range_settings, parse_physical_ranges, physical_ranges
-from greybox._registry import DeviceNotFound, ResolvedDevice, resolve
+from greybox._model.plausibility import (
+    out_of_range_settings,
+    parse_physical_ranges,
+    physical_ranges,
+)
 from greybox._model.spec import DeviceSpecError
 from greybox._model.waveforms import from_samples, stack_channels
+from greybox._registry import DeviceNotFound, ResolvedDevice, resolve
 from greybox.io._csv import (
     CsvTable,
     channel_numbers,
     check_increasing,
-    excerpt,
     find_column,
     read_csv,
     time_column,
@@ -219,11 +222,10 @@ def trial_simulation(device, model, experiment, method: str) -> None:
     if device.source == "builtin":
         return
     import equinox as eqx
+    import jax
 
     from greybox._simulate.simulate import as_arrays, pad_schedules, schedules_for
     from greybox._usercode import running_users_code
-
-    import jax
 
     padded = pad_schedules(schedules_for(model, [experiment]), on_device=False)
     row = {k: v[0] for k, v in padded.items()}
@@ -363,7 +365,7 @@ def _free_parameters(
                 *(where if isinstance(e, str) else (*where, "path")),
             )
         try:
-            check_scalar_path(model, path)
+            device_value = check_scalar_path(model, path)
         except ValueError as err:
             raise doc.error(str(err).split(": ", 1)[-1], *where) from None
         info = table[path]
@@ -392,6 +394,17 @@ def _free_parameters(
                     fp.check_value(kw["initial"])
             except ValueError as err:
                 raise doc.error(str(err).split(": ", 1)[-1], *where, "path") from None
+        if fp.initial is None and not fp.per_experiment and spec.start_values is None:
+            # the device's own value is the start (no hook moves it): a start on a bound has
+            # no image under the fit's transform, so say so now, before any candidate fits
+            try:
+                fp.check_value(device_value)
+            except ValueError as err:
+                raise doc.error(
+                    f"{str(err).split(': ', 1)[-1]} (the device's value; in the table form: "
+                    f'{{ path = "{path}", initial = ... }})',
+                    *where,
+                ) from None
         if path in seen:
             raise doc.error(f"{path!r} is listed twice", *where)
         if path in fixed:
@@ -830,9 +843,10 @@ def _physical_ranges(doc: TomlDocument, data: dict, spec, options: dict) -> dict
 
 
 def fit_memory_estimate(fs) -> float:
-    """Estimated peak resident bytes of fitting `fs` (`greybox._estimate.memory`: base + one solve of
-    the runs padded to the longest; every start and the noise re-fit reuse it, and the starts
-    a CPU runs side by side add at most `greybox._estimate.starts.SIDE_BY_SIDE_BYTES`)."""
+    """Estimated peak resident bytes of fitting `fs` (`greybox._estimate.memory`: base + one
+    solve of the runs padded to the longest; every start and the noise re-fit reuse it, and
+    the starts a CPU runs side by side add at most
+    `greybox._estimate.starts.SIDE_BY_SIDE_BYTES`)."""
     from greybox._estimate import memory as _memory
 
     runs = list(fs.estimation) + list(fs.validation)
@@ -865,7 +879,8 @@ def max_problem_bytes() -> float:
 
 def check_problem_size(fs, max_bytes: float | None = None) -> None:
     """Estimate a fit's peak memory before anything is compiled (`fit_memory_estimate`, the
-    model `greybox._estimate.memory` shares with compare, fit-many and design); refuse one too large."""
+    model `greybox._estimate.memory` shares with compare, fit-many and design); refuse one
+    too large."""
     if max_bytes is None:
         max_bytes = max_problem_bytes()
     need = fit_memory_estimate(fs)

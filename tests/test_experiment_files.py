@@ -367,7 +367,8 @@ def test_bad_start_on_a_bound(good, tmp_path, capsys):
     free = '[fit]\nfree = [{ path = "thermal.tau_s", lower = 0.01, upper = 0.04 }]\n\n[[runs]]'
     toml.write_text(text.replace("[[runs]]", free, 1))
     _bad(tmp_path, capsys, good, toml, "[fit] free", "thermal.tau_s: starting value 0.04")
-    plate = ROOT / "tests" / "lagged_plate_device.py"
+    plate = tmp_path / "lagged_plate.py"  # a user's copy: tests/ is not a device folder
+    plate.write_text((ROOT / "tests" / "lagged_plate_device.py").read_text())
     rows = ["t_s,P_W,T_K"] + [f"{k * 2.0},1.0,{295.0 + k}" for k in range(20)]
     (good / "est.csv").write_text("\n".join(rows) + "\n")
     toml.write_text(

@@ -37,6 +37,12 @@ _PULSE_KEYS = {"type", "duty", "n_pulses", "n"}
 _STEPS_KEYS = {"type", "times_s", "end_s"}
 
 
+def _duration(t_s: float) -> str:
+    """A duration in ms below 10 s (a laser's pulses), in s above (a lamp's: "400 s", not
+    "400000 ms")."""
+    return f"{t_s * 1e3:g} ms" if t_s < 10.0 else f"{t_s:g} s"
+
+
 # --------------------------------------------------------------------------------------
 # Waveforms
 
@@ -180,9 +186,9 @@ def waveform_from_description(desc: dict, channel: Channel, where, path: tuple =
             raise where(problem, *path, key)
         wave = PulseTrain(level_si, period, float(duty), n, delay_s=delay, tail_s=tail)
         text = (
-            f"pulse train {float(level):g} {unit}, period {period * 1e3:g} ms, duty "
-            f"{float(duty) * 100:g} %, {n} pulses, delay {delay * 1e3:g} ms, tail "
-            f"{tail * 1e3:g} ms"
+            f"pulse train {float(level):g} {unit}, period {_duration(period)}, duty "
+            f"{float(duty) * 100:g} %, {n} pulses, delay {_duration(delay)}, tail "
+            f"{_duration(tail)}"
         )
         return wave.to_piecewise(), text
     allowed = _STEPS_KEYS | {key}

@@ -473,6 +473,17 @@ def test_design_bounds_its_work_before_doing_it(tmp_path, capsys, extra, field):
     assert f"{field}:" in capsys.readouterr().err
 
 
+def test_design_of_a_sensor_read_device_is_refused_by_name(tmp_path, capsys):
+    """Design chooses laser pulse trains for a filmed device; TCLab's thermometers have no
+    exposure or image scale (it said "camera: StochasticDevice is read out by ...")."""
+    from greybox.cli import main
+
+    argv = ["design", "--device", "tclab", "--power-max-mW", "30",
+            "--run-duration-s", "10", "--out", str(tmp_path / "d")]  # fmt: skip
+    assert main(argv) == 2 and not (tmp_path / "d").exists()
+    assert "--device: tclab is read out by a sensor, not a camera" in capsys.readouterr().err
+
+
 def test_design_checks_out_before_the_work(tmp_path, capsys):
     from greybox.cli import main
 

@@ -169,6 +169,15 @@ def _run(args) -> int:
                 "a Bayesian design needs a fitted posterior; give --params",
                 field="--bayesian-draws",
             )
+    from greybox.blocks._camera import Camera
+
+    if not isinstance(getattr(model, "readout", None), Camera):  # e.g. a thermocouple
+        raise InputError(
+            f"{spec.name} is read out by a sensor, not a camera: greybox design chooses laser "
+            "pulse trains for a filmed device (camera frames, exposure, image noise); it has "
+            "no design for a sensor-read device",
+            field="--params" if args.params else "--device",
+        )
     default_paths = [p.path for p in spec.free_parameters()]
     interest = args.interest or [p.path for p in free if not p.per_experiment]
     # a parameter of interest that is not free is freed with the device's range

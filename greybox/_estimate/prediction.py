@@ -64,12 +64,12 @@ class Band:
         pct = f"{self.level * 100:g} %"
         if self.includes_noise:
             return (
-                f"{pct} prediction interval for new camera readings: parameter "
+                f"{pct} prediction interval for new readings: parameter "
                 "uncertainty (delta method) plus measurement noise sigma"
             )
         return (
             f"{pct} confidence band of the model response: parameter uncertainty only "
-            "(delta method); single camera readings scatter further by the noise sigma"
+            "(delta method); single readings scatter further by the noise sigma"
         )
 
 

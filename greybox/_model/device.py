@@ -144,7 +144,8 @@ def check_method(model, method: str | None) -> str:
     if method not in allowed:
         raise ValueError(
             f"method: {method!r} needs a linear device and {type(model).__name__} is not "
-            f"linear; use method = {allowed[0]!r} (or leave method out for the device default)"
+            f"linear; use method = {allowed[0]!r} ({' or '.join(map(repr, allowed[1:]))} for time "
+            "scales far apart), or leave method out for the device default"
         )
     return method
 

@@ -123,14 +123,12 @@ def _run(args) -> int:
     jax.config.update("jax_enable_x64", True)
     import numpy as np
 
-    from greybox.design import _design as D
     from greybox._model.errors import InputError
     from greybox._model.freeparams import FreeParameter
     from greybox._registry import get_device
-    from greybox.io._atomic import atomic_output_dir
+    from greybox.design import _design as D
+    from greybox.io._atomic import atomic_output_dir, check_output_dir
     from greybox.io._design_file import experiment_toml
-
-    from greybox.io._atomic import check_output_dir
     from greybox.io._toml import non_finite
 
     for name, v in vars(args).items():  # every numeric option: NaN and infinities by name

@@ -127,9 +127,9 @@ def test_gauss_newton_decrement_is_twice_the_cost_left_to_gain():
 
 def test_a_stalled_start_with_nothing_left_to_gain_has_converged():
     """Raw tolerances that cannot be met (rtol = atol = 0): the start stops on the stall test
-    in the interior, where the Gauss-Newton decrement is far below DECREMENT_TOL, so the fit
-    has converged (the likelihood back end's test), at the estimates of a fit with the usual
-    tolerances to 1e-6 relative (a fraction of their standard errors)."""
+    in the interior, where the Gauss-Newton decrement is far below SETTLED_DECREMENT, so the
+    fit has converged, at the estimates of a fit with the usual tolerances to 1e-6 relative (a
+    fraction of their standard errors)."""
     chevron = greybox.get_device("chevron_laser")
     truth = set_values(chevron.model(), ["absorptance", "thermal.tau_s"], [0.62, 0.045])
     start = set_values(truth, ["absorptance", "thermal.tau_s"], [0.5, 0.06])

@@ -63,13 +63,16 @@ def test_stiff_method_matches_the_closed_form_where_the_explicit_one_runs_out_of
 
 
 def test_fit_with_the_stiff_method_recovers_the_plate():
-    rng = np.random.default_rng(3)
+    # seed 0: the start stalls at the truth (a Gauss-Newton step of 9e-4 standard errors
+    # still to take, the cost resolved to the solver's tolerance), "not converged" under the
+    # likelihood's 1e-9; converged at `fit.SETTLED_DECREMENT`
+    rng = np.random.default_rng(0)
     y = _truth(T_S) + 0.05 * rng.standard_normal(T_S.size)
     run = greybox.Experiment("steps", T_S, y, _inputs())
     fit = greybox.fit(
         _model(30.0, 100.0), [run], FREE, method="stiff", solver_max_steps=2000, n_starts=1
     )
-    assert fit.valid and fit.method == "stiff"
+    assert fit.status == "converged" and fit.valid and fit.method == "stiff"
     truth = {"gain_K_per_W": GAIN_K_PER_W, "tau_plate_s": TAU_PLATE_S}
     for p in fit.parameters:
         assert abs(p.value - truth[p.path]) < 3 * p.se, (p.path, p.value, p.se)

@@ -19,8 +19,8 @@ from greybox._model.freeparams import apply_raw
 from greybox._model.parameters import get_value, set_values
 from greybox._simulate.simulate import zoh_scan_kind
 
-DECREMENT_TOL = 1e-9  # Newton decrement (twice the -log L, or cost, still to gain) at which a
-# start has converged: both objectives judge their end points by it
+DECREMENT_TOL = 1e-9  # Newton decrement (twice the -log L still to gain) at which a likelihood
+# start has converged (least squares settles a stalled start at `fit.SETTLED_DECREMENT`)
 
 
 def check_free(model, free) -> tuple:

@@ -24,6 +24,8 @@ def test_folder_loads_its_own_device_with_process_noise():
     first = fs.estimation[0]
     assert np.isclose(first.y[0], 129.32 + 273.15)  # degC in the file, K inside
     assert fs.estimation[0].settings["initial_T_K"] == first.y[0]  # run_settings hook
+    # the lamp at rest at the drive before each run: the file's settings
+    assert [e.settings["initial_lamp_V"] for e in (*fs.estimation, *fs.validation)] == [6.0, 4.0]
     names = candidate_names(FOLDER)
     assert names[1] == "plate + thermocouple lag"
     for i in range(len(names)):

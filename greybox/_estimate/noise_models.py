@@ -277,15 +277,15 @@ def simulation_from_string(
     solver_atol: float = 1e-10,
     solver_max_steps: int = 16384,
 ):
-    """The simulation object of a method string ("zoh", "adaptive"), or None (the device's
-    default path)."""
+    """The simulation object of a method string ("zoh", "adaptive", "stiff"), or None (the
+    device's default path)."""
     if method is None:
         return None
     if method == "zoh":
         return ZOH()
-    if method in ("adaptive", "stiff"):
-        kind = Adaptive if method == "adaptive" else Stiff
-        return kind(float(solver_rtol), float(solver_atol), int(solver_max_steps))
+    solvers = {kind.name: kind for kind in (Adaptive, Stiff)}
+    if method in solvers:
+        return solvers[method](float(solver_rtol), float(solver_atol), int(solver_max_steps))
     raise ValueError(f"method: {method!r} is unknown; use 'zoh', 'adaptive' or 'stiff'")
 
 

@@ -21,10 +21,11 @@ import jax.numpy as jnp
 
 from greybox.blocks._camera import AbstractReadout, Camera
 
-# "stiff": the adaptive path with an implicit solver, for a device whose time scales lie
-# far apart (a fast sensor lag beside a slow plate): the explicit one takes steps of the
-# fastest scale over the whole record
-METHODS = ("zoh", "adaptive", "stiff")
+# the ODE solver's paths: "stiff" is the adaptive one with an implicit solver, for a device
+# whose time scales lie far apart (a fast sensor lag beside a slow plate): the explicit one
+# takes steps of the fastest scale over the whole record
+ODE_METHODS = ("adaptive", "stiff")
+METHODS = ("zoh", *ODE_METHODS)
 
 
 class AbstractDevice(eqx.Module):
@@ -122,7 +123,7 @@ def simulation_methods(model) -> tuple[str, ...]:
     if isinstance(model, (AbstractLinearDevice, AbstractSteppedDevice)):
         return METHODS  # a stepped device steps on the ZOH grid whatever the name
     if isinstance(model, AbstractODEDevice):
-        return ("adaptive", "stiff")
+        return ODE_METHODS
     raise TypeError(
         f"{type(model).__name__} is not a greybox device: subclass AbstractLinearDevice, "
         "AbstractStateAffineDevice, AbstractODEDevice or AbstractSteppedDevice"

@@ -34,7 +34,13 @@ import numpy as np
 
 from greybox._compile import jit
 from greybox._model.data import check_times
-from greybox._model.device import METHODS, AbstractDevice, AbstractSteppedDevice, check_method
+from greybox._model.device import (
+    METHODS,
+    ODE_METHODS,
+    AbstractDevice,
+    AbstractSteppedDevice,
+    check_method,
+)
 from greybox._model.waveforms import PiecewiseConstant
 from greybox._platform import on_accelerator
 
@@ -383,7 +389,7 @@ def observe_schedule(
     if method == "zoh":
         grid, ok = _zoh_grid_states(model, x0, sched["dt"], sched["u_grid"], zoh_scan)
         states = grid[sched["eval_index"]]
-    elif method in ("adaptive", "stiff"):
+    elif method in ODE_METHODS:
         sorted_states, ok = _adaptive_states(
             model,
             x0,

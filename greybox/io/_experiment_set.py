@@ -263,10 +263,10 @@ def _trial(model, row: dict, method: str):
     import jax
     import jax.numpy as jnp
 
-    from greybox._model.device import AbstractSteppedDevice
+    from greybox._model.device import ODE_METHODS, AbstractSteppedDevice
     from greybox._simulate.simulate import observe_schedule
 
-    if method not in ("adaptive", "stiff") or isinstance(model, AbstractSteppedDevice):
+    if method not in ODE_METHODS or isinstance(model, AbstractSteppedDevice):
         return observe_schedule(model, row, method=method)
     x0 = jnp.asarray(model.initial_state(), dtype=float)
     dx = model.vector_field(row["t_start"], x0, row["levels"][0])

@@ -1,5 +1,8 @@
 """Shared synthetic data for the core tests (kept small so JAX compiles stay shared)."""
 
+import contextlib
+
+import jax
 import numpy as np
 
 import greybox
@@ -78,3 +81,20 @@ file = "val.csv"
 role = "validation"
 waveform = { type = "pulse_train", power_mW = 10, period_ms = 400, n_pulses = 3, delay_ms = 200 }
 """
+
+
+@contextlib.contextmanager
+def backend_compiles():
+    """The names of the programs XLA compiles while the block runs (`jax.monitoring`'s
+    backend-compile events), the listener removed on exit."""
+    names = []
+
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            names.append(kw.get("fun_name", ""))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        yield names
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)

@@ -12,6 +12,7 @@ import pytest
 import greybox
 from greybox._estimate.batch import bytes_per_item, chunk_size_for, device_from_spec, fit_batch
 from greybox._estimate.population import population_fit, population_from_batch
+from tests.helpers import backend_compiles
 
 SPEC = greybox.get_device("chevron_laser")
 M_PER_PX = 0.645e-6
@@ -122,17 +123,8 @@ def test_a_batch_of_another_size_reuses_the_solver_and_skips_its_padding(batch):
     if on_accelerator():
         pytest.skip("an accelerator sizes chunks to the work (a padding item costs a solve)")
     devices, _, out, _ = batch
-    compiled = []
-
-    def listen(event, duration, **kw):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiled.append(kw.get("fun_name", ""))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
+    with backend_compiles() as compiled:
         small = fit_batch(devices[3:6], SPEC.free_parameters())
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
     assert not [n for n in compiled if "_solve_many" in n], compiled
     assert small.chunk_size == out.chunk_size
     for d in devices[3:6]:

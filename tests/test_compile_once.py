@@ -7,24 +7,17 @@ nothing for its solve. Truth: JAX's own record of backend compilations during th
 and the second fit's estimates against a fit of that device alone.
 """
 
-import jax
 import pytest
 
 import greybox
 from greybox._model.freeparams import FreeParameter
-from tests.helpers import two_run_chevron
+from tests.helpers import backend_compiles, two_run_chevron
 
 
 @pytest.fixture(scope="module")
 def compiles():
-    names = []
-
-    def listen(event, duration, **kw):
-        if event == "/jax/core/compile/backend_compile_duration":
-            names.append(kw.get("fun_name", ""))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    return names
+    with backend_compiles() as names:
+        yield names
 
 
 def test_second_device_compiles_no_solver(compiles):

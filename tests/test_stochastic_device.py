@@ -490,31 +490,23 @@ def test_runs_of_similar_lengths_share_one_compiled_filter():
     compile the filter once; the padding changes nothing: each record's one-step
     innovations and log-likelihood are the independent numpy filter's
     (tests/ou_reference.py), to rounding."""
-    import jax
-
     from tests import ou_device as od
     from tests import ou_reference as ou
+    from tests.helpers import backend_compiles
 
-    compiled = []
-
-    def listen(event, duration, **kw):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiled.append(kw.get("fun_name", ""))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
     model = od.model(ou.TRUTH)
     for n, seed in ((180, 3), (200, 4)):
         y = ou.simulate(ou.TRUTH, n, seed)
-        before = len(compiled)
-        run = greybox.stochastic.device_filter(model, od.experiment(y))
+        with backend_compiles() as compiled:
+            run = greybox.stochastic.device_filter(model, od.experiment(y))
         v, _ = ou.innovations(ou.TRUTH, y)
         np.testing.assert_allclose(run.innovation[1:, 0], v, rtol=1e-9, atol=1e-12)
         assert run.y_one_step.shape == (n, 1) and run.y_k_step.shape == (n, 1)
         sd = ou.TRUTH["sd"]  # the first reading's own term: the initial state is known
         first = -0.5 * ((y[0] - ou.T0) ** 2 / sd**2 + np.log(2 * np.pi * sd**2))
         assert run.log_likelihood == pytest.approx(ou.loglik(ou.TRUTH, y) + first, rel=1e-12)
-        filters = [f for f in compiled[before:] if "_filter_arrays" in f]
-        assert len(filters) == (1 if n == 180 else 0), compiled[before:]
+        filters = [f for f in compiled if "_filter_arrays" in f]
+        assert len(filters) == (1 if n == 180 else 0), compiled
 
 
 def test_runs_that_start_at_different_times_share_one_compiled_filter():
@@ -523,18 +515,10 @@ def test_runs_that_start_at_different_times_share_one_compiled_filter():
     numpy reference's, and the start time is an argument of the compiled filter, not a
     constant of it: after the first, no run compiles it again (it did once per start
     time while the start was passed as a Python float)."""
-    import jax
-
     from tests import ou_device as od
     from tests import ou_reference as ou
+    from tests.helpers import backend_compiles
 
-    compiled = []
-
-    def listen(event, duration, **kw):
-        if event == "/jax/core/compile/backend_compile_duration":
-            compiled.append(kw.get("fun_name", ""))
-
-    jax.monitoring.register_event_duration_secs_listener(listen)
     model = od.model(ou.TRUTH)
     y = ou.simulate(ou.TRUTH, 120, 6)
     v, _ = ou.innovations(ou.TRUTH, y)
@@ -545,11 +529,11 @@ def test_runs_that_start_at_different_times_share_one_compiled_filter():
             np.asarray(base.times_s) + shift, base.values, float(t[-1]) + ou.DT + shift
         )
         run = greybox.Experiment("shifted", t + shift, y[:, None], u, t_start_s=shift)
-        before = len(compiled)
-        out = greybox.stochastic.device_filter(model, run)
+        with backend_compiles() as compiled:
+            out = greybox.stochastic.device_filter(model, run)
         np.testing.assert_allclose(out.innovation[1:, 0], v, rtol=1e-9, atol=1e-12)
         if shift > 300.0:
-            assert not [f for f in compiled[before:] if "_filter_arrays" in f], compiled[before:]
+            assert not [f for f in compiled if "_filter_arrays" in f], compiled
 
 
 def test_runs_of_different_lengths_stack_into_one_likelihood():

@@ -375,13 +375,11 @@ def _unbounded_at_zero(obj: _Objective, raw, k: int, start: float) -> bool:
 
 def _zero_suffices(obj: _Objective, raw, k: int, nll_hat: float, start: float) -> bool:
     """Whether noise level `k` (an intensity, or a measurement sd where the likelihood is
-    bounded at zero) is "not needed": it fell towards zero (below `NOT_NEEDED_FALL` of its
-    `start` value) and setting it to zero (the others at the estimate) costs less than the
-    boundary likelihood-ratio test's 5 % critical value (`NOT_NEEDED_LR`: 2 x log L, half a
-    chi-square(1) at a boundary), so the data do not reject "no such noise"."""
-    p = obj.flat[k]
-    if not float(p.to_value(raw[k])) < NOT_NEEDED_FALL * start:
-        return False
+    bounded at zero), which fell towards zero (below `NOT_NEEDED_FALL` of its `start` value:
+    the caller's test), is "not needed": setting it to zero (the others at the estimate)
+    costs less than the boundary likelihood-ratio test's 5 % critical value (`NOT_NEEDED_LR`:
+    2 x log L, half a chi-square(1) at a boundary), so the data do not reject "no such
+    noise"."""
     nll0 = _nll_at_zero(obj, raw, k, start)
     return bool(np.isfinite(nll0) and 2.0 * (nll0 - nll_hat) < NOT_NEEDED_LR)
 
@@ -789,7 +787,7 @@ def _assembled(su: Setup, runs, say) -> tuple[dict, list]:
             fell = float(p.to_value(raw[k])) < NOT_NEEDED_FALL * start
             if measured and fell and _unbounded_at_zero(obj, raw, k, start):
                 unbounded.add(k)
-            elif _zero_suffices(obj, raw, k, float(best["data_nll"]), start):
+            elif fell and _zero_suffices(obj, raw, k, float(best["data_nll"]), start):
                 hit = "not needed"
             if hit == "lower":  # far below its start, yet not at zero: the data reject
                 hit = None  # zero (interior) or the likelihood is unbounded there (`collapsed`)

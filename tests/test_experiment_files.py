@@ -409,6 +409,33 @@ free = [
     assert fs.free[2].per_experiment and fs.free[0].upper == 1.0  # the device's standard specs
 
 
+def test_a_free_table_changes_only_what_it_gives(good, tmp_path, capsys):
+    """A [fit] free table is the bare path's parameter with what the table gives changed: a
+    start alone keeps the bounds (the standard set's for thermal.tau_s, the parameter table's
+    for the resistance) and a per-run path stays per run; a bound given sets the pair (lower
+    only: no upper); a start outside the kept bounds is refused at the list, exit 2. (A start
+    alone used to drop the bounds: the heating-system plate's radiation then ran to 483
+    against its declared 50.)"""
+    toml = good / "experiment.toml"
+    text = toml.read_text()
+
+    def free(entries):
+        toml.write_text(text.replace("[[runs]]", f"[fit]\nfree = [{entries}]\n\n[[runs]]", 1))
+
+    free(
+        '{ path = "thermal.tau_s", initial = 0.05 }, '
+        '{ path = "thermal.resistance_K_per_W", initial = 2000.0 }, '
+        '{ path = "camera.offset_m", scale = 1e-5 }, { path = "absorptance", lower = 0.1 }'
+    )
+    tau, resistance, offset, absorptance = load_experiment_set(good).free
+    assert (tau.lower, tau.upper, tau.initial) == (1e-4, 2.0, 0.05)
+    assert (resistance.lower, resistance.upper, resistance.initial) == (20.0, 1e5, 2000.0)
+    assert offset.per_experiment and (offset.scale, offset.lower) == (1e-5, None)
+    assert (absorptance.lower, absorptance.upper) == (0.1, None)
+    free('{ path = "thermal.tau_s", initial = 5.0 }')
+    _bad(tmp_path, capsys, good, toml, "fit.free[0].initial", "(0.0001, 2.0) [s]", "device")
+
+
 def test_missing_waveform_needs_description_or_log(good, tmp_path, capsys):
     text = (
         (good / "experiment.toml")

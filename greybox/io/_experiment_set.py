@@ -336,8 +336,8 @@ def _free_parameters(
 ) -> tuple:
     """[fit] free (or a candidate's free, at TOML path `where`): paths from the device's
     parameter table (a bare path takes the standard fit's settings, or the table's bounds), or
-    tables that define a free parameter (bounds, prior) in full. Absent: the device's standard
-    list."""
+    tables that change what they give of the bare path's settings (`_table_entry`). Absent:
+    the device's standard list."""
     list_where = where
     defaults = {p.path: p for p in spec.free_parameters(options)}
     if entries is None:
@@ -369,31 +369,14 @@ def _free_parameters(
         except ValueError as err:
             raise doc.error(str(err).split(": ", 1)[-1], *where) from None
         info = table[path]
-        if isinstance(e, str):
-            fp = defaults.get(path) or FreeParameter(
-                path,
-                unit=info.unit,
-                lower=info.lower,
-                upper=info.upper if info.lower is not None else None,
-            )
-        else:
-            unit = doc.string(e, "unit", *where, default=info.unit)
-            per_run = e.get("per_run", False)
-            if not isinstance(per_run, bool):
-                raise doc.error(f"{per_run!r} must be true or false", *where, "per_run")
-            kw = {
-                k: doc.number(e, k, *where)
-                for k in ("lower", "upper", "prior_median", "prior_log_sd", "initial")
-            }
-            scale = doc.number(e, "scale", *where, positive=True)
-            if scale is not None:
-                kw["scale"] = scale
-            try:
-                fp = FreeParameter(path, unit=unit, per_experiment=per_run, **kw)
-                if kw["initial"] is not None:
-                    fp.check_value(kw["initial"])
-            except ValueError as err:
-                raise doc.error(str(err).split(": ", 1)[-1], *where, "path") from None
+        fp = defaults.get(path) or FreeParameter(
+            path,
+            unit=info.unit,
+            lower=info.lower,
+            upper=info.upper if info.lower is not None else None,
+        )
+        if isinstance(e, dict):
+            fp = _table_entry(doc, e, fp, where)
         if fp.initial is None and not fp.per_experiment and spec.start_values is None:
             # the device's own value is the start (no hook moves it): a start on a bound has
             # no image under the fit's transform, so say so now, before any candidate fits
@@ -414,6 +397,46 @@ def _free_parameters(
         seen.add(path)
         out.append(fp)
     return tuple(out)
+
+
+_PAIRS = (("lower", "upper"), ("prior_median", "prior_log_sd"))  # given together or not at all
+
+
+def _table_entry(doc: TomlDocument, e: dict, bare: FreeParameter, where) -> FreeParameter:
+    """A [fit] free table `e`: the bare path's parameter `bare` with what the table gives
+    changed. Bounds and a prior are pairs: a table that gives either bound (or either prior
+    key) sets both sides (lower only: no upper bound); one that gives neither keeps the bare
+    path's. So `{ path = "rad", initial = 0.5 }` is the device's `rad`, bounds and all,
+    started at 0.5 (unbounded, the heating-system plate's radiation ran to 483 against its
+    declared upper bound of 50, 150 s a start)."""
+    per_run = e.get("per_run", bare.per_experiment)
+    if not isinstance(per_run, bool):
+        raise doc.error(f"{per_run!r} must be true or false", *where, "per_run")
+    start = doc.number(e, "initial", *where)
+    scale = doc.number(e, "scale", *where, positive=True)
+    kw = {k: doc.number(e, k, *where) for pair in _PAIRS for k in pair}
+    for pair in _PAIRS:
+        if all(kw[k] is None for k in pair):
+            kw.update({k: getattr(bare, k) for k in pair})
+    try:
+        fp = dataclasses.replace(
+            bare,
+            unit=doc.string(e, "unit", *where, default=bare.unit),
+            per_experiment=per_run,
+            scale=bare.scale if scale is None else scale,
+            initial=bare.initial if start is None else start,
+            **kw,
+        )
+    except ValueError as err:
+        raise doc.error(str(err).split(": ", 1)[-1], *where, "path") from None
+    if start is not None:
+        try:
+            fp.check_value(start)
+        except ValueError as err:
+            kept = not any(k in e for k in _PAIRS[0])
+            hint = " (the device's bounds, kept: give lower and upper to change them)" * kept
+            raise doc.error(f"{str(err).split(': ', 1)[-1]}{hint}", *where, "initial") from None
+    return fp
 
 
 def _camera(doc: TomlDocument, data: dict) -> dict:

@@ -635,12 +635,23 @@ def _solve_wave(prepared, wave, chunk, opts, say, label, counter) -> tuple:
 def _assemble_wave(prepared, wave, runs_of, best_of, models) -> dict:
     """{device name: FitResult} of one solved wave: the residual tests of all its devices in
     one vectorised pass (their shuffles shared), the meats of their sandwich covariances in
-    another (`_fit._sandwich_meats`), then `_fit._assemble` per device."""
+    another (`_fit._sandwich_meats`), their runs' scores in a third (`_fit._scored_runs_many`),
+    then `_fit._assemble` per device."""
+    preds = {i: _fit._predictions(best_of[i][1], prepared[i].device.experiments) for i in wave}
     tests = analyse_residuals(
+        [_fit._residual_runs(prepared[i].device.experiments, preds[i]) for i in wave]
+    )
+    scores = _fit._scored_runs_many(
         [
-            _fit._residual_runs(
+            (
                 prepared[i].device.experiments,
-                _fit._predictions(best_of[i][1], prepared[i].device.experiments),
+                preds[i],
+                _fit._output_sigma(
+                    prepared[i].device.experiments,
+                    prepared[i].problem.y.shape[-1],
+                    prepared[i].source,
+                    best_of[i][2],
+                ),
             )
             for i in wave
         ]
@@ -652,7 +663,7 @@ def _assemble_wave(prepared, wave, runs_of, best_of, models) -> dict:
     ]
     hac = dict(zip([i for i, _ in finite], _fit._sandwich_meats([f for _, f in finite])))
     out = {}
-    for i, residuals in zip(wave, tests):
+    for i, residuals, score in zip(wave, tests, scores):
         p = prepared[i]
         bi, best, sig, steps = best_of[i]
         out[p.device.name] = _fit._assemble(
@@ -670,5 +681,6 @@ def _assemble_wave(prepared, wave, runs_of, best_of, models) -> dict:
             models=models[i],
             residuals=residuals,
             hac=hac.get(i),
+            scores=score,
         )
     return out

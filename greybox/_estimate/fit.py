@@ -1083,6 +1083,12 @@ def _frame_sigma(e: Experiment, sig: np.ndarray) -> np.ndarray:
     return np.broadcast_to(np.asarray(sig, dtype=float), e.y.shape)
 
 
+def _output_sigma(experiments, n_y: int, source: str, sig) -> np.ndarray:
+    """(n_y,) the noise level a fit reports and scores with: the RMS of the known per-frame
+    levels (`source` "per-frame"), else `sig` (declared or estimated)."""
+    return _rms_sigma(experiments, n_y) if source == "per-frame" else np.asarray(sig)
+
+
 def _rms_sigma(experiments, n_y: int) -> np.ndarray:
     """(n_y,) RMS of the known per-frame noise over every valid reading."""
     num, den = np.zeros(n_y), np.zeros(n_y)
@@ -1167,12 +1173,13 @@ def _assemble(
     models=None,
     residuals: ResidualAnalysis | None = None,
     hac: HACMeat | None = None,
+    scores: tuple | None = None,
 ) -> FitResult:
     """The `FitResult` of the best solve `best` (covariance, identifiability, residual tests,
     scores). `models`: (shared model, per-run models) at its raw vector, `residuals`: the
-    residual analysis of its predictions (`_residual_runs`), and `hac`: the meat of its
-    sandwich (`_sandwich_meats`), when already computed (`fit_batch` computes them for many
-    devices at once)."""
+    residual analysis of its predictions (`_residual_runs`), `hac`: the meat of its sandwich
+    (`_sandwich_meats`), and `scores`: its runs' `_scored_runs` at `_output_sigma`, when
+    already computed (`fit_batch` computes them for many devices at once)."""
     raw, cost, ok = np.asarray(best["raw"]), float(best["cost"]), bool(best["ok"])
     finite = _finite(best)
     say("computing covariance, identifiability and residual tests")
@@ -1210,8 +1217,10 @@ def _assemble(
     band_sd = _simulation_sd(problem, best, cov, experiments, solved if finite else None)
 
     base, exp_models = _fitted_models(problem, jnp.asarray(raw)) if models is None else models
-    sigma_out = _rms_sigma(experiments, n_y) if source == "per-frame" else np.asarray(sig)
-    fits, robust, outliers, ceilings, scaled = _scored_runs(experiments, preds, sigma_out)
+    sigma_out = _output_sigma(experiments, n_y, source, sig)
+    if scores is None:
+        scores = _scored_runs(experiments, preds, sigma_out)
+    fits, robust, outliers, ceilings, scaled = scores
     gof = (
         goodness_of_fit(scaled, [e.mask for e in experiments], problem.n_raw)
         if source != "estimated" and finite
@@ -1632,22 +1641,37 @@ def _scored_runs(experiments, preds, sigma) -> tuple:
     corrupted frames would otherwise inflate std(y) and the ceiling with it); compare it with
     the second figure.
     """
-    s_frames = [np.broadcast_to(_frame_sigma(e, sigma), e.y.shape) for e in experiments]
-    y = padded_stack([e.y for e in experiments], np.nan)
-    z = padded_stack([np.asarray(zi, dtype=float) for zi in preds], np.nan)
+    return _scored_runs_many([(experiments, preds, sigma)])[0]
+
+
+def _scored_runs_many(fits) -> list:
+    """`_scored_runs` of each (experiments, predictions, sigma) of `fits` (of one number of
+    outputs), every run of every fit in one stacked pass (`fit_batch` passes a wave's
+    devices)."""
+    runs = [
+        (e, zi, sigma) for experiments, preds, sigma in fits for e, zi in zip(experiments, preds)
+    ]
+    s_frames = [np.broadcast_to(_frame_sigma(e, sigma), e.y.shape) for e, _, sigma in runs]
+    y = padded_stack([e.y for e, _, _ in runs], np.nan)
+    z = padded_stack([np.asarray(zi, dtype=float) for _, zi, _ in runs], np.nan)
     s = padded_stack(s_frames, 1.0)
     with np.errstate(invalid="ignore"):
         scaled_all = (y - z) / s
         flagged = (np.abs(scaled_all) > OUTLIER_SIGMAS) & np.isfinite(y)
     clean = np.where(flagged, np.nan, y)
-    fits, robust = fit_percent_per_output(y, z), fit_percent_per_output(clean, z)
-    outliers, ceilings = flagged.sum(axis=(1, 2)), noise_ceiling_per_output(clean, s)
-    names = [e.name for e in experiments]
-    scaled = [scaled_all[k, : e.n_frames] for k, e in enumerate(experiments)]
-    return (
-        dict(zip(names, fits)),
-        dict(zip(names, robust)),
-        {n: int(k) for n, k in zip(names, outliers)},
-        dict(zip(names, ceilings)),
-        scaled,
-    )
+    fit_all, robust_all = fit_percent_per_output(y, z), fit_percent_per_output(clean, z)
+    outliers_all, ceilings_all = flagged.sum(axis=(1, 2)), noise_ceiling_per_output(clean, s)
+    out, k = [], 0
+    for experiments, _, _ in fits:
+        names, own = [e.name for e in experiments], slice(k, k + len(experiments))
+        out.append(
+            (
+                dict(zip(names, fit_all[own])),
+                dict(zip(names, robust_all[own])),
+                {n: int(c) for n, c in zip(names, outliers_all[own])},
+                dict(zip(names, ceilings_all[own])),
+                [scaled_all[k + j, : e.n_frames] for j, e in enumerate(experiments)],
+            )
+        )
+        k += len(experiments)
+    return out

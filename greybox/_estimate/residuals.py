@@ -735,13 +735,14 @@ def _pending_group(runs, permutations) -> list:
     auto[live, 0] = 1.0
     npairs = np.where(live[:, None], npairs, 0.0)
     cross_rows = _cross_correlations(runs, first, g, occ, c0, live, m_max, width)
+    q_all = _row_portmanteau(
+        auto, null_var, live, [(a, r[2].shape[1], r[6]) for r, a in zip(runs, first)]
+    )
     results = []
     for (name, grid, e_r, ok_r, u, m, h, seed), a in zip(runs, first):
         n_y, rows = e_r.shape[1], slice(a, a + e_r.shape[1])
         n_u = 0 if u is None else u.shape[1]
-        q = np.where(
-            live[rows], portmanteau(auto[rows, 1 : h + 1], null_var[rows, 1 : h + 1]), np.nan
-        )
+        q = q_all[rows]
         perm_r = np.full((n_y, int(permutations) + 1, h), np.nan)
         jobs = [
             _Shuffled(
@@ -777,6 +778,20 @@ def _pending_group(runs, permutations) -> list:
         )
         results.append((run, jobs))
     return results
+
+
+def _row_portmanteau(auto, null_var, live, spans) -> np.ndarray:
+    """Per row of `auto` and `null_var` (rows, M + 1), the portmanteau statistic over its
+    run's lags 1..h (NaN where not `live`); `spans`: (first row, rows, h) per run. The rows
+    of one h in one call (a run's rows summed exactly as a call of their own would)."""
+    h_of = np.zeros(auto.shape[0], dtype=int)
+    for a, n_rows, h in spans:
+        h_of[a : a + n_rows] = h
+    q = np.full(auto.shape[0], np.nan)
+    for h in np.unique(h_of):
+        rows = np.flatnonzero(live & (h_of == h))
+        q[rows] = portmanteau(auto[rows, 1 : h + 1], null_var[rows, 1 : h + 1])
+    return q
 
 
 def _cross_correlations(runs, first, g, occ, c0, live, m_max, width):

@@ -8,16 +8,15 @@ import pytest
 
 import greybox
 from greybox._model.parameters import set_values
+from greybox._model.waveforms import PiecewiseConstant, PulseTrain
+from greybox._simulate.schedules import model_schedules, schedule_for
 from greybox._simulate.simulate import (
     COMPARE_ALL_MAX_BREAKS,
     as_arrays,
     input_at,
     observe_schedule,
-    pad_schedules,
-    schedule_for,
     simulate,
 )
-from greybox._model.waveforms import PiecewiseConstant, PulseTrain
 from greybox.blocks._mechanics import ChevronLinear
 
 default_model = greybox.get_device("chevron_laser").model
@@ -107,7 +106,7 @@ def test_zoh_and_adaptive_agree_within_1e6_um_on_default_model():
 def test_vmap_over_experiments_matches_loop(method):
     m = as_arrays(default_model())
     runs = stitched_inputs()
-    batch = pad_schedules([schedule_for(m, w, t) for w, t in runs])
+    batch = model_schedules(m, [(w, t, 0.0) for w, t in runs])
     z, ok = jax.jit(jax.vmap(lambda s: observe_schedule(m, s, method=method)))(batch)
     assert bool(jnp.all(ok))
     for i, (w, t) in enumerate(runs):
@@ -120,7 +119,7 @@ def test_vmap_over_experiments_matches_loop(method):
 def _output_of(params, method, adjoint):
     m = as_arrays(default_model())
     wave, t = stitched_inputs()[1]
-    row = {k: v[0] for k, v in pad_schedules([schedule_for(m, wave, t)]).items()}
+    row = {k: v[0] for k, v in schedule_for(m, wave, t).items()}
     m = set_values(m, ["thermal.tau_s", "absorptance"], [params[0], params[1]])
     z, _ = observe_schedule(m, row, method=method, rtol=1e-11, atol=1e-13, adjoint=adjoint)
     return z[: t.size, 0]
@@ -144,7 +143,7 @@ def test_forward_and_reverse_mode_derivatives_agree(method):
 def test_changing_parameter_values_does_not_recompile():
     m = as_arrays(default_model())
     wave, t = stitched_inputs()[0]
-    row = {k: v[0] for k, v in pad_schedules([schedule_for(m, wave, t)]).items()}
+    row = {k: v[0] for k, v in schedule_for(m, wave, t).items()}
 
     @eqx.filter_jit
     @eqx.debug.assert_max_traces(max_traces=1)

@@ -6,7 +6,7 @@ of devices (vmapped on an accelerator, one solve after another on a CPU: `map_ov
 
 - devices are grouped by their problem structure (the same free parameters and transforms,
   the same number of runs, the same settings paths, method and loss); within a group every
-  run's schedule is padded jointly (`pad_schedules`: frames, ZOH intervals, breakpoints and
+  run's schedule is padded jointly (`stacked_schedules`: frames, ZOH intervals, breakpoints and
   jump times rounded up to shared bucket sizes; padded frames carry zero weight, so they add
   zero residuals and zero Jacobian rows). Devices with a different number of runs form a
   different group (a padded run would add per-run parameters the data do not touch);
@@ -61,7 +61,8 @@ from greybox._model.device import check_method
 from greybox._model.freeparams import FreeParameter
 from greybox._model.parameters import get_value
 from greybox._platform import default_device, map_over_items, on_accelerator
-from greybox._simulate.simulate import pad_schedules, require_x64, schedules_for
+from greybox._simulate.schedules import stacked_schedules
+from greybox._simulate.simulate import require_x64
 
 MAX_CHUNK = 64  # solves per compiled call on a CPU (one after another there, `map_over_items`):
 # more saves little dispatch, and smaller waves overlap the host work better
@@ -294,21 +295,21 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
     if len(set(names)) != len(names):
         raise ValueError("devices: two devices share a name; names must be unique")
     # the runs of all devices whose schedules stack (same input channels and readout
-    # quadrature) padded once, jointly (`pad_schedules` buckets the lengths: one compiled
-    # solver per structure); padding is inert, so a structure whose runs are shorter than
-    # another's only carries more zero-weight frames
+    # quadrature size) built and padded once, jointly (`stacked_schedules` buckets the
+    # lengths: one compiled solver per structure); padding is inert, so a structure whose
+    # runs are shorter than another's only carries more zero-weight frames
     checked, families = [], {}
     for d in devices:
         f = tuple(d.free) if d.free is not None else free
         m = _check(d, f, method)
         f = tuple(p.with_scale_from(v) for p, v in zip(f, _fit._start_values(f, d.model)))
-        scheds = schedules_for(d.model, d.experiments)
-        family = families.setdefault((scheds[0].levels.shape[1], scheds[0].n_quad), [])
-        family.append(len(checked))
-        checked.append((d, f, m, scheds))
+        offsets, _ = d.model.readout.quadrature()
+        runs = [(e.inputs, e.t_s, e.t_start_s, offsets, d.model.n_inputs) for e in d.experiments]
+        families.setdefault((d.model.n_inputs, np.size(offsets)), []).append(len(checked))
+        checked.append((d, f, m, runs))
     padded = [None] * len(checked)
     for members in families.values():
-        joint = pad_schedules([s for i in members for s in checked[i][3]], on_device=False)
+        joint = stacked_schedules([r for i in members for r in checked[i][3]], on_device=False)
         start = 0
         for i in members:
             n_e = len(checked[i][0].experiments)

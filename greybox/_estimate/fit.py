@@ -64,14 +64,13 @@ from greybox._estimate.residuals import (
 from greybox._estimate.sandwich import HACMeat, hac_meats, model_error_residuals_many
 from greybox._estimate.starts import run_starts
 from greybox._estimate.residuals import analyse as analyse_residuals
+from greybox._simulate.schedules import schedules_for
 from greybox._simulate.simulate import (
     SOLVER_FAILED,
     SolverFailed,
     as_arrays,
     observe_schedule,
-    pad_schedules,
     require_x64,
-    schedules_for,
 )
 from greybox._estimate.verdict import interval_verdict
 
@@ -393,12 +392,12 @@ class _Problem(eqx.Module):
         model, experiments, free, method, loss, huber_c, student_nu, rtol, atol, max_steps,
         *, padded=None, on_device: bool = True,
     ):  # fmt: skip
-        """`padded`: the runs' stacked, padded schedule arrays (`pad_schedules`) when a batch
+        """`padded`: the runs' stacked, padded schedule arrays (`schedules_for`) when a batch
         already padded them jointly with other devices' runs; `on_device=False` keeps numpy
         leaves (a batch stacks many problems before one transfer)."""
         sched = padded
         if sched is None:
-            sched = pad_schedules(schedules_for(model, experiments), on_device=False)
+            sched = schedules_for(model, experiments, on_device=False)
         n_exp = len(experiments)
         n_frames = sched["t_s"].shape[1]
         n_y = experiments[0].y.shape[1]

@@ -31,13 +31,8 @@ import numpy as np
 from greybox._compile import jax_jit
 from greybox._model.device import check_method
 from greybox._model.freeparams import apply_raw
-from greybox._simulate.simulate import (
-    as_arrays,
-    observe_schedule,
-    pad_schedules,
-    require_x64,
-    schedule_for,
-)
+from greybox._simulate.schedules import schedule_for
+from greybox._simulate.simulate import as_arrays, observe_schedule, require_x64
 
 NEGLIGIBLE_SENSITIVITY = 1e-6  # relative |dy/d direction| treated as "does not depend"
 
@@ -191,7 +186,7 @@ def prediction_band(
             if np.linalg.norm(v[:n_shared]) > NEGLIGIBLE_SENSITIVITY
         ]
     t = np.asarray(t_s, dtype=float)
-    sched = pad_schedules([schedule_for(model, inputs, t, t_start_s=t_start_s)])
+    sched = schedule_for(model, inputs, t, t_start_s=t_start_s)
     row = {k: v[0] for k, v in sched.items()}
     base = as_arrays(model)
 

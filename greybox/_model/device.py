@@ -105,8 +105,9 @@ class AbstractSteppedDevice(AbstractDevice):
     """A device whose simulation is not an ODE (e.g. per-step quasi-static contact maps).
 
     It implements `observe_schedule(sched, method)` itself, returning the camera readings
-    (N, n_y) and a success flag from one row of `greybox._simulate.simulate.pad_schedules`; `fit`,
-    `simulate` and `validate` then work unchanged (masks, robust loss, covariance).
+    (N, n_y) and a success flag from one row of the stacked schedules
+    (`greybox._simulate.schedules`); `fit`, `simulate` and `validate` then work unchanged
+    (masks, robust loss, covariance).
     """
 
     @property

@@ -17,15 +17,14 @@
 Observations are produced at arbitrary (irregular) camera timestamps; the camera's exposure is
 averaged with Gauss-Legendre nodes evaluated identically on both paths.
 
-The numpy preprocessing (`Schedule`) depends only on data, never on parameters, so it is built
-once per experiment; everything after it is a pure, jit-able function of the model.
+The numpy preprocessing (`greybox._simulate.schedules`) depends only on data, never on
+parameters, so it is built once per experiment; everything after it is a pure, jit-able
+function of the model.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from collections.abc import Sequence
 
 import diffrax as dfx
 import jax
@@ -33,7 +32,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from greybox._compile import jit
-from greybox._model.data import check_times
 from greybox._model.device import (
     METHODS,
     ODE_METHODS,
@@ -41,8 +39,8 @@ from greybox._model.device import (
     AbstractSteppedDevice,
     check_method,
 )
-from greybox._model.waveforms import PiecewiseConstant
 from greybox._platform import on_accelerator
+from greybox._simulate.schedules import schedule_for
 
 
 def require_x64(where: str) -> None:
@@ -52,134 +50,6 @@ def require_x64(where: str) -> None:
             f"{where}: float64 is disabled; call jax.config.update('jax_enable_x64', True) "
             "before using greybox (the greybox command and scripts do this for you)"
         )
-
-
-@dataclasses.dataclass(frozen=True)
-class Schedule:
-    """Data-only simulation plan for one experiment (numpy arrays, built once).
-
-    Frames `t_s` (N,) are expanded to N*q evaluation instants (exposure quadrature). The ZOH
-    grid has L intervals of length `dt` with input level `u_grid`; `eval_index` (N*q,) points
-    into the L+1 grid states. The adaptive path uses `eval_t` (sorted), `breaks`/`levels`
-    (input lookup) and `jump_ts`; `eval_order` maps sorted evaluation back to frame order.
-    """
-
-    t_s: np.ndarray
-    t_start_s: float
-    n_quad: int
-    dt: np.ndarray
-    u_grid: np.ndarray
-    eval_index: np.ndarray
-    eval_t: np.ndarray
-    eval_order: np.ndarray
-    breaks: np.ndarray
-    levels: np.ndarray
-    jump_ts: np.ndarray
-
-    @staticmethod
-    def build(
-        inputs: PiecewiseConstant,
-        t_s,
-        quad_offsets_s,
-        *,
-        t_start_s: float = 0.0,
-        n_inputs: int | None = None,
-    ) -> Schedule:
-        t = check_times(t_s)
-        inputs = inputs.to_piecewise()
-        levels = inputs.values.reshape(len(inputs.times_s), -1)
-        if n_inputs is not None and levels.shape[1] != n_inputs:
-            raise ValueError(
-                f"inputs: the device takes {n_inputs} input channel(s) but the "
-                f"waveform has {levels.shape[1]}"
-            )
-        offsets = np.asarray(quad_offsets_s, dtype=float)
-        quad_t = (t[:, None] + offsets[None, :]).reshape(-1)
-        t_start = float(min(t_start_s, quad_t.min(), inputs.times_s[0]))
-        edges = inputs.switch_times()
-        edges = edges[(edges > t_start) & (edges < quad_t.max())]
-        eval_order = np.argsort(quad_t, kind="stable")
-        eval_t = quad_t[eval_order]
-        grid = np.unique(np.concatenate([[t_start], edges, quad_t]))
-        dt = np.diff(grid)
-        # level on [grid[i], grid[i+1]): right-continuous lookup at the left end
-        idx = np.searchsorted(inputs.times_s, grid[:-1], side="right") - 1
-        u_grid = np.where((idx >= 0)[:, None], levels[np.clip(idx, 0, None)], 0.0)
-        eval_index = np.searchsorted(grid, quad_t)
-        return Schedule(
-            t_s=t,
-            t_start_s=t_start,
-            n_quad=offsets.size,
-            dt=dt,
-            u_grid=u_grid,
-            eval_index=eval_index,
-            eval_t=eval_t,
-            eval_order=eval_order,
-            breaks=inputs.times_s.copy(),
-            levels=levels,
-            jump_ts=edges,
-        )
-
-
-def _bucket(n: int) -> int:
-    """Round a length up so similar data share one compilation: to a power of two up to 256,
-    then to a multiple of 256 (padding costs scan steps, so large records are padded less)."""
-    n = max(int(n), 1)
-    if n <= 256:
-        return max(16, 1 << (n - 1).bit_length())
-    return -(-n // 256) * 256
-
-
-def pad_schedules(schedules: Sequence[Schedule], *, on_device: bool = True) -> dict:
-    """Stack schedules of different lengths into equal-shape arrays for `jax.vmap`.
-
-    Lengths are rounded up (`_bucket`), so runs of similar size reuse one compiled function.
-    Padding is inert: ZOH intervals of length 0 (identity step), evaluation instants repeated
-    at the end, breakpoints and jump times pushed past the end of the record.
-    `on_device=False` keeps numpy arrays (for callers that stack many before one transfer).
-    """
-    n_frames = _bucket(max(s.t_s.size for s in schedules))
-    n_int = _bucket(max(s.dt.size for s in schedules))
-    n_breaks = _bucket(max(s.breaks.size for s in schedules))
-    n_jumps = _bucket(max(s.jump_ts.size for s in schedules))
-    n_u = schedules[0].levels.shape[1]
-    q = schedules[0].n_quad
-    if any(s.n_quad != q for s in schedules):
-        raise ValueError("schedules: their exposure quadratures differ; pad them apart")
-    r = len(schedules)
-    # filled in place, run by run (one allocation per field, not a concatenation per run)
-    out = {
-        "t_s": np.empty((r, n_frames)),
-        "t_start": np.array([s.t_start_s for s in schedules], dtype=float),
-        "dt": np.zeros((r, n_int)),
-        "u_grid": np.zeros((r, n_int, n_u)),
-        "eval_index": np.empty((r, n_frames * q), dtype=schedules[0].eval_index.dtype),
-        "eval_t": np.empty((r, n_frames * q)),
-        "unsort": np.empty((r, n_frames * q), dtype=schedules[0].eval_order.dtype),
-        "breaks": np.empty((r, n_breaks)),
-        "levels": np.empty((r, n_breaks, n_u)),
-        "jump_ts": np.empty((r, n_jumps)),
-    }
-    for i, s in enumerate(schedules):
-        n_f, n_e, n_l = s.t_s.size, s.eval_t.size, s.dt.size
-        n_b, n_j = s.breaks.size, s.jump_ts.size
-        t_end = s.eval_t[-1]
-        out["t_s"][i, :n_f], out["t_s"][i, n_f:] = s.t_s, s.t_s[-1]
-        out["dt"][i, :n_l] = s.dt
-        out["u_grid"][i, :n_l] = s.u_grid
-        out["eval_index"][i, :n_e], out["eval_index"][i, n_e:] = s.eval_index, s.eval_index[-1]
-        out["eval_t"][i, :n_e], out["eval_t"][i, n_e:] = s.eval_t, t_end
-        # frame-major position of each sorted evaluation; padded frames read the last one
-        out["unsort"][i, s.eval_order] = np.arange(n_e)
-        out["unsort"][i, n_e:] = n_e - 1
-        out["breaks"][i, :n_b], out["breaks"][i, n_b:] = s.breaks, t_end + 1.0 + np.arange(
-            n_breaks - n_b
-        )
-        out["levels"][i, :n_b], out["levels"][i, n_b:] = s.levels, s.levels[-1]
-        out["jump_ts"][i, :n_j], out["jump_ts"][i, n_j:] = s.jump_ts, t_end + 1.0 + np.arange(
-            n_jumps - n_j
-        )
-    return jax.device_put(out) if on_device else out
 
 
 # what to do when the adaptive solve of a run fails: said by simulate, fit and validate
@@ -378,7 +248,7 @@ def observe_schedule(
 ):
     """Camera readings (N, n_y) [SI] and a success flag for one (padded) schedule dict.
 
-    Pure and jit/vmap-able: `sched` holds the arrays of one row of `pad_schedules`.
+    Pure and jit/vmap-able: `sched` holds the arrays of one row of `schedules.stacked_schedules`.
     `adjoint` (adaptive path only): "forward" (ForwardMode; what Levenberg-Marquardt's jvp
     Jacobians need) or "reverse" (RecursiveCheckpointAdjoint, for `jax.grad`/`jacrev`).
     """
@@ -411,29 +281,6 @@ def observe_schedule(
     outputs = outputs.reshape(n_frames, -1, outputs.shape[-1])
     z = model.readout.observe(outputs, sched["t_s"], sched["t_start"])
     return z, ok
-
-
-def schedule_for(model: AbstractDevice, inputs, t_s, *, t_start_s: float = 0.0) -> Schedule:
-    offsets, _ = model.readout.quadrature()
-    return Schedule.build(
-        inputs.to_piecewise(), t_s, offsets, t_start_s=t_start_s, n_inputs=model.n_inputs
-    )
-
-
-def schedules_for(model: AbstractDevice, experiments) -> list[Schedule]:
-    """`schedule_for` of each experiment (anything with `inputs`, `t_s`, `t_start_s`), with the
-    readout's quadrature computed once for all of them."""
-    offsets, _ = model.readout.quadrature()
-    return [
-        Schedule.build(
-            e.inputs.to_piecewise(),
-            e.t_s,
-            offsets,
-            t_start_s=e.t_start_s,
-            n_inputs=model.n_inputs,
-        )
-        for e in experiments
-    ]
 
 
 def simulate(
@@ -469,7 +316,7 @@ def simulate(
     """
     require_x64("simulate")
     method = check_method(model, method)
-    sched = pad_schedules([schedule_for(model, inputs, t_s, t_start_s=t_start_s)])
+    sched = schedule_for(model, inputs, t_s, t_start_s=t_start_s)
     row = {k: v[0] for k, v in sched.items()}
     zoh_scan_kind(0, zoh_scan)  # a clear error for a misspelt scan before compiling
     z, ok = _observe_jit(as_arrays(model), row, method, rtol, atol, max_steps, zoh_scan)

@@ -69,7 +69,8 @@ from greybox._model.freeparams import FreeParameter
 from greybox._estimate.identifiability import TINY, WEAK_SD
 from greybox._model.parameters import get_value, set_values
 from greybox._estimate.prediction import Band, prediction_band, raw_draws
-from greybox._simulate.simulate import as_arrays, observe_schedule, pad_schedules, require_x64, schedule_for
+from greybox._simulate.schedules import model_schedules, schedule_for
+from greybox._simulate.simulate import as_arrays, observe_schedule, require_x64
 from greybox._model.waveforms import PiecewiseConstant, PulseTrain
 
 CRITERIA = ("D", "A", "E")
@@ -369,13 +370,13 @@ def _batch_information(model, shared, per_run, raw_shared, raw_per, sched, weigh
 
 
 def _schedules(problem: DesignProblem, waveforms, t_list):
-    schedules = [schedule_for(problem.model, w, t) for w, t in zip(waveforms, t_list, strict=True)]
-    sched = pad_schedules(schedules)
+    runs = [(w, t, 0.0) for w, t in zip(waveforms, t_list, strict=True)]
+    sched = model_schedules(problem.model, runs)
     n_pad = sched["t_s"].shape[1]
-    weight = np.zeros((len(schedules), n_pad))
-    for i, s in enumerate(schedules):
-        weight[i, : s.t_s.size] = 1.0
-    return sched, jnp.asarray(weight), schedules
+    weight = np.zeros((len(runs), n_pad))
+    for i, t in enumerate(t_list):
+        weight[i, : np.size(t)] = 1.0
+    return sched, jnp.asarray(weight)
 
 
 def run_information(problem: DesignProblem, waveforms, t_s, *, chunk: int = 64) -> np.ndarray:
@@ -392,7 +393,7 @@ def run_information(problem: DesignProblem, waveforms, t_s, *, chunk: int = 64) 
         return _process_information(problem, points, waveforms, t_list)
     out = []
     for start in range(0, len(waveforms), chunk):
-        sched, weight, _ = _schedules(
+        sched, weight = _schedules(
             problem, waveforms[start : start + chunk], t_list[start : start + chunk]
         )
         out.append(
@@ -828,10 +829,12 @@ def _template(times, end_s):
     return PiecewiseConstant(np.concatenate([[0.0], times]), np.concatenate([[0.0], vals]), end_s)
 
 
-def _segment_index(schedule, times):
-    """Index of the hold level in force on each grid interval (K = the 'off' slot)."""
-    left = schedule.t_start_s + np.concatenate([[0.0], np.cumsum(schedule.dt)[:-1]])
-    mid = left + schedule.dt / 2
+def _segment_index(row, times):
+    """Index of the hold level in force on each grid interval of a schedule row (its
+    intervals before the padding's empty ones; K = the 'off' slot)."""
+    dt = np.asarray(row["dt"])[: np.count_nonzero(np.asarray(row["dt"]))]
+    left = float(row["t_start"]) + np.concatenate([[0.0], np.cumsum(dt)[:-1]])
+    mid = left + dt / 2
     idx = np.searchsorted(times, mid, side="right") - 1
     return np.where(idx < 0, times.size, idx)
 
@@ -890,9 +893,8 @@ def _design_multilevel(problem, c: LabConstraints, kind, hold_s, n_iter, seed, s
     k = times.size
     t = c.frame_times()
     template = _template(times, c.run_duration_s)
-    sch = schedule_for(problem.model, template, t)
-    seg = _segment_index(sch, times)
-    sched = pad_schedules([sch] * c.n_runs)
+    sched = model_schedules(problem.model, [(template, t, 0.0)] * c.n_runs)
+    seg = _segment_index({k: v[0] for k, v in sched.items()}, times)
     n_int = sched["dt"].shape[1]
     seg_pad = np.full(n_int, k)
     seg_pad[: seg.size] = seg
@@ -1125,10 +1127,9 @@ def track_target(
     t = np.arange(1, int(round(duration_s / dt_s)) + 1) * dt_s
     t = t[t <= duration_s + 1e-12]
     template = _template(times, duration_s)
-    sch = schedule_for(model, template, t)
-    seg = _segment_index(sch, times)
-    sched = pad_schedules([sch])
+    sched = schedule_for(model, template, t)
     row = {key: v[0] for key, v in sched.items()}
+    seg = _segment_index(row, times)
     seg_pad = np.full(row["dt"].shape[0], k)
     seg_pad[: seg.size] = seg
     target = np.where(t >= step_time_s, stroke_m, 0.0)

@@ -224,10 +224,11 @@ def trial_simulation(device, model, experiment, method: str) -> None:
     import equinox as eqx
     import jax
 
-    from greybox._simulate.simulate import as_arrays, pad_schedules, schedules_for
+    from greybox._simulate.schedules import schedules_for
+    from greybox._simulate.simulate import as_arrays
     from greybox._usercode import running_users_code
 
-    padded = pad_schedules(schedules_for(model, [experiment]), on_device=False)
+    padded = schedules_for(model, [experiment], on_device=False)
     row = {k: v[0] for k, v in padded.items()}
     model = as_arrays(model)
     # a trace sees structure and shapes, never values: one trial per structure is enough

@@ -18,6 +18,7 @@ constant are drawn from a known log-normal population. It measures
     thread; beside it the host phases (`prepare_s`: `_batch._prepare`, before any solve;
     `residual_tests_s`: the residual tests of each wave of devices in one vectorised pass;
     `sandwich_s`: the model-error regressions and HAC meats of each wave, stacked;
+    `scores_s`: the fit %, outliers and noise ceilings of each wave's runs, stacked;
     `assemble_s`: the per-device `_fit._assemble`). The last three run in `fit_batch`'s host
     thread while the next wave solves, so the phases add up to more than the wall time;
     `host_overlap_s` is by how much;
@@ -123,6 +124,13 @@ Then (2026-11-28, load ~1.1): process noise, 128 devices (`--devices 16 --proces
 the devices were assembled in a host thread while the next chunk solves (the same 128
 devices, eight warm calls each, alternating: medians 4.5 and 4.9 s before, 4.3 and 3.7 s
 after; fastest 3.99 and 4.32 s before, 3.52 and 3.53 s after), the same results.
+Then (2026-11-28, alternating runs of d14b629 and this change, loads 1.1-1.2): every run of
+the batch's devices built and padded in one pass (`greybox._simulate.schedules`), each wave's
+run scores stacked (`scores_s`) and the per-run portmanteau statistics by test lag: warm
+batch 3.52 and 4.05 s -> 3.07 and 3.39 s (8,723 and 7,579 -> 10,015 and 9,064 fits/min),
+prepare 0.70-0.72 -> 0.37-0.53 s, solve_share 0.58-0.59 -> 0.60-0.63 (0.66-0.67 in two
+other runs), the same results (batch_vs_fit_max_rel 1.9e-9, 512/512 valid). The host's
+interpreter-held work is still the longer chain: 0.8 is not reached on two cores.
 """
 
 from __future__ import annotations
@@ -197,8 +205,9 @@ class PhaseTimer:
     """Wall time spent in `_batch._solve_many` (waited for), `_batch._prepare`, the
     vectorised residual tests of every device (`_batch.analyse_residuals`), the fitted
     models (`_batch._fitted_models`, waited for), the sandwich meats of each wave of devices
-    (`_fit._sandwich_meats`) and the per-device `_fit._assemble` while active: the module
-    attributes are wrapped, then restored."""
+    (`_fit._sandwich_meats`), the runs' scores of each wave (`_fit._scored_runs_many`) and
+    the per-device `_fit._assemble` while active: the module attributes are wrapped, then
+    restored."""
 
     NAMES = {
         "solve": ("_solve_many", True),
@@ -208,7 +217,7 @@ class PhaseTimer:
     }
 
     def __init__(self):
-        self.t = dict.fromkeys([*self.NAMES, "sandwich", "assemble"], 0.0)
+        self.t = dict.fromkeys([*self.NAMES, "sandwich", "scores", "assemble"], 0.0)
 
     def _wrap(self, key, fn, block=False):
         def timed(*a, **k):
@@ -223,11 +232,16 @@ class PhaseTimer:
 
     def __enter__(self):
         self.saved = {name: getattr(_batch, name) for name, _ in self.NAMES.values()}
-        self.saved_fit = {"assemble": _fit._assemble, "sandwich": _fit._sandwich_meats}
+        self.saved_fit = {
+            "assemble": _fit._assemble,
+            "sandwich": _fit._sandwich_meats,
+            "scores": _fit._scored_runs_many,
+        }
         for key, (name, block) in self.NAMES.items():
             setattr(_batch, name, self._wrap(key, self.saved[name], block=block))
         _fit._assemble = self._wrap("assemble", _fit._assemble)
         _fit._sandwich_meats = self._wrap("sandwich", _fit._sandwich_meats)
+        _fit._scored_runs_many = self._wrap("scores", _fit._scored_runs_many)
         return self
 
     def __exit__(self, *exc):
@@ -235,6 +249,7 @@ class PhaseTimer:
             setattr(_batch, name, fn)
         _fit._assemble = self.saved_fit["assemble"]
         _fit._sandwich_meats = self.saved_fit["sandwich"]
+        _fit._scored_runs_many = self.saved_fit["scores"]
 
 
 def compiled_alone(devices, free, chunk) -> float:
@@ -423,6 +438,7 @@ def main(argv=None):
         "residual_tests_s": round(phases.t["residual_tests"], 3),
         "models_s": round(phases.t["models"], 3),
         "sandwich_s": round(phases.t["sandwich"], 3),
+        "scores_s": round(phases.t["scores"], 3),
         "assemble_s": round(phases.t["assemble"], 3),
         "host_overlap_s": round(sum(phases.t.values()) - batch_s, 3),
         "compiled_alone_s": round(alone_s, 3),

@@ -557,7 +557,9 @@ def _p_values(perm_r: np.ndarray, null_var: np.ndarray, dof: int) -> np.ndarray:
     r, v = np.asarray(perm_r, dtype=float), np.asarray(null_var, dtype=float)[..., None, :]
     use = np.isfinite(r[..., :1, :]) & (v > 0)
     ok = use & np.isfinite(r)
-    q = np.sum(np.where(ok, r**2 / np.where(ok, v, 1.0), 0.0), axis=-1)
+    terms = np.zeros(r.shape)  # r^2 / v where usable, 0 elsewhere (no full-size temporaries)
+    np.divide(np.square(r), v, out=terms, where=ok)
+    q = terms.sum(axis=-1)
     b = q.shape[-1] - 1
     tail = chi2_sf(q[..., 0], dof)
     if b == 0:
@@ -1064,8 +1066,8 @@ def _pooled(per_run) -> tuple:
     h = per_run[0].test_lag
     ra = np.stack([r.autocorrelation for r in per_run])  # (R, n_y, M + 1)
     w = np.where(np.isfinite(ra), np.stack([r.pairs for r in per_run]), 0.0)
-    vv = np.nan_to_num(np.stack([r.null_var for r in per_run]))
-    rk = np.nan_to_num(np.stack([r.permuted_autocorrelation for r in per_run]))
+    vv = np.nan_to_num(np.stack([r.null_var for r in per_run]), copy=False)
+    rk = np.nan_to_num(np.stack([r.permuted_autocorrelation for r in per_run]), copy=False)
     tot = w.sum(axis=0)  # (n_y, M + 1)
     with np.errstate(invalid="ignore", divide="ignore"):
         auto = np.where(tot > 0, (w * np.nan_to_num(ra)).sum(axis=0) / tot, np.nan)

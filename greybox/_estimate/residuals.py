@@ -557,7 +557,7 @@ def _p_values(perm_r: np.ndarray, null_var: np.ndarray, dof: int) -> np.ndarray:
     r, v = np.asarray(perm_r, dtype=float), np.asarray(null_var, dtype=float)[..., None, :]
     use = np.isfinite(r[..., :1, :]) & (v > 0)
     ok = use & np.isfinite(r)
-    terms = np.zeros(r.shape)  # r^2 / v where usable, 0 elsewhere (no full-size temporaries)
+    terms = np.zeros(r.shape)  # r^2 / v where usable, 0 elsewhere
     np.divide(np.square(r), v, out=terms, where=ok)
     q = terms.sum(axis=-1)
     b = q.shape[-1] - 1

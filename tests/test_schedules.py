@@ -123,5 +123,7 @@ def test_bad_runs_are_refused_by_name():
         stacked_schedules([good, (wave, np.array([0.2, 0.1]), 0.0, OFFSETS[0], 1)])
     with pytest.raises(ValueError, match="NaN"):
         stacked_schedules([good, (wave, np.array([0.1, np.nan]), 0.0, OFFSETS[0], 1)])
+    with pytest.raises(ValueError, match="none given"):
+        stacked_schedules([])
     with pytest.raises(ValueError, match="takes 2 input channel"):
         stacked_schedules([(wave, np.array([0.1]), 0.0, OFFSETS[0], 2)])

@@ -57,6 +57,8 @@ def stacked_schedules(runs, *, on_device: bool = True) -> dict:
     one row a run: `t_s`, `t_start`, `dt`, `u_grid`, `eval_index`, `eval_t`, `unsort`,
     `breaks`, `levels`, `jump_ts` (see the module docstring). `on_device=False` keeps numpy
     arrays (for callers that stack many before one transfer)."""
+    if not runs:
+        raise ValueError("runs: none given; a schedule needs at least one run")
     t = _frame_times([r[1] for r in runs])
     pw = [r[0].to_piecewise() for r in runs]
     levels = [p.values.reshape(len(p.times_s), -1) for p in pw]

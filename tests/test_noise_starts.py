@@ -83,7 +83,8 @@ def test_a_lagged_state_starts_where_its_noise_shows():
 def test_process_noise_is_labelled_in_the_states_unit():
     """A chevron's states are temperatures read as a displacement: its process intensities
     are K^2/s (the spec's `state_unit`), not the output's m^2/s; [noise] state_unit wins;
-    a device that declares none keeps the outputs' shared unit."""
+    a device that declares none gets the generic label, never the outputs' unit (which was
+    m^2/s here); one unit per state labels each group by its states' shared unit."""
     from greybox.io._noise_table import NoiseTable, noise_units
 
     groups = (("states", (0,)),)
@@ -93,6 +94,16 @@ def test_process_noise_is_labelled_in_the_states_unit():
     told = NoiseTable(process_groups=groups, state_unit="mK")
     assert noise_units(chevron, told)["process.states"] == "mK^2/s"
     undeclared = dataclasses.replace(chevron, state_unit=None)
-    assert noise_units(undeclared, NoiseTable(process_groups=groups))["process.states"] == "m^2/s"
-    with pytest.raises(greybox.DeviceSpecError, match="state_unit"):
-        dataclasses.replace(chevron, state_unit=" ").check()
+    label = noise_units(undeclared, NoiseTable(process_groups=groups))["process.states"]
+    assert label == "(state unit)^2/s"
+    stage = dataclasses.replace(chevron, state_unit=("m", "m/s"))  # a position and a velocity
+    mixed = NoiseTable(process_groups=(("x", (0,)), ("v", (1,)), ("both", (0, 1))))
+    assert [noise_units(stage, mixed)[f"process.{g}"] for g in ("x", "v", "both")] == [
+        "m^2/s",
+        "(m/s)^2/s",
+        "(state unit)^2/s",
+    ]
+    stage.check()
+    for bad in (" ", (), ("m", "")):
+        with pytest.raises(greybox.DeviceSpecError, match="state_unit"):
+            dataclasses.replace(chevron, state_unit=bad).check()

@@ -104,9 +104,10 @@ class DeviceSpec:
       once per run, so io stays device-agnostic.
     - `description`: one paragraph for ``greybox describe``.
     - `state_unit`: the SI unit every state of the model shares ("K" for a thermal network),
-      or None (mixed, or not declared): the unit of its process-noise intensities
-      (unit^2/s). Undeclared, a process-noise fit assumes the outputs' unit when they share
-      one ([noise] `state_unit` overrides both).
+      a tuple of one per state (("m", "m/s") for a position and a velocity), or None: the
+      unit of its process-noise intensities (unit^2/s; [noise] `state_unit` overrides it).
+      Undeclared, they are labelled "(state unit)^2/s": the states' unit is not guessed from
+      the outputs' (a chevron's temperatures are read as a displacement).
     """
 
     name: str
@@ -119,7 +120,7 @@ class DeviceSpec:
     start_values: Callable | None = None
     description: str = ""
     run_settings: Callable | None = None
-    state_unit: str | None = None
+    state_unit: str | tuple[str, ...] | None = None
 
     def option(self, name: str) -> Option:
         for o in self.options:
@@ -183,10 +184,16 @@ class DeviceSpec:
                 fail(f"{kind}: channel names repeat ({names})")
         if not callable(self.build):
             fail("build must be a function build(**options) -> device model")
-        if self.state_unit is not None and not (
-            isinstance(self.state_unit, str) and self.state_unit.strip()
+        units = (self.state_unit,) if isinstance(self.state_unit, str) else self.state_unit
+        if units is not None and not (
+            isinstance(units, tuple)
+            and units
+            and all(isinstance(u, str) and u.strip() for u in units)
         ):
-            fail(f"state_unit must be a unit string such as 'K', or None; got {self.state_unit!r}")
+            fail(
+                "state_unit must be a unit string such as 'K', a tuple of one per state "
+                f"such as ('m', 'm/s'), or None; got {self.state_unit!r}"
+            )
         if self.run_settings is not None and not callable(self.run_settings):
             fail("run_settings must be a function (model, experiment, options) -> {path: value}")
         seen = set()

@@ -347,20 +347,25 @@ def structure(noise: NoiseTable):
     )
 
 
-def state_unit_default(spec) -> str | None:
-    """For a spec that does not declare `state_unit`: the outputs' SI unit when every output
-    shares it (a thermal network read by thermometers), else None."""
-    units = {c.si_unit for c in spec.outputs}
-    return units.pop() if len(units) == 1 else None
+def _process_unit(state_unit, states) -> str:
+    """The unit of one process-noise intensity on `states`: their shared unit^2/s, where
+    `state_unit` (one unit, or one per state) declares it; else "(state unit)^2/s"."""
+    shared = {state_unit} if isinstance(state_unit, str) else set()
+    if not shared and state_unit and all(i < len(state_unit) for i in states):
+        shared = {state_unit[i] for i in states}
+    if len(shared) != 1:
+        return "(state unit)^2/s"
+    unit = shared.pop()
+    return f"({unit})^2/s" if any(c in unit for c in "/* ") else f"{unit}^2/s"
 
 
 def noise_units(spec, noise: NoiseTable) -> dict:
     """Display units of the noise parameters: measurement sd in the output's SI unit, walk
     intensities in (channel unit)^2/s, process intensities in (state unit)^2/s."""
     units = {}
-    su = noise.state_unit or spec.state_unit or state_unit_default(spec)
-    for g, _ in noise.process_groups:
-        units[f"process.{g}"] = f"{su}^2/s" if su else "(state unit)^2/s"
+    su = noise.state_unit or spec.state_unit
+    for g, states in noise.process_groups:
+        units[f"process.{g}"] = _process_unit(su, states)
     for c in spec.outputs:
         units[f"measurement.{c.name}"] = c.si_unit
         units[f"output_walk.{c.name}"] = f"{c.si_unit}^2/s"

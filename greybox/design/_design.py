@@ -832,7 +832,8 @@ def _template(times, end_s):
 def _segment_index(row, times):
     """Index of the hold level in force on each grid interval of a schedule row (its
     intervals before the padding's empty ones; K = the 'off' slot)."""
-    dt = np.asarray(row["dt"])[: np.count_nonzero(np.asarray(row["dt"]))]
+    dt = np.asarray(row["dt"])
+    dt = dt[: np.count_nonzero(dt)]
     left = float(row["t_start"]) + np.concatenate([[0.0], np.cumsum(dt)[:-1]])
     mid = left + dt / 2
     idx = np.searchsorted(times, mid, side="right") - 1
@@ -893,8 +894,9 @@ def _design_multilevel(problem, c: LabConstraints, kind, hold_s, n_iter, seed, s
     k = times.size
     t = c.frame_times()
     template = _template(times, c.run_duration_s)
-    sched = model_schedules(problem.model, [(template, t, 0.0)] * c.n_runs)
-    seg = _segment_index({k: v[0] for k, v in sched.items()}, times)
+    one = schedule_for(problem.model, template, t)  # every run holds the same template
+    seg = _segment_index({key: v[0] for key, v in one.items()}, times)
+    sched = jax.tree.map(lambda x: jnp.repeat(x, c.n_runs, axis=0), one)
     n_int = sched["dt"].shape[1]
     seg_pad = np.full(n_int, k)
     seg_pad[: seg.size] = seg

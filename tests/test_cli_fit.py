@@ -326,3 +326,20 @@ def test_figure_format_svg_writes_vector_figures(tmp_path):
         assert data.lstrip().startswith("<?xml") and "<svg" in data, name
     text = (out / "report.md").read_text()
     assert all(f"figures/{n}" in text for n in names)
+
+
+def test_no_figures_writes_the_same_result_without_figures(result, tmp_path):
+    """`--no-figures`: no figures/ folder and no figure named in report.md; every other file
+    is the one a fit with figures writes (the same fit: the same bytes)."""
+    out = tmp_path / "out"
+    assert main(["fit", str(EMBEDDED), "--out", str(out), "--quiet", "--no-figures"]) == 0
+    assert not (out / "figures").exists()
+    assert "figures/" not in (out / "report.md").read_text()
+    written = sorted(p.relative_to(out) for p in out.rglob("*") if p.is_file())
+    drawn = sorted(
+        p.relative_to(result) for p in result.rglob("*") if p.is_file() and "figures" not in p.parts
+    )
+    assert written == drawn
+    for rel in written:
+        if rel.name != "report.md":
+            assert (out / rel).read_bytes() == (result / rel).read_bytes(), rel

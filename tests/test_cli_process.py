@@ -88,7 +88,8 @@ def test_compare_prefers_three_states_and_lr_tests_match_chi_square(compared):
 def test_fit_candidate_reproduces_its_compare_row(compared, tmp_path):
     _, folder, _, doc = compared
     out = tmp_path / "one"
-    assert main(["fit", str(folder), "--candidate", "one state", "--out", str(out), "--quiet"]) == 0
+    argv = ["fit", str(folder), "--candidate", "one state", "--out", str(out), "--quiet"]
+    assert main([*argv, "--no-figures"]) == 0
     params = json.loads((out / "params.json").read_text())
     row = next(c for c in doc["candidates"] if c["name"] == "one state")
     assert params["experiment"]["candidate"] == "one state"
@@ -200,7 +201,7 @@ def test_fit_many_fits_process_noise_devices(tmp_path):
     rows = (out / "batch.csv").read_text().splitlines()
     assert rows[0].startswith("device,status") and len(rows) == 3
     single = tmp_path / "single"
-    assert main(["fit", str(folders[1]), "--out", str(single), "--quiet"]) in (0, 1)
+    assert main(["fit", str(folders[1]), "--out", str(single), "--quiet", "--no-figures"]) in (0, 1)
     one = json.loads((single / "params.json").read_text())
     batch = json.loads((out / "devices" / "house2" / "params.json").read_text())
     assert batch["noise_model"]["kind"] == "process noise"

@@ -33,7 +33,7 @@ PUBLISHED = {
 @pytest.fixture(scope="module")
 def params(tmp_path_factory):
     out = tmp_path_factory.mktemp("emps") / "fit"
-    assert main(["fit", str(FOLDER), "--out", str(out), "--quiet"]) == 0
+    assert main(["fit", str(FOLDER), "--out", str(out), "--quiet", "--no-figures"]) == 0
     return json.loads((out / "params.json").read_text())
 
 

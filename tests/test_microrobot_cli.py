@@ -18,7 +18,7 @@ PRIOR_DOMINATED = ("locomotion.foot_forward_N", "locomotion.stiffness_N_per_m")
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory):
     out = tmp_path_factory.mktemp("microrobot") / "result"
-    assert main(["fit", str(FOLDER), "--out", str(out), "--quiet"]) == 0
+    assert main(["fit", str(FOLDER), "--out", str(out), "--quiet", "--no-figures"]) == 0
     return out, json.loads((out / "params.json").read_text())
 
 

@@ -128,7 +128,7 @@ def test_tracked_csv_matches_the_rendered_truth(tracked_run):
 def test_fit_recovers_tau_and_absorptance_within_3_se(tracked_run, tmp_path):
     exp_dir, _ = tracked_run
     out = tmp_path / "result"
-    assert main(["fit", str(exp_dir), "--out", str(out), "--quiet"]) == 0
+    assert main(["fit", str(exp_dir), "--out", str(out), "--quiet", "--no-figures"]) == 0
     doc = json.loads((out / "params.json").read_text())
     assert doc["model"]["camera"]["exposure_s"] == pytest.approx(EXPOSURE_S)
     assert doc["model"]["camera"]["m_per_px"] == pytest.approx(UM_PER_PX * 1e-6)

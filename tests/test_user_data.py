@@ -498,7 +498,7 @@ waveform = {{ type = "logged" }}
 settings = {start["val"]}
 """
     )
-    outcome = fit_experiment_dir(folder, tmp_path / "result", lambda m: None)
+    outcome = fit_experiment_dir(folder, tmp_path / "result", lambda m: None, figure_format=None)
     doc = json.loads((tmp_path / "result" / "validation_runs.json").read_text())
     assert doc["per_run_parameters"] == ["readout.offset[0]", "readout.offset[1]"]
     refitted = doc["runs"]["val"]["refitted"]

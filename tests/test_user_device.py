@@ -69,7 +69,7 @@ def lab(tmp_path_factory):
         '  { path = "readout.offset", per_run = true, scale = 1e-3 },\n]\n\n' + "\n".join(runs)
     )
     out = root / "result"
-    assert main(["fit", str(exp), "--out", str(out), "--quiet"]) == 0
+    assert main(["fit", str(exp), "--out", str(out), "--quiet", "--no-figures"]) == 0
     return root, exp, out
 
 

@@ -120,11 +120,11 @@ def fit_experiment_dir(
     *,
     force: bool = False,
     candidate: str | None = None,
-    figure_format: str = "png",
+    figure_format: str | None = "png",
 ) -> FitOutcome:
     """Load, fit, validate and write the result folder atomically (the work of `greybox fit`,
     for every noise model). `candidate`: the name of a ``[[candidates]]`` entry to fit;
-    `figure_format`: png, svg or pdf.
+    `figure_format`: png, svg or pdf, None for no figures.
 
     `out` is checked first (absent, empty or an earlier result, writable; `force` replaces
     any other folder), then the problem size, before anything is compiled."""
@@ -137,6 +137,8 @@ def fit_experiment_dir(
     index = None if candidate is None else candidate_index(experiment_dir, candidate)
     fs = load_experiment_set(experiment_dir, candidate=index)
     check_problem_size(fs)
+    if figure_format is None:
+        return _fit_and_write(fs, out, say, force, candidate, figure_format)
     with drawing_process():  # its start overlaps the fit; it shares the drawing
         return _fit_and_write(fs, out, say, force, candidate, figure_format)
 

@@ -21,7 +21,8 @@ Fit the physical parameters of a device model to an experiment folder and write 
 result: params.json (every fitted value in SI with its unit, standard error, 95 %
 interval and identifiability verdict), report.md (tables, simulation fit % per run for the
 estimation and validation runs, the identifiability verdict), figures/*.png (or .svg/.pdf
-with --figure-format; measured vs model per run with the laser waveform beneath, residuals, parameter correlation),
+with --figure-format, none with --no-figures; measured vs model per run with the laser
+waveform beneath, residuals, parameter correlation),
 predictions/<run>.csv (per run: time, then per output measured, simulated, 95 % band and
 residual, in the unit of the run's file), metrics.csv (per run and output: simulation fit %,
 RMSE, MAE, SAE in the file's unit) and validation_runs.json (per validation run: its
@@ -89,7 +90,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="exit 1 also when the residual test rejects the structure or a fitted value is "
         "physically implausible (the result is written either way)",
     )
-    add_figure_format(p)
+    add_figure_format(p, optional=True)
     p.set_defaults(func=run)
     return p
 
@@ -121,8 +122,9 @@ def run(args) -> int:
             print_input_errors("fit", args.experiment_dir, err)
             return 2
     print("\n".join(parameter_lines(outcome.result) + fit_lines(outcome)))
+    figures = "" if args.figure_format is None else "figures/, "
     print(
-        f"wrote {out}/ (params.json, report.md, figures/, predictions/, metrics.csv, "
+        f"wrote {out}/ (params.json, report.md, {figures}predictions/, metrics.csv, "
         f"validation_runs.json) in {say.elapsed:.1f} s"
     )
     from greybox._estimate.verdict import fit_headline  # one verdict: status, bounds, physics, residuals

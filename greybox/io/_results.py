@@ -565,17 +565,19 @@ def report_text(fs, result, validation, figures=(), metrics=None) -> str:
 
 
 def write_fit_result(
-    out, fs, result, validation, *, force: bool = False, fmt: str = "png"
+    out, fs, result, validation, *, force: bool = False, fmt: str | None = "png"
 ) -> WrittenFit:
     """The result folder of a fit, written atomically (it appears complete or not at all):
     params.json, report.md, predictions/, metrics.csv, validation_runs.json, figures/ (in
-    `fmt`)."""
+    `fmt`; none when `fmt` is None)."""
     from greybox.io._atomic import atomic_output_dir
 
     check_finite_result(fs, result)  # before the folder is touched
     with atomic_output_dir(out, kind="fit", force=force) as tmp:
         usual_permissions(tmp)
-        written = write_fit_files(tmp, fs, result, validation, fmt=fmt)
+        written = write_fit_files(
+            tmp, fs, result, validation, figures=fmt is not None, fmt=fmt or "png"
+        )
     return dataclasses.replace(written, out=Path(out))
 
 

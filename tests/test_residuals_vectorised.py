@@ -313,3 +313,42 @@ def test_an_accelerator_compiles_a_batchs_shuffles_not_a_single_fits(monkeypatch
         monkeypatch.setattr(_platform, "on_accelerator", lambda a=accelerator: a)
         got = (_residuals._compiled_shuffles(single, b), _residuals._compiled_shuffles(wave, b))
         assert got == want
+
+
+def plain_p_values(perm_r, null_var, dof):
+    """The permutation p-value from its definition, one row of shuffles at a time: Q of a
+    row is the sum over the usable lags (r(k) of the observed row and of this row finite,
+    null variance positive) of r(k)^2 / v(k), added lag after lag."""
+    b = perm_r.shape[-2] - 1
+    out = np.full(perm_r.shape[:-2], np.nan)
+    for idx in np.ndindex(out.shape):
+        r, v = perm_r[idx], null_var[idx]
+        use = np.isfinite(r[0]) & (v > 0)
+        if not use.any():
+            continue
+        q = np.array([
+            sum((row[k] ** 2 / v[k] for k in range(v.size) if use[k] and np.isfinite(row[k])), 0.0)
+            for row in r
+        ])  # fmt: skip
+        beyond = int(np.sum(q[1:] >= q[0]))
+        tail = _residuals.chi2_sf(q[0], dof)
+        out[idx] = (1 + beyond) / (b + 1) if beyond else min(tail, 1 / (b + 1))
+    return out
+
+
+@pytest.mark.parametrize("h", [1, 3, 7, 8, 11])
+def test_p_values_are_the_definition_with_gaps_and_unusable_lags(h):
+    """`_p_values` (stacked, unmasked passes) gives the p-values of the plain per-row
+    definition exactly, with lags that have no pairs (NaN r), null variances that are zero
+    or NaN, a run with no usable lag at all, and shuffles that tie the observed row."""
+    rng = np.random.default_rng(h)
+    r = 0.1 * rng.standard_normal((5, 2, 60, h))
+    r[0, 1, :, 0] = np.nan  # a lag without pairs
+    r[1, 0, 7:9] = np.nan  # shuffles with an undefined r(k)
+    r[2, 1, 5] = r[2, 1, 0]  # a tie with the observed row
+    v = 0.01 + 0.01 * rng.random((5, 2, h))
+    v[3, 0, -1] = 0.0
+    v[3, 1] = np.nan  # nothing usable: NaN
+    got = _residuals._p_values(r, v, h)
+    np.testing.assert_array_equal(got, plain_p_values(r, v, h))
+    assert np.isnan(got[3, 1]) and np.isfinite(got[1:3]).all()

@@ -50,6 +50,7 @@ import jax
 import jax.tree_util as jtu
 import numpy as np
 
+from greybox._collector import collector_paused
 from greybox._compile import jit
 from greybox._estimate import fit as _fit
 from greybox._estimate.blas import small_blas
@@ -516,7 +517,10 @@ def fit_batch(
     from greybox._estimate import noise_models as nm
 
     if isinstance(noise, nm.ProcessNoise):
-        return _fit_process(devices, free, noise, sigma, n_starts, seed, max_steps, chunk_size, say)
+        with collector_paused():  # the results' objects: `greybox._collector`
+            return _fit_process(
+                devices, free, noise, sigma, n_starts, seed, max_steps, chunk_size, say
+            )
     if isinstance(noise, nm.OutputError):
         loss, sigma = noise.loss.name, noise.sigma
         huber_c = getattr(noise.loss, "c", huber_c)
@@ -528,7 +532,7 @@ def fit_batch(
         )
     # one BLAS thread while a device's problem is small (`blas.small_blas`, as `fit` does)
     largest = max(_fit.jacobian_size_bound(d.experiments, len(d.free or free)) for d in devices)
-    with small_blas(largest):
+    with small_blas(largest), collector_paused():
         return _fit_output_error(
             devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, max_steps,
             rtol, atol, (solver_rtol, solver_atol, solver_max_steps), chunk_size,

@@ -31,8 +31,6 @@ Needs the optional extra `distributed` (``pip install "dask[distributed]"``).
 
 from __future__ import annotations
 
-import contextlib
-import gc
 import logging
 import math
 import os
@@ -44,6 +42,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from greybox._collector import collector_paused
 from greybox._estimate import batch as _batch
 from greybox._platform import on_accelerator, one_core
 
@@ -117,25 +116,8 @@ def _unpickled_results(part: tuple) -> tuple:
     """Client side of `_fit_task`'s result: ({name: FitResult}, worker seconds), unpickled
     with the garbage collector paused."""
     results, seconds = part
-    with _collector_paused():
+    with collector_paused():  # the results' objects: `greybox._collector`
         return pickle.loads(results), seconds
-
-
-@contextlib.contextmanager
-def _collector_paused():
-    """Python's cyclic garbage collector off inside (back on at exit, if it was on).
-
-    Unpickling a task's results creates objects (~135 a chevron result) that nothing
-    frees, and every so many of them the collector walks every object the client holds,
-    a number the results themselves keep raising: in a process that had gathered a thousand,
-    a result took 0.74-1.7 ms to unpickle with the collector on, 0.43-0.50 ms with it off."""
-    was_on = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if was_on:
-            gc.enable()
 
 
 def run_tasks(

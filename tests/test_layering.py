@@ -22,6 +22,7 @@ RING = {
     "greybox._extras": 0,  # the message naming a missing optional extra
     "greybox._platform": 0,  # the processor a trace will run on (algorithm choices)
     "greybox._compile": 0,  # how the library compiles (jit with its XLA options)
+    "greybox._collector": 0,  # the cyclic garbage collector paused around a batch
     "greybox.blocks": 0,
     "greybox._simulate": 1,
     "greybox.stochastic": 2,

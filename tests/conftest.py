@@ -21,11 +21,19 @@ saved by the cache). `EQX_ON_ERROR` is not set to `nan`: it would test another e
 than users run.
 """
 
+import gc
 import os
 import shutil
 import tempfile
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+
+# full collections rarer (after 100 collections of the middle generation, not 10): a
+# worker's heap grows with every compiled program (the jaxprs and executables JAX keeps),
+# and each full collection walks all of it (31 a worker, 0.4 s each: 25 s of the suite's CPU;
+# with this 9-11 a worker, 12.5 s); the young generations, where short-lived cyclic garbage
+# dies, are collected as usual
+gc.set_threshold(*gc.get_threshold()[:2], 100)
 
 _OWN_CACHE = "GREYBOX_TEST_JAX_CACHE" not in os.environ and "PYTEST_XDIST_WORKER" not in os.environ
 if _OWN_CACHE:  # the controlling process: the workers inherit this variable

@@ -131,6 +131,14 @@ batch 3.52 and 4.05 s -> 3.07 and 3.39 s (8,723 and 7,579 -> 10,015 and 9,064 fi
 prepare 0.70-0.72 -> 0.37-0.53 s, solve_share 0.58-0.59 -> 0.60-0.63 (0.66-0.67 in two
 other runs), the same results (batch_vs_fit_max_rel 1.9e-9, 512/512 valid). The host's
 interpreter-held work is still the longer chain: 0.8 is not reached on two cores.
+Then (2026-11-28, three alternating runs of 011b1ab and 3badd02, loads 1.0-1.3): the batch
+with Python's cyclic garbage collector paused (`greybox/_collector.py`): 10,942, 10,424,
+11,337 -> 10,922, 11,787, 11,793 fits/min, the same results (1.9e-9, 512/512 valid).
+solve_share fell, 0.68-0.73 -> 0.59-0.62: it is the main thread's wait on compiled calls,
+and that wait had held the collector's pauses (the host thread's walks of the heap, under
+the interpreter lock, delayed the main thread's return from each call: `models_s` 0.50-0.69
+-> 0.23-0.26 s). compiled_alone_share, the compiled work timed alone over the batch's wall,
+0.50-0.52 -> 0.51-0.58, is the figure that rose with the throughput.
 """
 
 from __future__ import annotations

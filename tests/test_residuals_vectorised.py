@@ -98,7 +98,9 @@ def test_permutation_p_value_matches_the_loop_with_the_documented_stream(
 def test_analyse_many_is_one_analyse_per_fit():
     """Fits of different run lengths (so different lags) and gaps, analysed together, give
     what one `analyse` each gives: the same shuffles (a row padded to a longer one's length
-    sums in another order: rounding), the same statistics and p-values."""
+    sums in another order: rounding), the same statistics and p-values. Both ways of holding
+    the shuffles meet here: one array for all runs (a fit alone: one test lag) and an array
+    per run (the fits together: test lags differ)."""
     rng = np.random.default_rng(9)
     fits = []
     for n_runs, n in [(2, 60), (3, 140), (1, 45)]:
@@ -272,19 +274,19 @@ def test_compiled_shuffle_kernel_gives_numpys_statistics_on_a_batch(monkeypatch,
             e[1:] += 0.3 * e[:-1]
             runs.append((f"r{i}", t, e, rng.random((n, 2)) > 0.05, None))
         fits.append(runs)
-    shuffled, real_finished = {}, _residuals._finished
+    shuffled, real_p_values = {}, _residuals._run_p_values
 
-    def keep(way):  # the runs' shuffled r(k), before `_finished` drops them
-        def finished(runs):
+    def keep(way):  # the runs' shuffled r(k), as their p-values read them
+        def p_values(runs, stacked):
             shuffled[way] = [r.permuted_autocorrelation.copy() for r in runs]
-            return real_finished(runs)
+            return real_p_values(runs, stacked)
 
-        return finished
+        return p_values
 
     out = {}
     for way, compiled in (("numpy", False), ("compiled", True)):
         monkeypatch.setattr(_residuals, "_compiled_shuffles", lambda *_, c=compiled: c)
-        monkeypatch.setattr(_residuals, "_finished", keep(way))
+        monkeypatch.setattr(_residuals, "_run_p_values", keep(way))
         out[way] = _residuals.analyse_many(fits, permutations=199)
     for a, b in zip(shuffled["numpy"], shuffled["compiled"]):
         assert np.array_equal(np.isnan(a), np.isnan(b))

@@ -623,20 +623,38 @@ def analyse_run(
     (correlations shown), `test_lag` the lags of the Ljung-Box test (default M),
     `permutations` the shuffles behind its p-value (0: chi-square only), `seed` their seed.
     """
-    ((run, jobs),) = _pending_runs(
+    ((run, jobs),), shuffled = _pending_runs(
         [(name, t_s, residuals, valid, inputs, max_lag, test_lag, seed)], permutations
     )
     _permuted_autocorrelation(jobs, permutations)
-    return _finished([run])[0]
+    return _finished([run], _run_p_values([run], shuffled))[0]
 
 
-def _finished(runs) -> list:
-    """`runs` with the p-values of their (now filled) shuffled autocorrelations, which they
-    then drop: pooled already (`_pooled`), they are 90 % of a fit's result (6 runs x 1,000
-    shuffles x 10 lags: 480 kB a device, gigabytes for a wafer of devices)."""
-    p = _p_values_of(
-        [(r.permuted_autocorrelation, r.null_var[:, 1 : r.test_lag + 1], r.test_lag) for r in runs]
-    )
+def _run_p_values(runs, shuffled) -> list:
+    """Each run's p-value (n_y,) from its (now filled) shuffled autocorrelations: read from
+    `shuffled`, the array that holds them all (`_pending_runs`), where there is one, else
+    stacked from the runs' own."""
+    if shuffled is None:
+        return _p_values_of(
+            [
+                (r.permuted_autocorrelation, r.null_var[:, 1 : r.test_lag + 1], r.test_lag)
+                for r in runs
+            ]
+        )
+    h = runs[0].test_lag
+    v = np.stack([r.null_var[:, 1 : h + 1] for r in runs])
+    step = max(1, LAG_BLOCK // max(int(np.prod(shuffled.shape[1:])), 1))  # stays in cache
+    return [
+        p
+        for c in range(0, len(runs), step)
+        for p in _p_values(shuffled[c : c + step], v[c : c + step], h)
+    ]
+
+
+def _finished(runs, p) -> list:
+    """`runs` with their p-values `p`, and without their shuffled autocorrelations: pooled
+    already (`_pooled`), they are 90 % of a fit's result (6 runs x 1,000 shuffles x 10 lags:
+    480 kB a device, gigabytes for a wafer of devices)."""
     return [
         dataclasses.replace(r, p_value=pr, permuted_autocorrelation=None) for r, pr in zip(runs, p)
     ]
@@ -690,14 +708,17 @@ def padded_stack(arrays, fill, dtype=float) -> np.ndarray:
     return out
 
 
-def _pending_runs(specs, permutations) -> list:
+def _pending_runs(specs, permutations) -> tuple[list, np.ndarray | None]:
     """`analyse_run` without its shuffles, for many runs at once: per run (its
     `RunResiduals`, p-values not yet set; the `_Shuffled` jobs that fill its
     `permuted_autocorrelation`), so that many runs, of one fit or of a batch of devices,
-    shuffle in one vectorised pass. `specs`: (name, t_s, residuals, valid, inputs, max_lag,
-    test_lag, seed) per run. Every output of every run is one row of one stacked pass (the
-    robust outlier screen, the placing on the frame grid, the lagged sums of every lag), runs
-    of similar grid lengths together (`_bucket_rows`)."""
+    shuffle in one vectorised pass; and, where every run has the same outputs and test lags
+    (a fit, a batch of one structure), the one array (runs, n_y, B + 1, h) whose rows are
+    their `permuted_autocorrelation`s (else None), so that the p-values and the pooling read
+    them without stacking them again. `specs`: (name, t_s, residuals, valid, inputs,
+    max_lag, test_lag, seed) per run. Every output of every run is one row of one stacked pass
+    (the robust outlier screen, the placing on the frame grid, the lagged sums of every lag),
+    runs of similar grid lengths together (`_bucket_rows`)."""
     runs = []
     for name, t_s, residuals, valid, inputs, max_lag, test_lag, seed in specs:
         e = np.asarray(residuals, dtype=float)
@@ -707,11 +728,18 @@ def _pending_runs(specs, permutations) -> list:
         h = m if test_lag is None else int(min(test_lag, m))
         u = None if inputs is None else np.asarray(inputs, dtype=float).reshape(e.shape[0], -1)
         runs.append((str(name), FrameGrid.build(t_s), e, ok, u, m, h, seed))
+    shapes = {(r[2].shape[1], r[6]) for r in runs}
+    shuffled = None
+    if len(shapes) == 1:
+        ((n_y, h),) = shapes
+        shuffled = np.full((len(runs), n_y, int(permutations) + 1, h), np.nan)
     out = [None] * len(runs)
     for members in _bucket_rows([r[1].n_slots for r in runs]):
-        for k, done in zip(members, _pending_group([runs[i] for i in members], permutations)):
+        rows = None if shuffled is None else [shuffled[i] for i in members]
+        group = _pending_group([runs[i] for i in members], permutations, rows)
+        for k, done in zip(members, group):
             out[k] = done
-    return out
+    return out, shuffled
 
 
 def _bucket_rows(widths) -> list:
@@ -722,8 +750,9 @@ def _bucket_rows(widths) -> list:
     return list(groups.values())
 
 
-def _pending_group(runs, permutations) -> list:
-    """`_pending_runs` of runs of similar grid lengths (one stacked pass)."""
+def _pending_group(runs, permutations, shuffled_rows=None) -> list:
+    """`_pending_runs` of runs of similar grid lengths (one stacked pass); `shuffled_rows`:
+    the NaN arrays that become their `permuted_autocorrelation`s (None: made here)."""
     n_rows = [r[2].shape[1] for r in runs]
     first = np.concatenate([[0], np.cumsum(n_rows)])
     width = max(r[1].n_slots for r in runs)
@@ -756,11 +785,14 @@ def _pending_group(runs, permutations) -> list:
         auto, null_var, live, [(a, r[2].shape[1], r[6]) for r, a in zip(runs, first)]
     )
     results = []
-    for (name, grid, e_r, ok_r, u, m, h, seed), a in zip(runs, first):
+    for i, ((name, grid, e_r, ok_r, u, m, h, seed), a) in enumerate(zip(runs, first)):
         n_y, rows = e_r.shape[1], slice(a, a + e_r.shape[1])
         n_u = 0 if u is None else u.shape[1]
         q = q_all[rows]
-        perm_r = np.full((n_y, int(permutations) + 1, h), np.nan)
+        if shuffled_rows is None:
+            perm_r = np.full((n_y, int(permutations) + 1, h), np.nan)
+        else:
+            perm_r = shuffled_rows[i]
         jobs = [
             _Shuffled(
                 g[a + j, : grid.n_slots],
@@ -1059,30 +1091,44 @@ def analyse_many(
             h = int(max(1, min(TEST_LAG, shortest // 5))) if h is None else h
         m, h = int(m), int(min(h, m))
         pending.append([(*r, m, h, (seed, i)) for i, r in enumerate(runs)])
-    done_runs = iter(_pending_runs([spec for specs in pending for spec in specs], permutations))
+    done_runs, shuffled = _pending_runs([spec for specs in pending for spec in specs], permutations)
+    done_runs = iter(done_runs)
     pending = [[next(done_runs) for _ in specs] for specs in pending]
     _permuted_autocorrelation(
         [j for parts in pending for _, jobs in parts for j in jobs], permutations
     )
-    pooled = [_pooled([run for run, _ in parts]) for parts in pending]
+    runs = [run for parts in pending for run, _ in parts]
+    p_runs = _run_p_values(runs, shuffled)  # before the pooling clears their NaN in place
+    if shuffled is None:
+        pooled = [_pooled([run for run, _ in parts]) for parts in pending]
+    else:  # each fit's runs: consecutive rows of `shuffled`, pooled without a copy
+        np.nan_to_num(shuffled, copy=False)
+        ends = np.cumsum([len(parts) for parts in pending])
+        pooled = [
+            _pooled([run for run, _ in parts], shuffled[end - len(parts) : end])
+            for parts, end in zip(pending, ends)
+        ]
     p = _p_values_of([(perm, v[:, 1 : h + 1], h) for perm, _, v, h in pooled])
-    done = iter(_finished([run for parts in pending for run, _ in parts]))
+    done = iter(_finished(runs, p_runs))
     return [
         _analysis(tuple(next(done) for _ in parts), auto, null_var, output_names, pj)
         for parts, (_, auto, null_var, _), pj in zip(pending, pooled, p)
     ]
 
 
-def _pooled(per_run) -> tuple:
+def _pooled(per_run, shuffled=None) -> tuple:
     """(pooled shuffled r(1..h) (n_y, B + 1, h), pooled autocorrelation (n_y, M + 1), pooled
     null variances (n_y, M + 1), h): each output's runs pooled with their pair counts as
     weights (a run where r(k) is undefined left out), the shuffles the same way as the
-    observed autocorrelation (every output of every run in one stacked pass)."""
+    observed autocorrelation (every output of every run in one stacked pass). `shuffled`:
+    the runs' shuffled r(1..h) stacked already, NaN set to 0 (None: stacked here)."""
     h = per_run[0].test_lag
     ra = np.stack([r.autocorrelation for r in per_run])  # (R, n_y, M + 1)
     w = np.where(np.isfinite(ra), np.stack([r.pairs for r in per_run]), 0.0)
     vv = np.nan_to_num(np.stack([r.null_var for r in per_run]), copy=False)
-    rk = np.nan_to_num(np.stack([r.permuted_autocorrelation for r in per_run]), copy=False)
+    rk = shuffled
+    if rk is None:
+        rk = np.nan_to_num(np.stack([r.permuted_autocorrelation for r in per_run]), copy=False)
     tot = w.sum(axis=0)  # (n_y, M + 1)
     with np.errstate(invalid="ignore", divide="ignore"):
         auto = np.where(tot > 0, (w * np.nan_to_num(ra)).sum(axis=0) / tot, np.nan)

@@ -6,6 +6,7 @@ Commands import this module; it imports no command module (no cli -> cli circle)
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import sys
 import time
@@ -137,9 +138,8 @@ def fit_experiment_dir(
     index = None if candidate is None else candidate_index(experiment_dir, candidate)
     fs = load_experiment_set(experiment_dir, candidate=index)
     check_problem_size(fs)
-    if figure_format is None:
-        return _fit_and_write(fs, out, say, force, candidate, figure_format)
-    with drawing_process():  # its start overlaps the fit; it shares the drawing
+    # a drawing process's start overlaps the fit; it shares the drawing (none: no figures)
+    with drawing_process() if figure_format else contextlib.nullcontext():
         return _fit_and_write(fs, out, say, force, candidate, figure_format)
 
 

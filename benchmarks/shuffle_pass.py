@@ -57,7 +57,7 @@ def synthetic_jobs(n_runs: int, shuffles: int, seed: int = 0) -> list:
         t = t[rng.random(t.size) > 0.05]
         e = rng.standard_normal((t.size, 1))
         specs.append((f"r{j % 6}", t, e, np.ones_like(e, bool), None, 25, LAGS, (0, j % 6)))
-    return [job for _, jobs in R._pending_runs(specs, shuffles) for job in jobs]
+    return [job for _, jobs in R._pending_runs(specs, shuffles)[0] for job in jobs]
 
 
 def main(argv=None):

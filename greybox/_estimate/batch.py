@@ -62,7 +62,7 @@ from greybox._model.device import check_method
 from greybox._model.freeparams import FreeParameter
 from greybox._model.parameters import get_value
 from greybox._platform import default_device, map_over_items, on_accelerator
-from greybox._simulate.schedules import stacked_schedules
+from greybox._simulate.schedules import schedule_runs, stacked_schedules
 from greybox._simulate.simulate import require_x64
 
 MAX_CHUNK = 64  # solves per compiled call on a CPU (one after another there, `map_over_items`):
@@ -304,9 +304,9 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
         f = tuple(d.free) if d.free is not None else free
         m = _check(d, f, method)
         f = tuple(p.with_scale_from(v) for p, v in zip(f, _fit._start_values(f, d.model)))
-        offsets, _ = d.model.readout.quadrature()
-        runs = [(e.inputs, e.t_s, e.t_start_s, offsets, d.model.n_inputs) for e in d.experiments]
-        families.setdefault((d.model.n_inputs, np.size(offsets)), []).append(len(checked))
+        runs = schedule_runs(d.model, d.experiments)
+        _, _, _, offsets, n_u = runs[0]
+        families.setdefault((n_u, np.size(offsets)), []).append(len(checked))
         checked.append((d, f, m, runs))
     padded = [None] * len(checked)
     for members in families.values():

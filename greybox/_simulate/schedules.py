@@ -39,16 +39,25 @@ def schedule_for(model, inputs, t_s, *, t_start_s: float = 0.0) -> dict:
 
 def schedules_for(model, experiments, *, on_device: bool = True) -> dict:
     """`model_schedules` of experiments (anything with `inputs`, `t_s`, `t_start_s`)."""
-    runs = [(e.inputs, e.t_s, e.t_start_s) for e in experiments]
-    return model_schedules(model, runs, on_device=on_device)
+    return stacked_schedules(schedule_runs(model, experiments), on_device=on_device)
 
 
 def model_schedules(model, runs, *, on_device: bool = True) -> dict:
-    """`stacked_schedules` of runs ((inputs, t_s, t_start_s) each) of `model`: its readout's
-    quadrature and input channels."""
+    """`stacked_schedules` of runs ((inputs, t_s, t_start_s) each) of `model`."""
+    return stacked_schedules(_of_model(model, runs), on_device=on_device)
+
+
+def schedule_runs(model, experiments) -> list:
+    """The runs of experiments of `model` as `stacked_schedules` takes them (for a caller that
+    stacks the runs of many models at once)."""
+    return _of_model(model, [(e.inputs, e.t_s, e.t_start_s) for e in experiments])
+
+
+def _of_model(model, runs) -> list:
+    """Runs ((inputs, t_s, t_start_s) each) with `model`'s readout quadrature and input
+    channels."""
     offsets, _ = model.readout.quadrature()
-    n_u = model.n_inputs
-    return stacked_schedules([(*r, offsets, n_u) for r in runs], on_device=on_device)
+    return [(*r, offsets, model.n_inputs) for r in runs]
 
 
 def stacked_schedules(runs, *, on_device: bool = True) -> dict:

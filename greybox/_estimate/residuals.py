@@ -585,16 +585,21 @@ def _sum_last(x: np.ndarray) -> np.ndarray:
     return total
 
 
+def _rows_in_cache(shape) -> int:
+    """How many arrays of `shape` one `_p_values` call takes: about LAG_BLOCK elements, so
+    its temporaries stay in cache (one stack of 3,072 runs was 150 MB per temporary)."""
+    return max(1, LAG_BLOCK // max(int(np.prod(shape)), 1))
+
+
 def _p_values_of(items) -> list:
     """`_p_values` of each (perm_r, null_var, dof) of `items`, those of one shape stacked (all
-    the runs of a batch of devices) in chunks of about LAG_BLOCK elements (one stack of 3,072
-    runs was 150 MB per temporary)."""
+    the runs of a batch of devices) in chunks (`_rows_in_cache`)."""
     out: list = [None] * len(items)
     groups: dict = {}
     for i, (r, v, dof) in enumerate(items):
         groups.setdefault((r.shape, v.shape, dof), []).append(i)
     for (shape, _, dof), idx in groups.items():
-        step = max(1, LAG_BLOCK // max(int(np.prod(shape)), 1))  # stacks that stay in cache
+        step = _rows_in_cache(shape)
         for c in range(0, len(idx), step):
             part = idx[c : c + step]
             r = np.stack([items[i][0] for i in part])
@@ -643,7 +648,7 @@ def _run_p_values(runs, shuffled) -> list:
         )
     h = runs[0].test_lag
     v = np.stack([r.null_var[:, 1 : h + 1] for r in runs])
-    step = max(1, LAG_BLOCK // max(int(np.prod(shuffled.shape[1:])), 1))  # stays in cache
+    step = _rows_in_cache(shuffled.shape[1:])
     return [
         p
         for c in range(0, len(runs), step)
@@ -1099,15 +1104,16 @@ def analyse_many(
     )
     runs = [run for parts in pending for run, _ in parts]
     p_runs = _run_p_values(runs, shuffled)  # before the pooling clears their NaN in place
-    if shuffled is None:
-        pooled = [_pooled([run for run, _ in parts]) for parts in pending]
-    else:  # each fit's runs: consecutive rows of `shuffled`, pooled without a copy
+    if shuffled is not None:  # each fit's runs: consecutive rows, pooled without a copy
         np.nan_to_num(shuffled, copy=False)
-        ends = np.cumsum([len(parts) for parts in pending])
-        pooled = [
-            _pooled([run for run, _ in parts], shuffled[end - len(parts) : end])
-            for parts, end in zip(pending, ends)
-        ]
+    ends = np.cumsum([len(parts) for parts in pending])
+    pooled = [
+        _pooled(
+            [run for run, _ in parts],
+            None if shuffled is None else shuffled[end - len(parts) : end],
+        )
+        for parts, end in zip(pending, ends)
+    ]
     p = _p_values_of([(perm, v[:, 1 : h + 1], h) for perm, _, v, h in pooled])
     done = iter(_finished(runs, p_runs))
     return [

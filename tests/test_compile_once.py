@@ -3,9 +3,12 @@
 A parameter's starting value (`FreeParameter.initial`, e.g. per-run camera offsets started at
 each device's rest reading) is read on the host only, to build the raw start vector; it takes
 no part in a problem's identity, so a second device with other starting values must compile
-nothing for its solve. Truth: JAX's own record of backend compilations during the second fit,
-and the second fit's estimates against a fit of that device alone.
+nothing for its solve. Its bounds, scale and prior are inputs of the compiled solver, so
+they take no part either. Truth: JAX's own record of backend compilations during the second
+fit, and what the new numbers must do to the second fit's estimates.
 """
+
+import dataclasses
 
 import pytest
 
@@ -64,3 +67,49 @@ def test_a_new_structure_traces_its_simulation_once_and_its_derivative_once(monk
     res = greybox.fit(d.model, d.experiments, d.free, loss="huber", huber_c=1.2345)
     assert res.converged
     assert len(traced) == 2
+
+
+def _with(free, path, **change):
+    return [dataclasses.replace(p, **change) if p.path == path else p for p in free]
+
+
+def test_other_bounds_scales_and_priors_compile_no_solver(compiles):
+    """A parameter's bounds, its scale (derived from each device's own start when not given)
+    and its prior's numbers are inputs of the compiled solver, not part of its identity: a
+    device that differs from the last only in them compiles nothing. Truth that the new
+    numbers are the ones used (not those the solver was compiled with): an upper bound below
+    the device's true tau (45 ms) caps the estimate at that bound, and a prior with a 0.1 %
+    log-sd holds the absorptance at its median, 0.5 (the data say ~0.6)."""
+    first, second = two_run_chevron(4), two_run_chevron(5)
+    base = _with(first.free, "camera.offset_m", scale=None)  # scale from each device's start
+    base = _with(base, "absorptance", prior_median=0.6, prior_log_sd=0.5)
+    greybox.fit(first.model, first.experiments, base)
+    before = len(compiles)
+    free = _with(second.free, "camera.offset_m", scale=None)
+    free = _with(free, "thermal.tau_s", upper=0.03, initial=0.02)
+    free = _with(free, "absorptance", prior_median=0.5, prior_log_sd=1e-3)
+    res = greybox.fit(second.model, second.experiments, free)
+    assert [n for n in compiles[before:] if "_solve" in n] == []
+    tau, absorptance = res.estimate("thermal.tau_s"), res.estimate("absorptance")
+    assert tau.verdict == "at bound" and tau.bound == "upper"
+    assert 0.0299 < tau.value <= 0.03
+    assert absorptance.value == pytest.approx(0.5, rel=3e-3)
+    scales = [p.scale for p in res.free if p.path == "camera.offset_m"]
+    assert scales and scales != [q.scale for q in first.free if q.path == "camera.offset_m"]
+
+
+def test_a_batch_of_other_bounds_is_one_structure():
+    """`fit_batch` groups devices by structure: devices whose free parameters differ only
+    in their numbers (here tau's upper bound and the offsets' derived scales) are one group,
+    one compiled solver, and each device is fitted with its own numbers (truth: the capped
+    device ends at its bound, 30 ms; the other recovers tau = 45 ms within 3 sd)."""
+    a, b = two_run_chevron(6), two_run_chevron(7)
+    a = dataclasses.replace(a, free=tuple(_with(a.free, "camera.offset_m", scale=None)))
+    capped = _with(b.free, "thermal.tau_s", upper=0.03, initial=0.02)
+    b = dataclasses.replace(b, free=tuple(_with(capped, "camera.offset_m", scale=None)))
+    batch = greybox.fit_batch([a, b], a.free)  # each device's own `free` overrides it
+    assert batch.groups == 1
+    tau_a = batch.results[a.name].estimate("thermal.tau_s")
+    tau_b = batch.results[b.name].estimate("thermal.tau_s")
+    assert abs(tau_a.value - 0.045) < 3 * tau_a.se
+    assert tau_b.verdict == "at bound" and 0.0299 < tau_b.value <= 0.03

@@ -45,6 +45,7 @@ from greybox._model.freeparams import (
     STALL_WINDOW,
     FreeParameter,
     apply_raw,
+    as_leaves,
     levenberg_marquardt,
     pinned_fn,
 )
@@ -367,8 +368,11 @@ def _unpickle_fit_result(state: dict) -> FitResult:
 class _Problem(eqx.Module):
     """Residual function over the raw parameter vector (shared first, then per experiment).
 
-    A PyTree: data arrays and the model are leaves, the parameter specs and settings are
-    static, so one compiled solver serves every data set of the same shapes.
+    A PyTree: data arrays, the model and the free parameters' numbers (bounds, scales,
+    priors: `as_leaves`) are leaves; the settings' paths, the free parameters' structure and
+    the solver options are static, so one compiled solver serves every data set of the same
+    shapes and every device of the same structure, whatever its starts, bounds, scales and
+    priors.
     """
 
     model: object
@@ -377,9 +381,9 @@ class _Problem(eqx.Module):
     w: jnp.ndarray
     noise: jnp.ndarray  # (E, N, n_y) known per-frame noise sd (ones when not known)
     settings: jnp.ndarray  # (E, K) known per-run values for `setting_paths`
+    shared: tuple  # FreeParameters with array numbers (`as_leaves`)
+    per_exp: tuple
     setting_paths: tuple = eqx.field(static=True)
-    shared: tuple = eqx.field(static=True)
-    per_exp: tuple = eqx.field(static=True)
     n_exp: int = eqx.field(static=True)
     method: str = eqx.field(static=True)
     loss: str = eqx.field(static=True)
@@ -412,16 +416,17 @@ class _Problem(eqx.Module):
             if e.sigma is not None:
                 noise[i, : e.n_frames] = np.where(e.mask, e.sigma, 1.0)
         setting_paths, settings = _problem.settings_matrix(model, experiments, free)
-        problem = _Problem(
-            model=as_arrays(model, on_device=False),
-            sched=sched,
-            y=y,
-            w=w,
-            noise=noise,
-            settings=np.asarray(settings),
+        data = (as_arrays(model, on_device=False), sched, y, w, noise, np.asarray(settings))
+        if on_device:  # one transfer, not one per leaf; the parameters' numbers stay on the
+            # host, where the reports read them (a solve takes them as inputs)
+            arrays, rest = eqx.partition(data, eqx.is_array)
+            data = eqx.combine(jax.device_put(arrays), rest)
+        shared, per_exp = _problem.split(free)
+        return _Problem(
+            *data,
+            shared=as_leaves(shared),
+            per_exp=as_leaves(per_exp),
             setting_paths=setting_paths,
-            shared=_problem.split(free)[0],
-            per_exp=_problem.split(free)[1],
             n_exp=n_exp,
             method=method,
             loss=loss,
@@ -433,10 +438,6 @@ class _Problem(eqx.Module):
                 ("max_steps", int(max_steps)),
             ),
         )
-        if not on_device:
-            return problem
-        arrays, rest = eqx.partition(problem, eqx.is_array)  # one transfer, not one per leaf
-        return eqx.combine(jax.device_put(arrays), rest)
 
     @property
     def n_data(self) -> int:
@@ -1486,7 +1487,7 @@ def parameter_estimates(
             se = deriv * sd_head[k]
             ci = (min(lo, hi), max(lo, hi))
             verdict = interval_verdict(verdict, ci)  # > WEAK_FACTOR wide: weakly identified
-        prior = (p.prior_median, p.prior_log_sd) if p.has_prior else None
+        prior = (float(p.prior_median), float(p.prior_log_sd)) if p.has_prior else None
         label = labels[k] if labels is not None else p.path
         owner = owners[k] if owners is not None else None
         out.append(

@@ -55,7 +55,7 @@ from greybox._estimate.identifiability import analyse
 from greybox._estimate.metrics import fit_percent
 from greybox._estimate.noise_models import DIFFUSE_SD, ProcessNoise
 from greybox._estimate.starts import run_starts
-from greybox._model.freeparams import apply_raw
+from greybox._model.freeparams import apply_raw, as_leaves
 from greybox._simulate.simulate import as_arrays, require_x64
 from greybox.stochastic._kalman import FilterGrid
 from greybox.stochastic._sde_device import (
@@ -135,9 +135,9 @@ class _Objective(eqx.Module):
     t0: jnp.ndarray  # (E,)
     y: jnp.ndarray  # (E, N, q), NaN past a run's own frames
     settings: jnp.ndarray  # (E, K)
+    shared: tuple  # FreeParameters with array numbers (`as_leaves`): inputs, not structure
+    per_exp: tuple
     setting_paths: tuple = eqx.field(static=True)
-    shared: tuple = eqx.field(static=True)
-    per_exp: tuple = eqx.field(static=True)
     n_exp: int = eqx.field(static=True)
 
     @property
@@ -549,8 +549,8 @@ def _build(model, experiments, free, pad: bool = False):
         y=jnp.asarray(y),
         settings=jnp.asarray(settings),
         setting_paths=setting_paths,
-        shared=shared,
-        per_exp=per_exp,
+        shared=as_leaves(shared),
+        per_exp=as_leaves(per_exp),
         n_exp=len(experiments),
     )
 

@@ -27,7 +27,7 @@ import numpy as np
 
 from greybox._compile import jit
 from greybox._estimate.fit import ParameterEstimate, correlation, parameter_estimates
-from greybox._model.freeparams import FreeParameter, apply_raw, levenberg_marquardt
+from greybox._model.freeparams import FreeParameter, apply_raw, as_leaves, levenberg_marquardt
 from greybox._estimate.identifiability import IdentifiabilityReport, analyse
 from greybox._estimate.metrics import r_squared, rmse
 from greybox._model.parameters import get_value
@@ -41,8 +41,8 @@ class _TableProblem(eqx.Module):
     x: object
     y: jnp.ndarray
     w: jnp.ndarray
+    shared: tuple  # FreeParameters with array numbers (`as_leaves`): inputs, not structure
     predict: Callable = eqx.field(static=True)
-    shared: tuple = eqx.field(static=True)
 
     def model_at(self, raw):
         return apply_raw(self.model, self.shared, raw)
@@ -158,12 +158,12 @@ def fit_table(
         raw0.append(float(p.to_raw(v)))
     raw0 = jnp.asarray(raw0)
     problem = _TableProblem(
-        as_arrays(model),
-        jax.tree.map(jnp.asarray, x),
-        jnp.asarray(y),
-        jnp.asarray(w),
-        predict,
-        free,
+        model=as_arrays(model),
+        x=jax.tree.map(jnp.asarray, x),
+        y=jnp.asarray(y),
+        w=jnp.asarray(w),
+        shared=as_leaves(free),
+        predict=predict,
     )
     has_priors = any(p.has_prior for p in free)
     estimate = sigma is None

@@ -38,11 +38,12 @@ AT_BOUND_FRACTION = 1e-3  # distance to a bound, as a fraction of the range, tha
 LOG_SCALED_RATIO = 100.0  # bounds spanning this ratio or more: "at bound" judged in log space
 
 
-def _xp(x):
-    """jax.numpy for JAX arrays and tracers, numpy for host numbers: the transforms below run
-    inside compiled solvers and, per device and parameter, on the host (reports of a batch),
+def _xp(*xs):
+    """jax.numpy where any of `xs` is a JAX array or tracer, numpy for host numbers: the
+    transforms below run inside compiled solvers (where a parameter's bounds, scale and prior
+    are traced inputs too) and, per device and parameter, on the host (reports of a batch),
     where an eager JAX call costs ~0.1 ms of dispatch for a scalar."""
-    return jnp if isinstance(x, jax.Array) else np
+    return jnp if any(isinstance(x, jax.Array) for x in xs) else np
 
 
 class StartOutsideBounds(ValueError):
@@ -57,10 +58,12 @@ class FreeParameter:
     - `per_experiment`: one value per experiment instead of one shared value.
     - `prior_median`, `prior_log_sd`: Gaussian prior on log(value) (needs a positive value).
     - `initial`: starting value (default: the model's current value). Not part of the
-      parameter's identity (equality, hash): two parameters that differ only in where they
-      start share one compiled solver.
+      parameter's identity (equality, hash).
     - `scale`: typical magnitude [unit], used only by unbounded ("linear") parameters; None
       derives it from the starting value when fitting (see the module docstring).
+
+    A JAX pytree: the numbers (bounds, scale, prior) are its leaves, so two parameters that
+    differ only in them, or in where they start, share one compiled solver (`as_leaves`).
     """
 
     path: str
@@ -91,6 +94,7 @@ class FreeParameter:
             raise ValueError(f"{self.path}: an upper bound needs a lower bound too")
         if self.scale is not None and not self.scale > 0:
             raise ValueError(f"{self.path}: scale must be > 0 (or None to derive it)")
+        object.__setattr__(self, "_log_scaled", self._spans_decades())
 
     @property
     def transform(self) -> str:
@@ -103,8 +107,13 @@ class FreeParameter:
     @property
     def log_scaled(self) -> bool:
         """Bounds that span decades (lower > 0, upper / lower >= `LOG_SCALED_RATIO`): the
-        parameter's scale is logarithmic, and "at bound" is judged in log space."""
-        return (
+        parameter's scale is logarithmic, and "at bound" is judged in log space. Decided
+        once, from the numbers the parameter was made with: it chooses a branch of the
+        compiled solver, so it is part of the parameter's structure (`as_leaves`)."""
+        return self._log_scaled
+
+    def _spans_decades(self) -> bool:
+        return bool(
             self.transform == "logit"
             and self.lower > 0
             and self.upper / self.lower >= LOG_SCALED_RATIO
@@ -117,7 +126,7 @@ class FreeParameter:
     @property
     def step(self) -> float:
         """The linear transform's scale (1 while `scale` is None and not yet derived)."""
-        return 1.0 if self.scale is None else float(self.scale)
+        return 1.0 if self.scale is None else self.scale * 1.0  # a traced scale stays traced
 
     def with_scale_from(self, start: float) -> FreeParameter:
         """This parameter with `scale` derived from the starting value `start` when it is None
@@ -132,11 +141,11 @@ class FreeParameter:
         `raw_start`: where the fit started, for a lower bound only). jit-safe: the one
         definition of "at bound", read on the host by `bound_hit` and inside the optimiser's
         stall test (`levenberg_marquardt`)."""
-        xp = _xp(raw)
+        xp = _xp(raw, self.lower, self.upper)
         raw = xp.asarray(raw, dtype=float)
         if self.log_scaled:
             # judged where the parameter lives: the fraction of the log range from a bound
-            lo, hi = np.log(self.lower), np.log(self.upper)
+            lo, hi = xp.log(self.lower), xp.log(self.upper)
             frac = (xp.log(xp.maximum(self.to_value(raw), self.lower)) - lo) / (hi - lo)
             upper = xp.where(frac > 1.0 - AT_BOUND_FRACTION, 1, 0)
             return xp.where(frac < AT_BOUND_FRACTION, -1, upper)
@@ -169,7 +178,7 @@ class FreeParameter:
             )
 
     def to_raw(self, value):
-        xp = _xp(value)
+        xp = _xp(value, self.lower, self.upper, self.scale)
         v = xp.asarray(value, dtype=float)
         with np.errstate(divide="ignore", invalid="ignore"):  # NaN/inf as JAX gives them
             if self.transform == "logit":
@@ -180,7 +189,7 @@ class FreeParameter:
             return v / self.step
 
     def to_value(self, raw):
-        xp = _xp(raw)
+        xp = _xp(raw, self.lower, self.upper, self.scale)
         if self.transform == "logit":
             sigmoid = jax.nn.sigmoid if xp is jnp else expit
             return self.lower + (self.upper - self.lower) * sigmoid(raw)
@@ -208,7 +217,57 @@ class FreeParameter:
         }[self.transform]
 
     def prior_residual(self, value):
-        return (jnp.log(value) - np.log(self.prior_median)) / self.prior_log_sd
+        median = _xp(self.prior_median).log(self.prior_median)
+        return (jnp.log(value) - median) / self.prior_log_sd
+
+
+class _Unkeyed:
+    """A value carried in a pytree's static part that takes no part in its identity (every
+    `_Unkeyed` equals every other): a parameter's starting value, read on the host only."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value):
+        self.value = value
+
+    def __eq__(self, other):
+        return isinstance(other, _Unkeyed)
+
+    def __hash__(self):
+        return 0
+
+
+_NUMBERS = ("lower", "upper", "prior_median", "prior_log_sd", "scale")
+
+
+def _flatten(p: FreeParameter):
+    # the numbers are leaves (None where absent: a bound, scale or prior that is not there is
+    # structure); path, unit, sharing and the log-scale flag are the parameter's identity
+    aux = (p.path, p.unit, p.per_experiment, p.log_scaled, _Unkeyed(p.initial))
+    return tuple(getattr(p, k) for k in _NUMBERS), aux
+
+
+def _unflatten(aux, numbers) -> FreeParameter:
+    # no __init__: the leaves may be tracers or JAX's placeholders, which the checks of a
+    # parameter made by hand cannot judge (they were checked when it was made)
+    p = object.__new__(FreeParameter)
+    path, unit, per_experiment, log_scaled, initial = aux
+    fields = dict(zip(_NUMBERS, numbers), path=path, unit=unit, per_experiment=per_experiment)
+    for k, v in (*fields.items(), ("initial", initial.value), ("_log_scaled", log_scaled)):
+        object.__setattr__(p, k, v)
+    return p
+
+
+jax.tree_util.register_pytree_node(FreeParameter, _flatten, _unflatten)
+
+
+def as_leaves(params) -> tuple:
+    """`params` with their numbers (bounds, scale, prior) as float64 numpy arrays: inputs of a
+    compiled solver, not part of its identity, so a device whose bounds, derived scale or
+    prior differ from the last one's reuses its compiled solver (issue 24, item 1). Only the
+    structure is: which numbers are there, whether the bounds span decades, path, unit and
+    sharing. On the host the arrays act as the numbers did."""
+    return tuple(jax.tree.map(lambda x: np.asarray(x, dtype=float), p) for p in params)
 
 
 def pinned_fn(params, raw_start):

@@ -65,7 +65,7 @@ import numpy as np
 
 from greybox._compile import jax_jit, jit
 from greybox._model.device import check_method, with_camera
-from greybox._model.freeparams import FreeParameter
+from greybox._model.freeparams import FreeParameter, as_leaves
 from greybox._estimate.identifiability import TINY, WEAK_SD
 from greybox._model.parameters import get_value, set_values
 from greybox._estimate.prediction import Band, prediction_band, raw_draws
@@ -391,6 +391,8 @@ def run_information(problem: DesignProblem, waveforms, t_s, *, chunk: int = 64) 
     points = problem.draws if problem.draws.shape[0] else problem.raw_shared[None]
     if _stochastic(problem.model):
         return _process_information(problem, points, waveforms, t_list)
+    # the parameters' numbers as inputs: a design of other bounds compiles nothing new
+    shared, per_run = as_leaves(problem.shared), as_leaves(problem.per_run)
     out = []
     for start in range(0, len(waveforms), chunk):
         sched, weight = _schedules(
@@ -402,8 +404,8 @@ def run_information(problem: DesignProblem, waveforms, t_s, *, chunk: int = 64) 
                     np.asarray(
                         _batch_information(
                             problem.model,
-                            problem.shared,
-                            problem.per_run,
+                            shared,
+                            per_run,
                             jnp.asarray(r),
                             jnp.asarray(problem.raw_per),
                             sched,

@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from greybox._model.waveforms import PiecewiseConstant
-from greybox._simulate.schedules import _bucket, stacked_schedules
+from greybox._simulate.schedules import bucket_length, stacked_schedules
 
 
 def reference_run(inputs, t, offsets, t_start_s):
@@ -41,10 +41,10 @@ def reference_run(inputs, t, offsets, t_start_s):
 def reference(runs, offsets):
     s = [reference_run(w, t, offsets, t0) for w, t, t0 in runs]
     q, r = offsets.size, len(s)
-    n_frames = _bucket(max(x["t_s"].size for x in s))
-    n_int = _bucket(max(x["dt"].size for x in s))
-    n_breaks = _bucket(max(x["breaks"].size for x in s))
-    n_jumps = _bucket(max(x["jump_ts"].size for x in s))
+    n_frames = bucket_length(max(x["t_s"].size for x in s))
+    n_int = bucket_length(max(x["dt"].size for x in s))
+    n_breaks = bucket_length(max(x["breaks"].size for x in s))
+    n_jumps = bucket_length(max(x["jump_ts"].size for x in s))
     n_u = s[0]["levels"].shape[1]
     out = {
         "t_s": np.empty((r, n_frames)),

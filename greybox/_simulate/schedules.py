@@ -10,7 +10,7 @@ back to frame order), the input's breakpoints and levels and its jump times.
 Every run of a call is built in the same few numpy calls: the sorts row by row of (runs,
 longest) arrays padded with +inf, the rest over the runs' values concatenated, so a batch of
 512 six-run devices does not pay a dozen small calls a run. The result is padded for
-`jax.vmap` (`_bucket` rounds each length up, so similar data share one compilation; the
+`jax.vmap` (`bucket_length` rounds each length up, so similar data share one compilation; the
 padding is inert: zero-length intervals, the last instant repeated, breakpoints and jump times
 past the end). tests/test_schedules.py checks it against a per-run reference implementation.
 """
@@ -23,7 +23,7 @@ import numpy as np
 from greybox._model.data import check_times
 
 
-def _bucket(n: int) -> int:
+def bucket_length(n: int) -> int:
     """Round a length up so similar data share one compilation: to a power of two up to 256,
     then to a multiple of 256 (padding costs scan steps, so large records are padded less)."""
     n = max(int(n), 1)
@@ -195,8 +195,8 @@ def _stacked(t, breaks, levels, offsets, t_start_s) -> dict:
 
     # padded for vmap: frames and instants repeat their run's last, intervals are empty,
     # breakpoints and jump times lie past the run's end (`last`, its latest instant)
-    n_frames, n_int = _bucket(n_f.max()), _bucket(n_lmax)
-    n_breaks, n_jumps = _bucket(n_bmax), _bucket(n_emax)
+    n_frames, n_int = bucket_length(n_f.max()), bucket_length(n_lmax)
+    n_breaks, n_jumps = bucket_length(n_bmax), bucket_length(n_emax)
     t_all = np.concatenate(t)
 
     def past(width, sizes):  # t_end + 1, t_end + 2, ... after each run's own entries

@@ -7,6 +7,8 @@ estimates and log-likelihoods of the batch and of `fit` agree to ~1e-13 relative
 26 s CPU (most of it compiling the vmapped and the single solver).
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -91,3 +93,20 @@ def test_a_device_with_a_vanished_intensity_is_assembled_last_and_as_fit_alone(d
 def test_batch_refuses_a_sigma_with_process_noise(devices):
     with pytest.raises(ValueError, match="sigma"):
         greybox.fit_batch(devices[:1], od.FREE, noise=NOISE, sigma=0.1)
+
+
+def test_a_device_with_its_own_bound_rides_in_the_same_group(devices, batch):
+    """A device whose free parameters differ only in their numbers is in the batch's one
+    group (the bounds are inputs of the compiled filter's solver, not its structure), and it
+    is fitted with its own: a lower bound on Ci above d0's truth (2.0e6 J/K) holds its
+    estimate at that bound; the other devices' results are the batch's without it."""
+    bound = 2.4e6
+    own = tuple(dataclasses.replace(p, lower=bound) if p.path == "Ci" else p for p in od.FREE)
+    mixed = [dataclasses.replace(devices[0], free=own), *devices[1:]]
+    again = greybox.fit_batch(mixed, od.FREE, noise=NOISE, n_starts=2)
+    assert again.groups == 1
+    ci = again[devices[0].name].estimate("Ci")
+    assert bound < ci.value < 1.01 * bound
+    for d in devices[1:]:
+        log_l = batch[d.name].log_likelihood
+        assert again[d.name].log_likelihood == pytest.approx(log_l, rel=1e-10)

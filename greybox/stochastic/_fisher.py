@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from greybox._compile import jit
-from greybox._model.freeparams import apply_raw
+from greybox._model.freeparams import apply_raw, as_leaves
 from greybox.stochastic._kalman import FilterGrid, discretise_steps
 from greybox.stochastic._sde_device import StochasticDevice, _readout_terms
 
@@ -112,7 +112,7 @@ def expected_information(model: StochasticDevice, free, raw, inputs, t_s, *, t_s
 
     e = unread_run(model, inputs, t_s, t_start_s)
     out = _information(
-        as_arrays(model), tuple(free), jnp.asarray(raw, dtype=float), _grid(e),
+        as_arrays(model), as_leaves(free), jnp.asarray(raw, dtype=float), _grid(e),
         jnp.asarray(e.t_s), _t0(e),
     )
     return np.asarray(out)

@@ -54,7 +54,7 @@ import numpy as np
 from greybox._compile import jit
 from greybox._model.data import Experiment
 from greybox._model.device import AbstractLinearDevice, AbstractODEDevice
-from greybox._model.freeparams import FreeParameter, apply_raw
+from greybox._model.freeparams import FreeParameter, apply_raw, as_leaves
 from greybox._simulate.schedules import bucket_length
 from greybox._simulate.simulate import as_arrays, require_x64
 from greybox.stochastic._kalman import (
@@ -910,7 +910,7 @@ def draw_paths(
     keys = jax.random.split(jax.random.PRNGKey(int(seed)), draws.shape[0])
     z = _draw_jit(
         as_arrays(model),
-        free,
+        as_leaves(free),  # the numbers as inputs: another fit's scales compile nothing new
         draws,
         _grid(e),
         jnp.asarray(t),

@@ -7,9 +7,13 @@ constant are drawn from a known log-normal population. It measures
 (a) `loop_fits_per_s`: a Python loop of `greybox.fit` over NEW devices of one structure
     (`--loop-sample` of them, default 12: a few fits of ~20 ms each timed together swing
     with any pause of the machine), after a first fit whose time (compile included)
-    is reported apart (`loop_first_fit_s`). Start values, scales and bounds are inputs of
-    the compiled solver, not part of it, so a new device of a known structure costs its solve
-    (issue 24, item 1; this rate was 0.21 fits/s when each new device compiled again);
+    is reported apart (`loop_first_fit_s`). Start values, scales, bounds and priors are
+    inputs of the compiled solver, not part of it, so a new device of a known structure costs
+    its solve (issue 24, item 1; this rate was 0.21 fits/s when each new device compiled
+    again); `own_numbers_fits_per_s`: the same devices again, each with numbers of its own
+    (the per-run offsets' scale left to be derived from the device's own start, tau's upper
+    bound 1.5-2.5 s), which must compile nothing either (2026-11-28, 12 devices: 0.79
+    fits/s when bounds and scales were static fields, a compile per device; 57-58 since);
 (b) `batch_fits_per_min`: `fit_batch` of `--devices` devices (default 512), warm: a first
     call of the same batch compiles (`batch_first_s`, reported apart), the second is timed;
 (c) `solve_share`: the fraction of the warm batch's wall time spent inside compiled code:
@@ -148,6 +152,7 @@ well (1403e38), three alternating runs against 80e954b (loads 1.1-1.4): 7,835, 9
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import inspect
 import json
 import os
@@ -184,6 +189,19 @@ def waveform(power_mw, period_ms):
     return greybox.PulseTrain(
         power_mw * 1e-3, period_ms * 1e-3, duty=0.5, n_pulses=n, delay_s=0.1, tail_s=0.2
     )
+
+
+def _own_numbers(free, i: int) -> tuple:
+    """`free` with numbers of a device's own: no explicit scale on the per-run offsets (each
+    derives it from its own start) and tau's upper bound 1.5-2.5 s."""
+    def own(p):
+        if p.path == "camera.offset_m":
+            return dataclasses.replace(p, scale=None)
+        if p.path == "thermal.tau_s":
+            return dataclasses.replace(p, upper=1.5 + (i % 11) / 10)
+        return p
+
+    return tuple(own(p) for p in free)
 
 
 def synthetic_devices(n, seed=0, population=POPULATION, runs=RUNS, outlier=None):
@@ -415,6 +433,11 @@ def main(argv=None):
     loop_s = time.perf_counter() - t0
     loop_rate = args.loop_sample / loop_s
     say(f"loop: first fit {first_s:.2f} s, then {loop_s / args.loop_sample:.2f} s per new device")
+    t0 = time.perf_counter()
+    for i, d in enumerate(loop_devs[1:]):
+        greybox.fit(d.model, d.experiments, _own_numbers(d.free, i))
+    own_rate = args.loop_sample / (time.perf_counter() - t0)
+    say(f"loop, each device with its own bounds and scales: {own_rate:.1f} fits/s")
 
     # (b, c) the batch: a first call compiles, the second is timed phase by phase
     batch_devs = devices[: args.devices]
@@ -439,6 +462,7 @@ def main(argv=None):
         "runs_per_device": len(runs),
         "frames_per_run": [e.n_frames for e in devices[0].experiments],
         "loop_fits_per_s": round(loop_rate, 4),
+        "own_numbers_fits_per_s": round(own_rate, 4),
         "loop_first_fit_s": round(first_s, 3),
         "loop_sample": args.loop_sample,
         "batch_fits_per_min": round(60.0 * args.devices / batch_s, 1),

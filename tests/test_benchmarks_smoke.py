@@ -54,6 +54,7 @@ KEYS = {
         "batch_fits_per_min",
         "solve_share",
         "backend",
+        "own_numbers_fits_per_s",
         "loop_first_fit_s",
         "result_kb_per_device",
     },

@@ -10,10 +10,12 @@ fit, and what the new numbers must do to the second fit's estimates.
 
 import dataclasses
 
+import numpy as np
 import pytest
 
 import greybox
 from greybox._model.freeparams import FreeParameter
+from greybox.waveforms import PulseTrain
 from tests.helpers import backend_compiles, two_run_chevron
 
 
@@ -113,3 +115,46 @@ def test_a_batch_of_other_bounds_is_one_structure():
     tau_b = batch.results[b.name].estimate("thermal.tau_s")
     assert abs(tau_a.value - 0.045) < 3 * tau_a.se
     assert tau_b.verdict == "at bound" and 0.0299 < tau_b.value <= 0.03
+
+
+def _finite_difference_sd(result, wave, t, h=1e-5):
+    """The delta method's sd of the response to `wave` at `t` from central differences of
+    `greybox.simulate` (no forward-mode derivative) over the shared raw coordinates."""
+    shared = [p for p in result.free if not p.per_experiment]
+    raw = np.asarray(result.raw[: len(shared)], dtype=float)
+    cov = np.asarray(result.posterior.covariance_raw)[: len(shared), : len(shared)]
+
+    def response(r):
+        return np.asarray(greybox.simulate(greybox.parameters.with_shared(result.posterior.model, shared, r), wave, t))
+
+    cols = [
+        (response(raw + h * e) - response(raw - h * e)).reshape(t.size) / (2 * h)
+        for e in np.eye(raw.size)
+    ]
+    g = np.stack(cols, axis=-1)  # (N, P)
+    return np.sqrt(np.einsum("np,pq,nq->n", g, cov, g))
+
+
+def test_bands_of_other_runs_and_devices_compile_nothing(compiles):
+    """A band (`Posterior.band`: the response to a waveform with its delta-method band) is one
+    compiled function per structure: the model's values, the parameters' numbers and the
+    waveform are its inputs. After the first band, the bands of the fit's other run and of
+    another device of the structure compile nothing (they compiled the band's function
+    again at every call: ~0.2-0.3 s each against a 0.02 s fit). Truth that each band is its
+    own device's: the band's sd against central differences of `greybox.simulate`."""
+    first, second = two_run_chevron(8), two_run_chevron(9)
+    fits = [greybox.fit(d.model, d.experiments, d.free) for d in (first, second)]
+    e0 = first.experiments[0]
+    fits[0].posterior.band(e0.inputs, e0.t_s)
+    before = len(compiles)
+    wave = PulseTrain(0.015, 0.25, n_pulses=2, delay_s=0.05, tail_s=0.2)
+    t = np.linspace(0.0, 0.6, 37)
+    bands = [r.posterior.band(wave, t) for r in fits]
+    e1 = first.experiments[1]
+    fits[0].posterior.band(e1.inputs, e1.t_s)
+    assert [n for n in compiles[before:] if "response_and_jacobian" in n] == []
+    for r, b in zip(fits, bands):
+        sd = np.asarray(b.sd_model).reshape(t.size)
+        assert sd.max() > 0
+        np.testing.assert_allclose(sd, _finite_difference_sd(r, wave, t), rtol=1e-4, atol=1e-12)
+    assert not np.allclose(bands[0].sd_model, bands[1].sd_model, rtol=1e-3, atol=0.0)

@@ -28,9 +28,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from greybox._compile import jax_jit
+from greybox._compile import jax_jit, jit
 from greybox._model.device import check_method
-from greybox._model.freeparams import apply_raw
+from greybox._model.freeparams import apply_raw, as_leaves
 from greybox._simulate.schedules import schedule_for
 from greybox._simulate.simulate import as_arrays, observe_schedule, require_x64
 
@@ -188,18 +188,9 @@ def prediction_band(
     t = np.asarray(t_s, dtype=float)
     sched = schedule_for(model, inputs, t, t_start_s=t_start_s)
     row = {k: v[0] for k, v in sched.items()}
-    base = as_arrays(model)
-
-    def observe(r):
-        return observe_schedule(with_shared(base, shared, r), row, method=method)
-
-    @jax_jit
-    def response_and_jacobian(r):
-        z, ok = observe(r)
-        jac = jax.jacfwd(lambda rr: observe(rr)[0])(r) if n_shared else None
-        return z, ok, jac
-
-    z, ok, jac = response_and_jacobian(jnp.asarray(raw[:n_shared]))
+    z, ok, jac = _response_and_jacobian(
+        as_arrays(model), as_leaves(shared), jnp.asarray(raw[:n_shared]), row, method
+    )
     if not bool(ok):
         raise ValueError(
             "simulation failed for this waveform (adaptive solver); check the "
@@ -218,6 +209,23 @@ def prediction_band(
     sd = np.sqrt(total)
     zq = float(jax.scipy.special.ndtri((1.0 + level) / 2.0))
     return Band(t, y, y - zq * sd, y + zq * sd, sd_model, sd, float(level), includes_noise)
+
+
+@jit
+def _response_and_jacobian(base, shared, raw, row, method):
+    """The response to one run's schedule `row` of `base` with the `shared` free parameters at
+    `raw`, its success flag, and d response / d raw (None without shared parameters). One
+    compiled function per structure (model, free paths, method, bucketed schedule shapes):
+    the model's values, the parameters' numbers, the raw vector and the waveform are its
+    inputs, so the bands of every run of a result, of a new waveform or of another device of
+    the structure compile nothing new."""
+
+    def observe(r):
+        return observe_schedule(with_shared(base, shared, r), row, method=method)
+
+    z, ok = observe(raw)
+    jac = jax.jacfwd(lambda r: observe(r)[0])(raw) if len(shared) else None
+    return z, ok, jac
 
 
 def delta_variance(g, cov, nulls=()) -> np.ndarray:

@@ -241,3 +241,52 @@ def test_projection_respects_box_and_average():
         z = D.project_levels(y + rng.normal(0, 0.05, y.shape), 0.0, 1.0, 0.3)
         assert np.all(np.linalg.norm(x - y, axis=1) <= np.linalg.norm(x - z, axis=1) + 1e-9)
     assert float(D.log_criterion(jnp.eye(2) * 4.0, "D")) == pytest.approx(np.log(4.0))
+
+
+def test_multilevel_criterion_of_a_second_device_is_its_own_and_compiles_nothing(
+    chevron, small_constraints, monkeypatch
+):
+    """The multilevel refinement's criterion and gradient are one compiled function per
+    structure (the device's values and the parameters' numbers are its inputs): a second
+    device's design compiles nothing for it, and the criterion it climbs is that device's
+    own. Truth: at the levels it starts from, the criterion equals the log-determinant of
+    the information `run_information` (another compiled path) gives the same runs."""
+    from tests.helpers import backend_compiles
+
+    spec, model, free = chevron
+    c = small_constraints
+    climbed = []
+    adam = D.projected_adam
+
+    def recorded(value_and_grad, x, *args, **kwargs):
+        climbed.append((value_and_grad, np.array(x)))
+        return adam(value_and_grad, x, *args, **kwargs)
+
+    monkeypatch.setattr(D, "projected_adam", recorded)
+    problems = []
+    for absorptance, tau in ((0.6, 0.045), (0.7, 0.03)):
+        m = greybox.parameters.set_values(model, list(INTEREST), [absorptance, tau])
+        problems.append(D.design_problem(m, free, INTEREST, NOISE_M))
+    D.design_experiment(problems[0], c, family="multilevel", n_periods=4, n_iter=2)
+    with backend_compiles() as names:
+        D.design_experiment(problems[1], c, family="multilevel", n_periods=4, n_iter=2)
+    # (the refinement compiled its criterion at every design before; the designed runs'
+    # information, `_batch_information`, compiles where their schedule is of another length)
+    assert [n for n in names if "_batch_information" not in n] == []
+    (value_and_grad, x0) = climbed[-1]
+    value, grad = value_and_grad(x0)
+    assert np.all(np.isfinite(np.asarray(grad)))
+    _, times = D._hold_grid(c, None)
+    waves = [
+        greybox.PiecewiseConstant(
+            np.concatenate([[0.0], times]), np.concatenate([[0.0], row]), c.run_duration_s
+        )
+        for row in x0
+    ]
+    info = D.run_information(problems[1], waves, c.frame_times())[0].sum(axis=0)
+    expected = D.log_criterion(jnp.asarray(info + problems[1].prior_information), "D")
+    assert float(value) == pytest.approx(float(expected), rel=1e-9)
+    other = D.run_information(problems[0], waves, c.frame_times())[0].sum(axis=0)
+    assert float(value) != pytest.approx(
+        float(D.log_criterion(jnp.asarray(other + problems[0].prior_information), "D")), rel=1e-3
+    )

@@ -63,7 +63,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from greybox._compile import jax_jit, jit
+from greybox._compile import jit
 from greybox._model.device import check_method, with_camera
 from greybox._model.freeparams import FreeParameter, as_leaves
 from greybox._estimate.identifiability import TINY, WEAK_SD
@@ -891,6 +891,34 @@ def project_levels(x, lo, hi, mean_max):
     return out
 
 
+@jit
+def _levels_value_and_grad(
+    levels, model, shared, per_run, raw_per, sched, seg_pad, weight, sigma, points, prior,
+    interest, method, kind,
+):  # fmt: skip
+    """(criterion, its gradient) of a multilevel design's hold `levels` (R, K): the runs'
+    marginal information summed with the prior's, averaged over the parameter `points`. One
+    compiled function per structure: the device's values, the parameters' numbers and the
+    points are its inputs, so the design of another device compiles nothing new."""
+    ns = len(shared)
+
+    def objective(lv):
+        u = jnp.concatenate([lv, jnp.zeros((lv.shape[0], 1))], axis=1)[:, seg_pad]
+
+        def at(r):
+            def one(row, uu, w):
+                row = dict(row, u_grid=uu[:, None])
+                jac = _run_jacobian(model, shared, per_run, r, raw_per, row, method)
+                return _marginal(jac, w, sigma, ns)
+
+            f = jax.vmap(one)(sched, u, weight).sum(axis=0) + prior
+            return log_criterion(_interest_info(f, interest), kind)
+
+        return jnp.mean(jax.vmap(at)(points))
+
+    return jax.value_and_grad(objective)(levels)
+
+
 def _design_multilevel(problem, c: LabConstraints, kind, hold_s, n_iter, seed, starts=None):
     h, times = _hold_grid(c, hold_s)
     k = times.size
@@ -909,32 +937,25 @@ def _design_multilevel(problem, c: LabConstraints, kind, hold_s, n_iter, seed, s
     if c.average_power_max_W is not None:
         mean_max = c.average_power_max_W * c.run_duration_s / (k * h)
     points = problem.draws if problem.draws.shape[0] else problem.raw_shared[None]
-    shared, per_run, ns = problem.shared, problem.per_run, len(problem.shared)
-    prior = jnp.asarray(problem.prior_information)
+    fixed = (
+        problem.model,
+        as_leaves(problem.shared),
+        as_leaves(problem.per_run),
+        jnp.asarray(problem.raw_per),
+        sched,
+        jnp.asarray(seg_pad),
+        jnp.asarray(weight),
+        jnp.asarray(problem.sigma),
+        jnp.asarray(points),
+        jnp.asarray(problem.prior_information),
+        tuple(problem.interest),
+        problem.method,
+        kind,
+    )
 
-    def objective(levels):
-        u = jnp.concatenate([levels, jnp.zeros((c.n_runs, 1))], axis=1)[:, jnp.asarray(seg_pad)]
+    def value_and_grad(levels):
+        return _levels_value_and_grad(jnp.asarray(levels), *fixed)
 
-        def at(r):
-            def one(row, uu, w):
-                row = dict(row, u_grid=uu[:, None])
-                jac = _run_jacobian(
-                    problem.model,
-                    shared,
-                    per_run,
-                    r,
-                    jnp.asarray(problem.raw_per),
-                    row,
-                    problem.method,
-                )
-                return _marginal(jac, w, jnp.asarray(problem.sigma), ns)
-
-            f = jax.vmap(one)(sched, u, jnp.asarray(weight)).sum(axis=0) + prior
-            return log_criterion(_interest_info(f, problem.interest), kind)
-
-        return jnp.mean(jax.vmap(at)(jnp.asarray(points)))
-
-    value_and_grad = jax_jit(jax.value_and_grad(objective))
     rng = np.random.default_rng(seed)
     lo, hi = c.power_min_W, c.power_max_W
     if starts is None:  # random binary levels at full power

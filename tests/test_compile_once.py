@@ -158,3 +158,29 @@ def test_bands_of_other_runs_and_devices_compile_nothing(compiles):
         assert sd.max() > 0
         np.testing.assert_allclose(sd, _finite_difference_sd(r, wave, t), rtol=1e-4, atol=1e-12)
     assert not np.allclose(bands[0].sd_model, bands[1].sd_model, rtol=1e-3, atol=0.0)
+
+
+def _tau(model):
+    return model.thermal.tau_s
+
+
+def test_the_same_function_propagated_through_another_fit_compiles_nothing(compiles):
+    """`delta_method` and `propagate` compile once per function object and structure: the
+    same `fn` through another device's fit compiles nothing, and gives that fit's numbers.
+    Truth: the delta method's sd of tau is the fit's own reported standard error (from its
+    covariance and the transform's derivative), and 4,000 draws spread as it says."""
+    from greybox.uncertainty import delta_method, propagate
+
+    fits = [greybox.fit(d.model, d.experiments, d.free) for d in map(two_run_chevron, (10, 11))]
+    args = [(r.model, r.free, r.raw, r.covariance_raw) for r in fits]
+    delta_method(_tau, *args[0])
+    propagate(_tau, *args[0], 4000)
+    before = len(compiles)
+    value, cov = delta_method(_tau, *args[1])
+    draws = propagate(_tau, *args[1], 4000, seed=1)
+    assert compiles[before:] == []
+    est = fits[1].estimate("thermal.tau_s")
+    assert value[0] == pytest.approx(est.value, rel=1e-12)
+    assert np.sqrt(cov[0, 0]) == pytest.approx(est.se, rel=1e-9)
+    assert np.std(draws) == pytest.approx(est.se, rel=0.1)
+    assert fits[0].estimate("thermal.tau_s").value != pytest.approx(est.value, rel=1e-6)

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from greybox._compile import jax_jit, jit
+from greybox._compile import jit
 from greybox._model.device import check_method
 from greybox._model.freeparams import apply_raw, as_leaves
 from greybox._simulate.schedules import schedule_for
@@ -279,11 +279,18 @@ def propagate(fn, model, free, raw, covariance_raw, n: int, *, seed: int = 0) ->
     """Push `n` parameter draws through `fn(model) -> array`: (n, ...) samples of `fn`.
 
     The Monte Carlo counterpart of the delta method: use it for quantities that are not
-    smooth enough (an optimum, a threshold) or when the interval may be asymmetric.
+    smooth enough (an optimum, a threshold) or when the interval may be asymmetric. Keep
+    the same `fn` object across calls (fits of other devices, other draws) to reuse its
+    compiled function; a new `fn` (a lambda written inside a loop) compiles again.
     """
     draws = jnp.asarray(raw_draws(raw, covariance_raw, free, n, seed=seed))
-    base = as_arrays(model)
-    return np.asarray(jax_jit(jax.vmap(lambda r: fn(with_shared(base, free, r))))(draws))
+    return np.asarray(_pushed(fn, as_arrays(model), as_leaves(free), draws))
+
+
+@jit
+def _pushed(fn, base, free, draws):
+    """`fn` of `base` at each row of `draws` (one compiled function per `fn` and structure)."""
+    return jax.vmap(lambda r: fn(with_shared(base, free, r)))(draws)
 
 
 def delta_method(fn, model, free, raw, covariance_raw) -> tuple[np.ndarray, np.ndarray]:
@@ -291,7 +298,8 @@ def delta_method(fn, model, free, raw, covariance_raw) -> tuple[np.ndarray, np.n
 
     `fn(model) -> array` must be differentiable in the parameters (no argmax, bisection or
     thresholds: use `propagate` for those). Its Jacobian J with respect to the shared raw
-    coordinates gives cov = J C J^T. Raises ValueError if C is not finite for them.
+    coordinates gives cov = J C J^T. Raises ValueError if C is not finite for them. As with
+    `propagate`, the same `fn` object reuses its compiled function.
     """
     n_shared = sum(not p.per_experiment for p in free)
     cov = np.asarray(covariance_raw, dtype=float)[:n_shared, :n_shared]
@@ -300,8 +308,18 @@ def delta_method(fn, model, free, raw, covariance_raw) -> tuple[np.ndarray, np.n
             "covariance_raw: not finite for the shared parameters (a parameter is "
             "not identifiable); the delta method needs a finite covariance"
         )
-    base = as_arrays(model)
-    of_raw = jax_jit(lambda r: jnp.atleast_1d(fn(with_shared(base, free, r))))
     r0 = jnp.asarray(raw, dtype=float)[:n_shared]
-    jac = np.asarray(jax.jacfwd(of_raw)(r0)).reshape(-1, n_shared)
-    return np.asarray(of_raw(r0)), jac @ cov @ jac.T
+    value, jac = _value_and_jacobian(fn, as_arrays(model), as_leaves(free), r0)
+    jac = np.asarray(jac).reshape(-1, n_shared)
+    return np.asarray(value), jac @ cov @ jac.T
+
+
+@jit
+def _value_and_jacobian(fn, base, free, r0):
+    """`fn` of `base` at the shared raw vector `r0` (flattened) and its Jacobian there (one
+    compiled function per `fn` and structure)."""
+
+    def of_raw(r):
+        return jnp.atleast_1d(fn(with_shared(base, free, r)))
+
+    return of_raw(r0), jax.jacfwd(of_raw)(r0)

@@ -14,6 +14,10 @@ constant are drawn from a known log-normal population. It measures
     (the per-run offsets' scale left to be derived from the device's own start, tau's upper
     bound 1.5-2.5 s), which must compile nothing either (2026-11-28, 12 devices: 0.79
     fits/s when bounds and scales were static fields, a compile per device; 57-58 since);
+    `loop_with_bands_per_s`: the same devices through a notebook's steps, each fitted, the
+    band of its response to a new waveform and tau's delta-method interval (`notebook_loop`;
+    2026-11-28, 12 devices, two runs each: 2.3 and 2.6 per s on 204297b, where the band and
+    the delta method compiled at every call, 24 and 30 per s since);
 (b) `batch_fits_per_min`: `fit_batch` of `--devices` devices (default 512), warm: a first
     call of the same batch compiles (`batch_first_s`, reported apart), the second is timed;
 (c) `solve_share`: the fraction of the warm batch's wall time spent inside compiled code:
@@ -202,6 +206,34 @@ def _own_numbers(free, i: int) -> tuple:
         return p
 
     return tuple(own(p) for p in free)
+
+
+NEW_WAVE = greybox.PulseTrain(15e-3, 0.25, duty=0.3, n_pulses=4, delay_s=0.1, tail_s=0.3)
+
+
+def _tau(model):
+    return model.thermal.tau_s
+
+
+def notebook_loop(devices, fitted) -> float:
+    """Devices per second through what a notebook does with each new device of a structure:
+    its fit, the band of its response to a new waveform, and tau's interval by the delta
+    method (the first device, whose fit is in `fitted`, warms the band and delta method;
+    the rest are timed). Each compiled once per structure: a band and the delta method
+    compiled again at every call before 2026-11-28 (0.25-0.29 s a band)."""
+    t = np.linspace(0.0, 1.5, 46)
+
+    def steps(result):
+        result.posterior.band(NEW_WAVE, t)
+        greybox.uncertainty.delta_method(
+            _tau, result.model, result.free, result.raw, result.covariance_raw
+        )
+
+    steps(fitted[devices[0].name])
+    t0 = time.perf_counter()
+    for d in devices[1:]:
+        steps(greybox.fit(d.model, d.experiments, d.free))
+    return (len(devices) - 1) / (time.perf_counter() - t0)
 
 
 def synthetic_devices(n, seed=0, population=POPULATION, runs=RUNS, outlier=None):
@@ -438,6 +470,8 @@ def main(argv=None):
         greybox.fit(d.model, d.experiments, _own_numbers(d.free, i))
     own_rate = args.loop_sample / (time.perf_counter() - t0)
     say(f"loop, each device with its own bounds and scales: {own_rate:.1f} fits/s")
+    with_bands_rate = notebook_loop(loop_devs, single)
+    say(f"loop of a notebook's steps per device (fit, band, delta method): {with_bands_rate:.1f}/s")
 
     # (b, c) the batch: a first call compiles, the second is timed phase by phase
     batch_devs = devices[: args.devices]
@@ -463,6 +497,7 @@ def main(argv=None):
         "frames_per_run": [e.n_frames for e in devices[0].experiments],
         "loop_fits_per_s": round(loop_rate, 4),
         "own_numbers_fits_per_s": round(own_rate, 4),
+        "loop_with_bands_per_s": round(with_bands_rate, 4),
         "loop_first_fit_s": round(first_s, 3),
         "loop_sample": args.loop_sample,
         "batch_fits_per_min": round(60.0 * args.devices / batch_s, 1),

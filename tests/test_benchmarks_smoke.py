@@ -55,6 +55,7 @@ KEYS = {
         "solve_share",
         "backend",
         "own_numbers_fits_per_s",
+        "loop_with_bands_per_s",
         "loop_first_fit_s",
         "result_kb_per_device",
     },

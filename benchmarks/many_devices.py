@@ -44,8 +44,9 @@ constant are drawn from a known log-normal population. It measures
 
 (e) optionally (`--process N`; 3 in `--smoke`) `fit_batch` with process noise
     (`process_noise_batch`: the likelihood back end, batched) of N scalar Ornstein-Uhlenbeck
-    devices, two starts each, warm: `process_fits_per_min` (`process_first_s` the first
-    call, compile included; `process_converged`);
+    devices of 193-208 frames, two starts each, warm: `process_fits_per_min`
+    (`process_first_s` the first call, compile included; `process_converged`;
+    `process_groups`, 1 since the records are padded to bucketed lengths: MEASURED_GROUPS);
 
 and checks that the batch agrees with the single fits of the loop (`batch_vs_fit_max_rel`)
 and that the population model recovers the known median and spread from the batch
@@ -380,10 +381,12 @@ def max_rel_diff(a, b):
 
 def process_noise_batch(n, say, n_starts=2):
     """(devices, warm `BatchResult`, figures) of `fit_batch` with process noise (the
-    likelihood back end, batched) of `n` scalar Ornstein-Uhlenbeck devices of 200 frames
-    (tests/ou_device.py; readings from the numpy simulator tests/ou_reference.py, parameters
-    spread around its truth), `n_starts` starts each: a first call compiles
-    (`process_first_s`), the second is timed (`process_fits_per_min`)."""
+    likelihood back end, batched) of `n` scalar Ornstein-Uhlenbeck devices of 193-208 frames
+    each, as a wafer's records differ (tests/ou_device.py; readings from the numpy simulator
+    tests/ou_reference.py, parameters spread around its truth), `n_starts` starts each: a
+    first call compiles (`process_first_s`), the second is timed (`process_fits_per_min`);
+    `process_groups`: the compiled groups they formed (one: the records are padded to one
+    bucketed length)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from tests import ou_device as od
     from tests import ou_reference as ou
@@ -393,7 +396,7 @@ def process_noise_batch(n, say, n_starts=2):
     devices = []
     for k in range(n):
         truth = {p: v * np.exp(0.2 * rng.normal()) for p, v in ou.TRUTH.items()}
-        y = ou.simulate(truth, 200, 1000 + k)
+        y = ou.simulate(truth, 193 + int(rng.integers(0, 16)), 1000 + k)
         devices.append(greybox.population.Device(f"ou{k:05d}", od.model(start), [od.experiment(y)]))
     noise = greybox.ProcessNoise(od.STRUCTURE)
     t0 = time.perf_counter()
@@ -408,6 +411,7 @@ def process_noise_batch(n, say, n_starts=2):
         "process_fits_per_min": round(60.0 * n / warm_s, 1),
         "process_first_s": round(first_s, 2),
         "process_converged": int(sum(r.status == "converged" for r in res.results.values())),
+        "process_groups": res.groups,
     }
     return devices, res, figures
 

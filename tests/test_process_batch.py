@@ -110,3 +110,27 @@ def test_a_device_with_its_own_bound_rides_in_the_same_group(devices, batch):
     for d in devices[1:]:
         log_l = batch[d.name].log_likelihood
         assert again[d.name].log_likelihood == pytest.approx(log_l, rel=1e-10)
+
+
+def test_records_of_other_lengths_ride_in_the_same_group(devices, batch):
+    """Records of similar lengths are padded to one bucketed length (frames unread, steps
+    exact identities), so devices whose records are a few frames longer or shorter are one
+    group, one compiled solver (they were one group each), and each is fitted on its own
+    record. Truth: a 205-frame device's log L is the independent numpy filter's at its
+    estimate and no nearby point is higher; the 200-frame devices' results are unchanged."""
+    longer = greybox.population.Device(
+        "long", od.model(START), [od.experiment(ou.simulate(TRUTHS[1], 205, 41))]
+    )
+    again = greybox.fit_batch([*devices, longer], od.FREE, noise=NOISE, n_starts=2)
+    assert again.groups == 1
+    r = again["long"]
+    est = dict(zip(od.NAMES, (p.value for p in r.parameters)))
+    y = longer.experiments[0].y[:, 0]
+    assert y.size == 205 and r.status == "converged"
+    assert r.log_likelihood == pytest.approx(ou.loglik(est, y), abs=1e-6)
+    for k in od.NAMES:
+        for f in (0.99, 1.01):
+            assert ou.loglik(dict(est, **{k: est[k] * f}), y) < r.log_likelihood
+    for d in devices:
+        log_l = batch[d.name].log_likelihood
+        assert again[d.name].log_likelihood == pytest.approx(log_l, rel=1e-10)

@@ -486,7 +486,7 @@ def test_covariance_hessian_equals_exact_second_derivatives(stochastic_fit, data
 
 def test_runs_of_similar_lengths_share_one_compiled_filter():
     """A fit's diagnostics (`device_filter`: one-step, k-step and simulation predictions)
-    run each record padded to a bucketed length, so two records of 180 and 200 frames
+    run each record padded to a bucketed length, so two records of 195 and 205 frames
     compile the filter once; the padding changes nothing: each record's one-step
     innovations and log-likelihood are the independent numpy filter's
     (tests/ou_reference.py), to rounding."""
@@ -495,7 +495,7 @@ def test_runs_of_similar_lengths_share_one_compiled_filter():
     from tests.helpers import backend_compiles
 
     model = od.model(ou.TRUTH)
-    for n, seed in ((180, 3), (200, 4)):
+    for n, seed in ((195, 3), (205, 4)):
         y = ou.simulate(ou.TRUTH, n, seed)
         with backend_compiles() as compiled:
             run = greybox.stochastic.device_filter(model, od.experiment(y))
@@ -506,7 +506,7 @@ def test_runs_of_similar_lengths_share_one_compiled_filter():
         first = -0.5 * ((y[0] - ou.T0) ** 2 / sd**2 + np.log(2 * np.pi * sd**2))
         assert run.log_likelihood == pytest.approx(ou.loglik(ou.TRUTH, y) + first, rel=1e-12)
         filters = [f for f in compiled if "_filter_arrays" in f]
-        assert len(filters) == (1 if n == 180 else 0), compiled
+        assert len(filters) == (1 if n == 195 else 0), compiled
 
 
 def test_runs_that_start_at_different_times_share_one_compiled_filter():
@@ -537,9 +537,10 @@ def test_runs_that_start_at_different_times_share_one_compiled_filter():
 
 
 def test_runs_of_different_lengths_stack_into_one_likelihood():
-    """A fit's runs are padded to the longest and mapped over by one compiled filter
-    (`stacked_records`): the objective's -log L of two records of 150 and 200 frames is
-    the sum of the independent numpy filter's over each (tests/ou_reference.py)."""
+    """A fit's runs are padded to the longest, rounded up to a bucketed length, and mapped
+    over by one compiled filter (`stacked_records`): the objective's -log L of two records
+    of 150 and 200 frames is the sum of the independent numpy filter's over each
+    (tests/ou_reference.py), whether the records are padded to 200 frames or to 208."""
     import jax.numpy as jnp
 
     from greybox._estimate import likelihood as lik
@@ -549,9 +550,10 @@ def test_runs_of_different_lengths_stack_into_one_likelihood():
     ys = [ou.simulate(ou.TRUTH, n, seed) for n, seed in ((150, 7), (200, 8))]
     runs = [od.experiment(y, name=f"r{i}") for i, y in enumerate(ys)]
     noise = greybox.ProcessNoise(od.STRUCTURE, start_noise=False)
-    su = lik.setup(od.model(ou.TRUTH), runs, od.FREE, noise)
-    assert np.shape(su.obj.y) == (2, 200, 1)  # stacked, the shorter run padded
-    truth = [ou.TRUTH[name] for name in od.NAMES]
-    raw = jnp.asarray([float(p.to_raw(v)) for p, v in zip(su.obj.flat, truth)])
     expected = sum(ou.loglik(ou.TRUTH, y) for y in ys)
-    assert -float(su.obj.data_nll(raw)) == pytest.approx(expected, rel=1e-12)
+    truth = [ou.TRUTH[name] for name in od.NAMES]
+    for pad, frames in ((False, 200), (True, 208)):
+        su = lik.setup(od.model(ou.TRUTH), runs, od.FREE, noise, pad_records=pad)
+        assert np.shape(su.obj.y) == (2, frames, 1)  # stacked, the shorter run padded
+        raw = jnp.asarray([float(p.to_raw(v)) for p, v in zip(su.obj.flat, truth)])
+        assert -float(su.obj.data_nll(raw)) == pytest.approx(expected, rel=1e-12)

@@ -646,10 +646,15 @@ def setup(
     seed: int = 0,
     max_steps: int | None = None,
     start_values=None,
-    pad_records: bool = False,
+    pad_records: bool = True,
 ) -> Setup:
     """The `Setup` of one device (what `fit_likelihood` solves; `fit_batch` stacks many);
-    `pad_records`: its runs padded to bucketed lengths (`_build`)."""
+    `pad_records`: its runs padded to bucketed lengths (`_build`; at most an eighth longer,
+    `schedules.fine_bucket_length`), as the output-error fit pads its runs: records of
+    similar lengths (the devices of a wafer, a few frames longer or shorter) then share one
+    compiled solver and one batch group, not one each (a new length cost 2-2.5 s of
+    compiling). The padded steps are exact identities (the same estimates to the bit) that
+    every evaluation pays for. False keeps each record's own length."""
     from greybox._estimate import fit as _fit
 
     experiments = tuple(experiments)
@@ -852,8 +857,8 @@ def _assembled(su: Setup, runs, say) -> tuple[dict, list]:
     base = apply_raw(obj.model, obj.shared, jnp.asarray(raw))
     run_models = tuple(obj.run_model(jnp.asarray(raw), i) for i in range(len(experiments)))
     say("filtering every run at the estimate: one-step, k-step and simulation predictions")
-    # every run's filter padded to the objective's stacked length: one compile for all,
-    # no padding for a single run
+    # every run's filter padded to the objective's stacked (bucketed) length: one compile
+    # for all, shared with other records of similar lengths
     stacked = stacked_lengths(experiments, noise.k_step, su.bucketed)
     diags = tuple(
         _diagnose(
@@ -954,7 +959,8 @@ def validate_runs(result, experiments) -> tuple:
     per-run free parameters, if any, are re-fitted on each run (physics and noise fixed)."""
     noise = result.noise
     per = tuple(p for p in result.free if p.per_experiment)
-    estimation = None if per else stacked_lengths(result.experiments, noise.k_step)
+    # the lengths the fit's own diagnostics were compiled at (its runs bucketed, `setup`)
+    estimation = None if per else stacked_lengths(result.experiments, noise.k_step, True)
     out = []
     for e in experiments:
         if per:

@@ -5,10 +5,10 @@ likelihood with the likelihood back end's one compiled optimiser, over chunks of
   filtered `StochasticDevice`, data-based noise starts, scales, multi-start points).
 - Devices whose objectives have the same static part (device class and structural fields,
   free list, noise structure) and the same array shapes (frames, filter steps, runs) form a
-  group. The filter's step grid is the union of a run's frame times and input switches, so a
-  padded run would have to be a run of dummy steps that leave the state and the likelihood
-  unchanged, which `FilterGrid` does not offer; runs of different lengths therefore form
-  different groups rather than being padded.
+  group. Each device's records are padded to bucketed lengths (`likelihood.setup`:
+  `FilterGrid.padded`, steps of zero length that leave the state and the likelihood exactly
+  as they were, frames unread), so devices whose records differ by a few frames are one
+  group.
 - Every start of every device of a group is an item; items run in chunks of one size through
   `likelihood._newton`, one after another on a CPU and vmapped on an accelerator
   (`map_over_items`; vmapped, its `lax.while_loop` runs until the last item of a chunk has

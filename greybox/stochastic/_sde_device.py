@@ -55,7 +55,7 @@ from greybox._compile import jit
 from greybox._model.data import Experiment
 from greybox._model.device import AbstractLinearDevice, AbstractODEDevice
 from greybox._model.freeparams import FreeParameter, apply_raw, as_leaves
-from greybox._simulate.schedules import bucket_length
+from greybox._simulate.schedules import fine_bucket_length
 from greybox._simulate.simulate import as_arrays, require_x64
 from greybox.stochastic._kalman import (
     FilterGrid,
@@ -460,14 +460,14 @@ def _grid(e: Experiment) -> FilterGrid:
 
 def padded_record(e: Experiment, lengths: tuple | None = None) -> tuple:
     """(grid, frame times, readings) of `e` padded to `lengths` (frames, steps; default its
-    own rounded up by `schedules.bucket_length`) by `FilterGrid.padded`, NaN readings on the padded
-    frames: one compiled filter serves records of similar lengths. Padding changes no
+    own rounded up by `schedules.fine_bucket_length`) by `FilterGrid.padded`, NaN readings on
+    the padded frames: one compiled filter serves records of similar lengths. Padding changes no
     log-likelihood (its steps are exact identities, its frames unread) but costs their
     steps. The first `e.n_frames` rows of what the filter returns per frame are the
     record's."""
     grid = _grid(e)
     n, L = grid.n_frames, grid.n_steps
-    n_pad, l_pad = (bucket_length(n), bucket_length(L)) if lengths is None else lengths
+    n_pad, l_pad = (fine_bucket_length(n), fine_bucket_length(L)) if lengths is None else lengths
     grid = grid.padded(max(int(n_pad), n), max(int(l_pad), L))
     t_s = np.asarray(grid.t_s)
     y = np.asarray(e.y, dtype=float)
@@ -478,10 +478,10 @@ def padded_record(e: Experiment, lengths: tuple | None = None) -> tuple:
 def stacked_records(experiments, bucket: bool = False) -> tuple:
     """(grid, frame times (E, N), readings (E, N, q)) of the runs padded to the longest one's
     frames and steps (`FilterGrid.padded`, NaN readings on the padded frames; with `bucket`,
-    to those lengths rounded up by `schedules.bucket_length`) and stacked along a leading run axis,
-    their distinct step lengths brought to one count: a filter mapped over the runs
-    (`lax.map`) is compiled once whatever their number. Without `bucket` a single run keeps
-    its own length."""
+    to those lengths rounded up by `schedules.fine_bucket_length`) and stacked along a
+    leading run axis, their distinct step lengths brought to one count: a filter mapped over
+    the runs (`lax.map`) is compiled once whatever their number. Without `bucket` a single
+    run keeps its own length."""
     grids = [_grid(e) for e in experiments]
     n, steps = _longest(grids, bucket)
     grids = [g.padded(n, steps) for g in grids]
@@ -518,11 +518,11 @@ def _rounded_loop(n: int) -> int:
 
 
 def _longest(grids, bucket: bool) -> tuple[int, int]:
-    """(frames, steps) of the longest of `grids`, rounded up by `schedules.bucket_length` with
+    """(frames, steps) of the longest of `grids`, rounded up by `schedules.fine_bucket_length` with
     `bucket`."""
     n = max(g.n_frames for g in grids)
     steps = max(g.n_steps for g in grids)
-    return (bucket_length(n), bucket_length(steps)) if bucket else (n, steps)
+    return (fine_bucket_length(n), fine_bucket_length(steps)) if bucket else (n, steps)
 
 
 def _readout_terms(device, t_s, t0, q: int):

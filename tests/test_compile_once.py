@@ -184,3 +184,14 @@ def test_the_same_function_propagated_through_another_fit_compiles_nothing(compi
     assert np.sqrt(cov[0, 0]) == pytest.approx(est.se, rel=1e-9)
     assert np.std(draws) == pytest.approx(est.se, rel=0.1)
     assert fits[0].estimate("thermal.tau_s").value != pytest.approx(est.value, rel=1e-6)
+    # a callable that cannot be hashed (a dataclass with __call__) still works, compiled anew
+    _, cov2 = delta_method(_Scaled(2.0), *args[1])
+    assert np.sqrt(cov2[0, 0]) == pytest.approx(2.0 * est.se, rel=1e-9)
+
+
+@dataclasses.dataclass
+class _Scaled:
+    factor: float
+
+    def __call__(self, model):
+        return self.factor * model.thermal.tau_s

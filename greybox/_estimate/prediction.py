@@ -23,6 +23,7 @@ does depend on them, the band is infinite rather than falsely narrow.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -284,7 +285,18 @@ def propagate(fn, model, free, raw, covariance_raw, n: int, *, seed: int = 0) ->
     compiled function; a new `fn` (a lambda written inside a loop) compiles again.
     """
     draws = jnp.asarray(raw_draws(raw, covariance_raw, free, n, seed=seed))
-    return np.asarray(_pushed(fn, as_arrays(model), as_leaves(free), draws))
+    return np.asarray(_pushed(_static(fn), as_arrays(model), as_leaves(free), draws))
+
+
+def _static(fn):
+    """`fn` as the static argument of a compiled function: itself where it can be hashed (a
+    function, a lambda, a bound method), else wrapped in a `functools.partial`, hashed by
+    identity (a callable dataclass: compiled again at each call, as every call did before)."""
+    try:
+        hash(fn)
+    except TypeError:
+        return functools.partial(fn)
+    return fn
 
 
 @jit
@@ -309,7 +321,7 @@ def delta_method(fn, model, free, raw, covariance_raw) -> tuple[np.ndarray, np.n
             "not identifiable); the delta method needs a finite covariance"
         )
     r0 = jnp.asarray(raw, dtype=float)[:n_shared]
-    value, jac = _value_and_jacobian(fn, as_arrays(model), as_leaves(free), r0)
+    value, jac = _value_and_jacobian(_static(fn), as_arrays(model), as_leaves(free), r0)
     jac = np.asarray(jac).reshape(-1, n_shared)
     return np.asarray(value), jac @ cov @ jac.T
 

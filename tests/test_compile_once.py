@@ -4,8 +4,10 @@ A parameter's starting value (`FreeParameter.initial`, e.g. per-run camera offse
 each device's rest reading) is read on the host only, to build the raw start vector; it takes
 no part in a problem's identity, so a second device with other starting values must compile
 nothing for its solve. Its bounds, scale and prior are inputs of the compiled solver, so
-they take no part either. Truth: JAX's own record of backend compilations during the second
-fit, and what the new numbers must do to the second fit's estimates.
+they take no part either. The same holds for what follows a fit: its bands and the delta
+method and draws of a function of its parameters. Truth: JAX's own record of backend
+compilations during the second device's calls, and what its own numbers must do to its
+estimates, bands and intervals.
 """
 
 import dataclasses
@@ -125,7 +127,8 @@ def _finite_difference_sd(result, wave, t, h=1e-5):
     cov = np.asarray(result.posterior.covariance_raw)[: len(shared), : len(shared)]
 
     def response(r):
-        return np.asarray(greybox.simulate(greybox.parameters.with_shared(result.posterior.model, shared, r), wave, t))
+        model = greybox.parameters.with_shared(result.posterior.model, shared, r)
+        return np.asarray(greybox.simulate(model, wave, t))
 
     cols = [
         (response(raw + h * e) - response(raw - h * e)).reshape(t.size) / (2 * h)

@@ -49,3 +49,35 @@ def test_band_is_the_process_spread(posterior, noise):
     # the band sits around the response (no bias beyond the sampling error)
     centre = 0.5 * (band.upper + band.lower)[half, 0] - band.y[half, 0]
     assert abs(np.mean(centre)) < 0.1 * np.mean(expected)
+
+
+def test_paths_do_not_depend_on_padding_and_similar_lengths_share_one_sampler(posterior):
+    """A path draws its noise step by step (a key per step), so padding a run's grid to a
+    bucketed length (0 s steps, no noise) leaves every real step's draw and the path as
+    they are; waveforms of similar lengths (153 and 158 frames) therefore share one
+    compiled sampler (each length compiled its own before). Truth: the paths on the run's
+    own grid, unpadded, equal the padded ones exactly."""
+    import jax
+    import jax.numpy as jnp
+
+    from greybox.stochastic import _sde_device as sde
+    from tests.helpers import backend_compiles
+
+    t = ou.frames(158)
+    wave = od.inputs(float(t[-1]) + ou.DT)
+    posterior.band(wave, t[:153])
+    with backend_compiles() as compiled:
+        band = posterior.band(wave, t)
+    assert [c for c in compiled if "_draw_jit" in c] == [] and band.y.shape == (158, 1)
+    model = posterior.model
+    e = sde.unread_run(model, wave, t)
+    keys = jax.random.split(jax.random.PRNGKey(4), 3)
+    own = sde._grid(e)
+    paths = []
+    for lengths in ((own.n_frames, own.n_steps), None, (own.n_frames + 30, own.n_steps + 41)):
+        grid, t_s, _ = sde.padded_record(e, lengths)
+        z = sde._paths_jit(sde.as_arrays(model), grid, jnp.asarray(t_s), sde._t0(e), keys, True)
+        paths.append(np.asarray(z)[:, :158])
+    assert grid.n_steps > own.n_steps
+    np.testing.assert_array_equal(paths[1], paths[0])
+    np.testing.assert_array_equal(paths[2], paths[0])

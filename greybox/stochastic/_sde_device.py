@@ -811,14 +811,17 @@ def sample_paths(
     exact discretisation, x <- Ad x + Bd u + N(0, Qd); otherwise the local linearisation of
     the field at the current state with the same Van Loan covariance); `measurement_noise`
     adds N(0, R) at the frames. Readout terms are added. Settings of the run are applied.
+    Each step (each frame) draws from its own key (`fold_in` of the path's key and its
+    index), so a path does not depend on how far the run is padded: runs of similar lengths
+    share one compiled sampler.
     """
     require_x64("sample_paths")
     e = experiment
     m = as_arrays(e.apply_settings(model))
-    grid = _grid(e)
+    grid, t_s, _ = padded_record(e)  # one compiled sampler for waveforms of similar lengths
     keys = jax.random.split(jax.random.PRNGKey(int(seed)), int(n))
-    z = _paths_jit(m, grid, jnp.asarray(e.t_s), _t0(e), keys, bool(measurement_noise))
-    return np.asarray(z)
+    z = _paths_jit(m, grid, jnp.asarray(t_s), _t0(e), keys, bool(measurement_noise))
+    return np.asarray(z)[:, : e.n_frames]
 
 
 @jit
@@ -872,13 +875,19 @@ def _paths_jit(model: StochasticDevice, grid: FilterGrid, t_s, t0, keys, meas: b
             _, xs = jax.lax.scan(step, x0 + L0 @ eps[0], (dt_all, t_starts, u_steps, eps[1:]))
             return xs
 
+    def draws(key, count, width):
+        # one key per step (per frame): a path's draws do not depend on how many steps
+        # follow, so the padded steps (0 s long, no noise) leave the real ones as they are
+        return jax.vmap(lambda i: jax.random.normal(jax.random.fold_in(key, i), (width,), dtype))(
+            jnp.arange(count)
+        )
+
     def path(key):
         k1, k2 = jax.random.split(key)
-        eps = jax.random.normal(k1, (dt_all.shape[0] + 1, n), dtype)
-        xs = one(eps)[grid.step]
+        xs = one(draws(k1, dt_all.shape[0] + 1, n))[grid.step]
         y = jax.vmap(model.augmented_output)(xs) + off
         if meas:
-            y = y + jax.random.normal(k2, y.shape, dtype) * jnp.sqrt(jnp.diag(R))[None, :]
+            y = y + draws(k2, y.shape[0], y.shape[1]) * jnp.sqrt(jnp.diag(R))[None, :]
         return y
 
     return jax.lax.map(path, keys)
@@ -905,20 +914,20 @@ def draw_paths(
     require_x64("draw_paths")
     free = tuple(free)
     e = unread_run(model, inputs, t_s, t_start_s)
-    t = e.t_s
+    grid, t_pad, _ = padded_record(e)  # one compiled sampler for waveforms of similar lengths
     draws = jnp.asarray(np.asarray(raw_draws, dtype=float).reshape(-1, len(free)))
     keys = jax.random.split(jax.random.PRNGKey(int(seed)), draws.shape[0])
     z = _draw_jit(
         as_arrays(model),
         as_leaves(free),  # the numbers as inputs: another fit's scales compile nothing new
         draws,
-        _grid(e),
-        jnp.asarray(t),
+        grid,
+        jnp.asarray(t_pad),
         _t0(e),
         keys,
         bool(measurement_noise),
     )
-    return np.asarray(z)
+    return np.asarray(z)[:, : e.n_frames]
 
 
 def unread_run(model, inputs, t_s, t_start_s: float = 0.0) -> Experiment:

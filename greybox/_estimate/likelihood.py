@@ -964,15 +964,14 @@ def validate_runs(result, experiments) -> tuple:
     out = []
     for e in experiments:
         if per:
-            # a small fit per run, its runs padded to bucketed lengths: runs of similar
-            # lengths re-fit with one compiled solver, not one per length
+            # a small fit per run, its runs padded to bucketed lengths as every fit's are:
+            # runs of similar lengths re-fit with one compiled solver, not one per length
             sub = fit_likelihood(
                 result.model,
                 [e],
                 per,
                 dataclasses.replace(noise, start_noise=False),
                 n_starts=1,
-                pad_records=True,
             )
             out.append((dataclasses.replace(sub.runs[0], role="validation"), sub.parameters))
             continue

@@ -71,3 +71,48 @@ def test_recursive_bad_input():
         bb.recursive_arx(d, 2, 2, 1, forgetting=1.5)
     with pytest.raises(ValueError, match="theta0: expected 4"):
         bb.recursive_arx(d, 2, 2, 1, theta0=[0.0])
+    with pytest.raises(ValueError, match="process_noise: .* symmetric"):  # a covariance
+        bb.recursive_arx(d, 2, 2, 1, process_noise=np.triu(np.ones((4, 4))))
+
+
+def _textbook(rows, y, theta, P, lam, R1, R2, nc=0):
+    """Reference recursion as the textbook writes it (Ljung 1999, eq. 11.66 with a random
+    walk): K = P phi (lam R2 + phi^T P phi)^-1, theta += K eps, P = (I - K phi^T) P / lam + R1,
+    the ARMAX regressor's C part the past a-posteriori residuals."""
+    rows = rows.copy()
+    past, traj = np.zeros(nc), []
+    for r in range(len(y)):
+        if nc:
+            rows[r, -nc:] = past
+        phi = rows[r][:, None]
+        k = P @ phi @ np.linalg.inv(lam * R2 + phi.T @ P @ phi)
+        theta = theta + (k * (y[r] - phi.T @ theta)).ravel()
+        P = (np.eye(len(theta)) - k @ phi.T) @ P / lam + R1
+        if nc:
+            past = np.r_[y[r] - rows[r] @ theta, past[:-1]]
+        traj.append(theta)
+    return np.array(traj), P
+
+
+@pytest.mark.parametrize("nc", [0, 2])
+def test_recursion_equals_the_textbook_update(nc):
+    """Forgetting and a random walk together, ARX and ARMAX: every parameter trajectory and
+    the final covariance equal the textbook recursion's; the covariance stays exactly
+    symmetric (its update is formed symmetric, not symmetrised afterwards)."""
+    from greybox.blackbox._arx import arx_regressors
+
+    d = _data(np.random.default_rng(24), n=400, c=(1.0, -0.6, 0.2))
+    lam, q, r2, p0 = 0.98, 1e-4, 0.04, 100.0
+    opts = dict(forgetting=lam, process_noise=q, noise_variance=r2, P0=p0)
+    if nc:
+        r = bb.recursive_armax(d, 2, 2, nc, 1, **opts)
+    else:
+        r = bb.recursive_arx(d, 2, 2, 1, **opts)
+    phi, y = arx_regressors(d, 0, 2, (2,), (1,), False)
+    rows = np.concatenate([phi, np.zeros((len(y), nc))], axis=1)
+    p = rows.shape[1]
+    traj, P = _textbook(rows, y, np.zeros(p), p0 * np.eye(p), lam, q * np.eye(p), r2, nc)
+    n0 = d.n_samples - len(y)
+    np.testing.assert_allclose(r.parameters[n0:], traj, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(r.covariance, P, rtol=1e-9, atol=1e-15)
+    np.testing.assert_array_equal(r.covariance, r.covariance.T)

@@ -119,20 +119,63 @@ def _setup(data, p, theta0, P0, forgetting, process_noise, noise_variance, init,
         raise ValueError(f"forgetting: lambda must lie in (0, 1], got {forgetting!r}")
     R1 = np.asarray(process_noise, float)
     R1 = R1 * np.eye(p) if R1.ndim == 0 else R1
-    if R1.shape != (p, p):
-        raise ValueError(f"process_noise: expected a scalar or a ({p}, {p}) matrix")
+    if R1.shape != (p, p) or not np.allclose(R1, R1.T):
+        raise ValueError(f"process_noise: expected a scalar or a symmetric ({p}, {p}) matrix")
     if not noise_variance > 0:
         raise ValueError(f"noise_variance: must be > 0, got {noise_variance!r}")
     return theta, P, R1
 
 
-def _kalman_step(theta, P, phi, y, lam, R1, R2):
-    Pphi = P @ phi
-    eps = y - phi @ theta
-    K = Pphi / (lam * R2 + phi @ Pphi)
-    theta = theta + K * eps
-    P = (P - np.outer(K, Pphi)) / lam + R1
-    return theta, 0.5 * (P + P.T), eps
+def _filter(rows, target, theta, P, lam, R1, R2, nc=0):
+    """The Kalman/RLS recursion over `rows` (M, p) -> (a-priori predictions (M,), errors (M,),
+    parameters after each row (M, p), final P). With `nc` > 0 (ARMAX, extended least
+    squares) each row's last nc entries are overwritten, before its update, with the past
+    a-posteriori residuals y - phi^T theta (newest first; zero before the first).
+
+    P stays exactly symmetric without symmetrising each step: its update K (P phi)^T is
+    formed as (P phi)(P phi)^T / s, an exactly symmetric matrix, and P0 and R1 are
+    symmetric (`_setup`). Few numpy calls per row, as this loop is the estimator's whole cost
+    (2026-11-29, 20,000 samples of ARX [2 2 1]: 200-215 -> 121-134 ms against a step function
+    that symmetrised P and built each ARMAX regressor anew; the same numbers to ~1e-11)."""
+    m, p = rows.shape
+    pred, err, traj = np.empty(m), np.empty(m), np.empty((m, p))
+    forget, drift = lam != 1.0, bool(np.any(R1))
+    lam_r2 = lam * R2
+    dot, outer = np.dot, np.outer
+    theta, P, past = np.array(theta, dtype=float), np.array(P, dtype=float), np.zeros(nc)
+    for r in range(m):
+        phi = rows[r]
+        if nc:
+            phi[p - nc :] = past
+        pred[r] = dot(phi, theta)
+        e = target[r] - pred[r]
+        Pphi = dot(P, phi)
+        s = lam_r2 + dot(phi, Pphi)
+        theta += Pphi * (e / s)  # in place: these are the loop's own copies
+        P -= outer(Pphi, Pphi) / s
+        if forget:
+            P /= lam
+        if drift:
+            P += R1
+        if nc:
+            past[1:] = past[:-1]
+            past[0] = target[r] - dot(phi, theta)
+        err[r], traj[r] = e, theta
+    return pred, err, traj, P
+
+
+def _estimate(data, rows, target, n0, theta, P, lam, R1, R2, nc=0):
+    """(parameters (N, p), a-priori predictions (N,), errors (N,), final P) over the whole
+    record: the leading n0 samples keep theta0, their own reading and error zero."""
+    pred, err, traj, P = _filter(rows, target, theta, P, lam, R1, R2, nc)
+    n = data.n_samples
+    parameters = np.tile(theta, (n, 1))
+    parameters[n0:] = traj
+    prediction = np.array(data.y[:, 0], dtype=float)
+    prediction[n0:] = pred
+    errors = np.zeros(n)
+    errors[n0:] = err
+    return parameters, prediction, errors, P
 
 
 def recursive_arx(
@@ -167,15 +210,9 @@ def recursive_arx(
     if data.n_samples <= n0:
         raise ValueError(f"data: {data.n_samples} samples, need more than {n0} for the lags")
     phi, target = arx_regressors(data, 0, na, nb, nk, False)
-    N = data.n_samples
-    traj = np.tile(theta, (N, 1))
-    pred = np.array(data.y[:, 0], copy=True)
-    err = np.zeros(N)
-    for r in range(len(target)):
-        t = n0 + r
-        pred[t] = phi[r] @ theta
-        theta, P, err[t] = _kalman_step(theta, P, phi[r], target[r], forgetting, R1, noise_variance)
-        traj[t] = theta
+    traj, pred, err, P = _estimate(
+        data, np.asarray(phi, dtype=float), target, n0, theta, P, forgetting, R1, noise_variance
+    )
     return RecursiveEstimate(
         parameters=traj,
         covariance=P,
@@ -233,18 +270,10 @@ def recursive_armax(
     if data.n_samples <= n0:
         raise ValueError(f"data: {data.n_samples} samples, need more than {n0} for the lags")
     phi_ab, target = arx_regressors(data, 0, na, nb, nk, False)
-    N = data.n_samples
-    traj = np.tile(theta, (N, 1))
-    pred = np.array(data.y[:, 0], copy=True)
-    err = np.zeros(N)
-    past = np.zeros(nc)  # a-posteriori residuals eps(t-1), ..., eps(t-nc)
-    for r in range(len(target)):
-        t = n0 + r
-        phi = np.concatenate([phi_ab[r], past])
-        pred[t] = phi @ theta
-        theta, P, err[t] = _kalman_step(theta, P, phi, target[r], forgetting, R1, noise_variance)
-        past = np.concatenate([[target[r] - phi @ theta], past[:-1]])
-        traj[t] = theta
+    rows = np.concatenate([phi_ab, np.zeros((len(target), nc))], axis=1)  # C part: in the loop
+    traj, pred, err, P = _estimate(
+        data, rows, target, n0, theta, P, forgetting, R1, noise_variance, nc
+    )
     return RecursiveEstimate(
         parameters=traj,
         covariance=P,

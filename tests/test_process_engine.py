@@ -443,3 +443,31 @@ def test_process_params_load_and_drive_simulate(cli_fit, data, tmp_path):
     assert width[-1] > 0.1  # process noise and the parameters' spread widen it
 
 
+
+
+def test_a_start_that_needed_newton_iterations_ends_on_a_central_hessian():
+    """-log L = sum(exp(x) - (2, 3) x) + (x1 - x2)^2 / 2 (a closed form: Hessian diag(exp(x))
+    + [[1, -1], [-1, 1]]; third derivatives exp(x), so a forward difference of step 1e-4 is
+    off by ~1e-4 relative, a central one by ~1e-9). Three BFGS steps from (2, -1) stop short
+    of the minimum, so Newton takes over: its Hessians in between are forward differences,
+    and the one returned for the covariance must be central, at the end point, and the end
+    point the minimum (its gradient nought to the tolerance)."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from greybox._estimate import likelihood as lik
+
+    class Closed(eqx.Module):
+        def data_nll(self, r):
+            return jnp.sum(jnp.exp(r) - jnp.array([2.0, 3.0]) * r) + 0.5 * (r[0] - r[1]) ** 2
+
+        def prior_nll(self, r):
+            return 0.0 * r[0]
+
+    out = lik._newton(Closed(), jnp.array([2.0, -1.0]), jnp.asarray(3))
+    raw = np.asarray(out["raw"])
+    assert bool(out["converged"]) and int(out["steps"]) > 3  # Newton iterations were needed
+    gradient = np.exp(raw) - [2.0, 3.0] + np.array([1.0, -1.0]) * (raw[0] - raw[1])
+    hessian = np.diag(np.exp(raw)) + np.array([[1.0, -1.0], [-1.0, 1.0]])
+    assert np.max(np.abs(gradient)) < 1e-5
+    np.testing.assert_allclose(np.asarray(out["hessian"]), hessian, rtol=1e-7, atol=1e-9)

@@ -164,9 +164,10 @@ def _filter(rows, target, theta, P, lam, R1, R2, nc=0):
     return pred, err, traj, P
 
 
-def _estimate(data, rows, target, n0, theta, P, lam, R1, R2, nc=0):
-    """(parameters (N, p), a-priori predictions (N,), errors (N,), final P) over the whole
-    record: the leading n0 samples keep theta0, their own reading and error zero."""
+def _over_record(data, rows, target, n0, theta, P, lam, R1, R2, nc=0):
+    """`_filter` over the whole record: (parameters (N, p), a-priori predictions (N,), errors
+    (N,), final P). The leading n0 samples (before the regressor's lags exist) keep theta0,
+    their reading as the prediction and an error of zero."""
     pred, err, traj, P = _filter(rows, target, theta, P, lam, R1, R2, nc)
     n = data.n_samples
     parameters = np.tile(theta, (n, 1))
@@ -210,7 +211,7 @@ def recursive_arx(
     if data.n_samples <= n0:
         raise ValueError(f"data: {data.n_samples} samples, need more than {n0} for the lags")
     phi, target = arx_regressors(data, 0, na, nb, nk, False)
-    traj, pred, err, P = _estimate(
+    traj, pred, err, P = _over_record(
         data, np.asarray(phi, dtype=float), target, n0, theta, P, forgetting, R1, noise_variance
     )
     return RecursiveEstimate(
@@ -271,7 +272,7 @@ def recursive_armax(
         raise ValueError(f"data: {data.n_samples} samples, need more than {n0} for the lags")
     phi_ab, target = arx_regressors(data, 0, na, nb, nk, False)
     rows = np.concatenate([phi_ab, np.zeros((len(target), nc))], axis=1)  # C part: in the loop
-    traj, pred, err, P = _estimate(
+    traj, pred, err, P = _over_record(
         data, rows, target, n0, theta, P, forgetting, R1, noise_variance, nc
     )
     return RecursiveEstimate(

@@ -272,6 +272,9 @@ def _newton(obj: _Objective, raw0, max_steps):
     def to_hessian(s, forward=False):  # probe the Hessian at the current point next
         return dict(s, phase=_HESSIAN, j=np.int32(0), fwd=jnp.asarray(forward))
 
+    def end(s):  # stop here, on a central Hessian: a forward one is probed again centrally
+        return _select(s["fwd"], to_hessian(s), dict(s, phase=_DONE))
+
     def step(s):
         hessian = s["phase"] == _HESSIAN
         x = jnp.where(hessian, s["raw"] + probes[s["j"]], s["raw"] + s["a"] * s["p"])
@@ -306,10 +309,8 @@ def _newton(obj: _Objective, raw0, max_steps):
             return _select(ended, after, halved)
 
         def newton():  # a Newton line search has ended: the Hessian at the new point, or stop
-            # (after a central Hessian at the point, if the search that failed used a forward one)
             moved2 = dict(moved, it2=s["it2"] + 1)
-            stop = _select(s["fwd"], to_hessian(moved2), dict(moved2, phase=_DONE))
-            after = _select(armijo, to_hessian(moved2, forward=True), stop)
+            after = _select(armijo, to_hessian(moved2, forward=True), end(moved2))
             return _select(ended, after, halved)
 
         def probe():  # one column of the Hessian; after the last, the next Newton search
@@ -319,14 +320,10 @@ def _newton(obj: _Objective, raw0, max_steps):
             H = jnp.where(s["fwd"], forward, central)
             H = 0.5 * (H + H.T)
             finish = (_decrement(s["g"], H) < DECREMENT_TOL) | (s["it2"] >= max_steps)
-            # a start ends on a central Hessian only: a forward one that says "finish" is
-            # probed again, centrally, at the same point
-            ending = _select(
-                s["fwd"], to_hessian(dict(s, G=G, H=H)), dict(s, G=G, H=H, phase=_DONE)
-            )
             searching = new_search(dict(s, G=G, H=H, phase=_NEWTON), _newton_direction(s["g"], H))
             last = s["j"] + 1 == jnp.where(s["fwd"], n, 2 * n)
-            return _select(last, _select(finish, ending, searching), dict(s, G=G, j=s["j"] + 1))
+            probed = _select(finish, end(dict(s, G=G, H=H)), searching)
+            return _select(last, probed, dict(s, G=G, j=s["j"] + 1))
 
         return jax.lax.switch(s["phase"], [start, bfgs, newton, probe])
 

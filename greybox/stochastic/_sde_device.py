@@ -467,7 +467,7 @@ def padded_record(e: Experiment, lengths: tuple | None = None) -> tuple:
     record's."""
     grid = _grid(e)
     n, L = grid.n_frames, grid.n_steps
-    n_pad, l_pad = (fine_bucket_length(n), fine_bucket_length(L)) if lengths is None else lengths
+    n_pad, l_pad = _bucketed(n, L) if lengths is None else lengths
     grid = grid.padded(max(int(n_pad), n), max(int(l_pad), L))
     t_s = np.asarray(grid.t_s)
     y = np.asarray(e.y, dtype=float)
@@ -522,7 +522,13 @@ def _longest(grids, bucket: bool) -> tuple[int, int]:
     `bucket`."""
     n = max(g.n_frames for g in grids)
     steps = max(g.n_steps for g in grids)
-    return (fine_bucket_length(n), fine_bucket_length(steps)) if bucket else (n, steps)
+    return _bucketed(n, steps) if bucket else (n, steps)
+
+
+def _bucketed(frames: int, steps: int) -> tuple[int, int]:
+    """(frames, steps) rounded up by `schedules.fine_bucket_length`: the lengths a record is
+    padded to, so records of similar lengths share one compiled filter."""
+    return fine_bucket_length(frames), fine_bucket_length(steps)
 
 
 def _readout_terms(device, t_s, t0, q: int):

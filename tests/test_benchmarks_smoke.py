@@ -61,6 +61,7 @@ KEYS = {
     },
     "memory.py": {"sizes", "within_30_percent", "worst_ratio"},
     "microrobot.py": {"detailed_1000_cycles_s", "play_1000_cycles_s"},
+    "rerun.py": {"warm_speedup", "cold_overhead", "same_result", "cache_mb", "folders"},
     "shuffle_pass.py": {"numpy_s", "compiled_s", "compiled_speedup", "max_abs_diff", "backend"},
     "tclab.py": {"greybox_sae_val", "arx_sae_val", "greybox_structure", "horizon"},
     "track.py": {"frames_per_s", "baseline_frames_per_s", "speedup"},
@@ -126,3 +127,6 @@ def test_smoke_run_ends_with_its_json_line(smoke_runs, name):
     assert isinstance(out, dict)
     missing = KEYS[name] - set(out)
     assert not missing, f"{name}: JSON line lacks {sorted(missing)}"
+    if name == "rerun.py":  # the reference is the same fit compiled in its own process
+        assert out["same_result"], "a fit loaded from the compile cache changed its numbers"
+        assert out["cache_mb"] > 0, "the command kept no compiled program"

@@ -38,6 +38,10 @@ converge, see report.md); 2 bad input or output location, or an error in your ow
 code (one line naming the file, line and field, nothing written); 3 a bug in greybox (a traceback follows; please report it);
 130 interrupted (Ctrl-C); 143 terminated (SIGTERM). An interrupted or terminated run
 leaves no partial result and an earlier result unchanged.
+
+Compiled programs are kept in your cache folder (greybox/jax), so running a command again
+skips compiling them; GREYBOX_COMPILE_CACHE=off keeps none, GREYBOX_COMPILE_CACHE=FOLDER
+keeps them there.
 """
 
 

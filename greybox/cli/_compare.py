@@ -393,9 +393,9 @@ def candidate_record(s, verdict=None) -> dict:
 
 
 def run(args) -> int:
-    import jax
+    from greybox.cli._jax_setup import configure
 
-    jax.config.update("jax_enable_x64", True)
+    configure()  # float64, compiled programs kept on disk
     from greybox.cli._common import Progress, print_input_errors
     from greybox.cli._ticker import Ticker
     from greybox.io._atomic import atomic_output_dir, check_output_dir

@@ -92,12 +92,11 @@ def truth_rows(outcome, truth: dict) -> tuple[list[str], bool]:
 
 
 def run(args) -> int:
-    import jax
-
     from greybox.cli._common import Progress
+    from greybox.cli._jax_setup import configure
     from greybox.cli._ticker import Ticker
 
-    jax.config.update("jax_enable_x64", True)
+    configure()  # float64, compiled programs kept on disk
     with Ticker(Progress(args.quiet)) as say:  # a line at least every 5 s, in every phase
         return _run(args, say)
 

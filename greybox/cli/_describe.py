@@ -113,9 +113,9 @@ def describe_lines(spec, options: dict | None = None) -> list[str]:
 
 
 def run(args) -> int:
-    import jax
+    from greybox.cli._jax_setup import configure
 
-    jax.config.update("jax_enable_x64", True)
+    configure()  # float64, compiled programs kept on disk
     from greybox._model.errors import InputError
     from greybox._registry import DeviceNotFound, available, resolve
     from greybox._model.spec import DeviceSpecError

@@ -118,9 +118,9 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    import jax
+    from greybox.cli._jax_setup import configure
 
-    jax.config.update("jax_enable_x64", True)
+    configure()  # float64, compiled programs kept on disk
     import numpy as np
 
     from greybox._model.errors import InputError

@@ -104,9 +104,9 @@ def run(args) -> int:
     # on a loaded machine) included
     with Ticker(Progress(args.quiet)) as say:
         say.phase_is("starting (importing JAX and the fitting code)")
-        import jax
+        from greybox.cli._jax_setup import configure
 
-        jax.config.update("jax_enable_x64", True)
+        configure()  # float64, compiled programs kept on disk
         from greybox.io._experiment_set import InputErrors
 
         try:

@@ -403,9 +403,9 @@ def write_figures(folder: Path, results, fmt: str = "png") -> list[str]:
 
 
 def run(args) -> int:
-    import jax
+    from greybox.cli._jax_setup import configure
 
-    jax.config.update("jax_enable_x64", True)
+    configure()  # float64, compiled programs kept on disk
     from greybox.cli._common import Progress
     from greybox.cli._ticker import Ticker
 

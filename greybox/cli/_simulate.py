@@ -252,9 +252,9 @@ def run(args) -> int:
 
 
 def _run(args, tick) -> int:
-    import jax
+    from greybox.cli._jax_setup import configure
 
-    jax.config.update("jax_enable_x64", True)
+    configure()  # float64, compiled programs kept on disk
     from greybox._model.errors import InputError
     from greybox.io._atomic import check_output_dir
     from greybox.io._params_file import load_params

@@ -517,6 +517,22 @@ def test_times_in_years_are_refused(unit):
     assert time_conversion("min") == 60.0 and time_conversion("h") == 3600.0
 
 
+
+def test_a_column_in_its_si_unit_is_read_without_loading_pint():
+    """`t_s`, `T_K`: scale 1, offset 0, without importing pint (~0.5 s of every command)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from greybox.io._units import conversion, time_conversion\n"
+        "assert time_conversion('s') == 1.0 and conversion('K', 'K') == (1.0, 0.0)\n"
+        "assert 'pint' not in sys.modules\n"
+        "assert time_conversion('ms') == 1e-3 and 'pint' in sys.modules\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+
 def _logged_folder(folder, extra_data="", columns=None):
     t, y = _frames()
     laser = 20.0 * (np.sin(2 * np.pi * t / 0.4) > 0)

@@ -45,6 +45,8 @@ def conversion(unit: str, si_unit: str) -> tuple[float, float]:
     dimension than `si_unit`."""
     if not isinstance(unit, str) or not unit.strip() or len(unit) > 40:
         raise ValueError(f"{unit!r} is not a unit")
+    if unit.strip() == si_unit:  # the SI unit itself (`t_s`, `T_K`): no need to load pint
+        return 1.0, 0.0  # (importing it and building its registry: ~0.5 s of a command)
     try:
         src = _pint_unit(unit.strip())
     except Exception:  # pint raises several kinds (undefined, syntax, ...)

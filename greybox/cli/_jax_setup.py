@@ -57,11 +57,13 @@ def cache_folder(environ=os.environ) -> Path | None:
 
 
 def _writable(folder: Path) -> bool:
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return False
-    return os.access(folder, os.W_OK | os.X_OK)
+    """Whether JAX can make (at its first compile) and write `folder`: it, or the nearest of
+    its parents that exists, is a folder this user may write. Nothing is made here, so a
+    command that stops at bad input leaves no trace."""
+    for at in (folder, *folder.parents):
+        if at.exists():
+            return at.is_dir() and os.access(at, os.W_OK | os.X_OK)
+    return False
 
 
 def configure(environ=os.environ) -> Path | None:

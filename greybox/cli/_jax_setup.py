@@ -11,7 +11,8 @@ read the report, change the folder, fit again; `greybox compare`, then `greybox 
 `greybox simulate` of the preferred structure. Measured (benchmarks/rerun.py, 2-core CPU,
 2026-11-29, medians of two alternating runs): `greybox fit` of experiments/chevron_laser
 7.1 -> 5.2 s, chevron_process (process noise) 15.1 -> 10.4 s, microrobot 15.6 -> 12.0 s,
-the same params.json numbers; the first run, which writes, costs what it did without.
+the same params.json numbers; the first run, which writes, costs what it did without. A
+fit whose time is its solves gains little (experiments/heating_system: 49.4 s, 49.9 s).
 Programs with a host callback are never written by JAX: diffrax's checks of its inputs make
 the adaptive and stiff solvers' programs such, so a device fitted with `method = "adaptive"`
 compiles its solver in every process.

@@ -27,6 +27,9 @@ needs `filelock`), except where
   `jax_compilation_cache_dir` before calling `greybox.cli.main`): left as it is;
 - the folder cannot be made or written: the command compiles as it would without a cache.
 
+An entry JAX cannot read (one left half-written when the machine stopped) costs a warning and
+a compile of that program; JAX never overwrites an entry, so deleting the folder clears it.
+
 The library itself sets none of this (its core leaves JAX's global configuration to the
 program that imports it); a script or notebook turns the same cache on with
 `jax.config.update("jax_compilation_cache_dir", folder)`.

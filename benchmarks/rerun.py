@@ -8,9 +8,10 @@ new process that used to compile every program again. For each folder this scrip
 it compiles and writes), then `--repeats` times each, alternating, without a cache
 (`GREYBOX_COMPILE_CACHE=off`, `off_s`) and with the filled one (`warm_s`); medians. It
 checks that the warm run's params.json holds the same numbers, to the bit, as the run
-without a cache (`same_result`: estimates, standard errors, covariance, log-likelihood or
-cost). Reported per folder and `warm_speedup` = off / warm over all folders (the median of
-their ratios), `cold_overhead` likewise (cold / off), `cache_mb` (the filled folder).
+without a cache (`same_result`: estimates, standard errors, covariance, noise, convergence
+and cost, log-likelihood, fit %). Reported per folder, and over all folders `warm_speedup`
+= off / warm (the median of their ratios), `cold_overhead` likewise (cold / off) and
+`cache_mb` (the filled folders).
 
 Run: .venv/bin/python benchmarks/rerun.py [--folders chevron_laser chevron_process microrobot]
 [--repeats 2]; --smoke fits a one-run copy of the demo folder cold, then warm (the cold run
@@ -33,9 +34,12 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 FOLDERS = ("chevron_laser", "chevron_process", "microrobot")
-SMOKE_HELP = "smallest setting (a one-run folder, one run each way): checks the script runs"
+SMOKE_HELP = "smallest setting (a one-run folder, fitted cold then warm): checks the script runs"
 # what must not change when the programs come from the cache
-SAME = ("parameters", "raw", "covariance_raw", "standard_errors", "sigma", "convergence")
+SAME = (
+    "parameters", "raw", "covariance_raw", "standard_errors", "sigma", "convergence",
+    "log_likelihood", "fit_percent",
+)  # fmt: skip
 
 
 def fit_once(folder: Path, out: Path, cache: str) -> tuple[float, dict]:

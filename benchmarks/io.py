@@ -22,6 +22,7 @@ Last line: one JSON object.
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -89,7 +90,10 @@ def longest_silence(cmd, cwd) -> dict:
     stamps = []  # (seconds since the start, the line)
     lock = threading.Lock()
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    env = dict(os.environ, GREYBOX_COMPILE_CACHE="off")  # a first run's silences: it compiles
+    proc = subprocess.Popen(
+        cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+    )
 
     def pump(stream):
         for line in stream:

@@ -47,6 +47,7 @@ import many_devices as md  # noqa: E402
 
 import greybox._platform  # noqa: E402
 from greybox._estimate import batch as _batch  # noqa: E402
+from greybox._estimate import fit as _fit  # noqa: E402
 
 SMOKE_HELP = "smallest setting (a few seconds): checks that the script still runs"
 
@@ -78,7 +79,7 @@ def main(argv=None):
     stacked = eqx.tree_at(lambda p: p.y, stacked, noisy)
     raw = np.stack([prepared[r].raw0 for r in rows])
     sig = np.stack([prepared[r].sigma0 for r in rows])
-    opts = (1e-6, 1e-6, 200)
+    opts = _fit.solver_settings(1e-6, 1e-6, 200)  # as `fit_batch` passes them
     small = jax.tree.map(lambda x: x[: args.small], stacked)
     t0 = time.perf_counter()
     alone = gpu.solve_all(group, small, raw[: args.small], sig[: args.small], args.small, opts)

@@ -148,6 +148,7 @@ import many_devices as md  # noqa: E402
 
 import greybox  # noqa: E402
 from greybox._estimate import batch as _batch  # noqa: E402
+from greybox._estimate import fit as _fit  # noqa: E402
 from greybox._model import householder  # noqa: E402
 from greybox._platform import on_accelerator  # noqa: E402
 
@@ -275,7 +276,7 @@ def main(argv=None):
     budget, max_chunk = _batch.device_budget()
     b = _batch.bytes_per_item(prepared[0].problem)
     chunk = _batch.chunk_size_for(b, budget, args.devices, max_chunk)
-    opts = (1e-6, 1e-6, 200)
+    opts = _fit.solver_settings(1e-6, 1e-6, 200)  # as `fit_batch` passes them
     say(f"{args.devices} problems stacked; chunks of {chunk} (~{b * chunk / 1e9:.2f} GB each)")
 
     t0 = time.perf_counter()  # one chunk first: the compile, reported apart

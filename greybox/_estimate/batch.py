@@ -186,13 +186,14 @@ def chunk_size_for(
 
 
 @jit(fast_compile=False)
-def _solve_many(dynamic, static, raw, sigma, rtol, atol, max_steps, active=None):
+def _solve_many(dynamic, static, raw, sigma, rtol, atol, max_steps, bound, active=None):
     """`_fit._solve` over a stacked chunk of problems (one compiled function; vmapped on an
     accelerator, one solve after another on a CPU: `map_over_items`, which skips the items
-    that `active` marks as padding)."""
+    that `active` marks as padding); `rtol`, `atol`, `max_steps`, `bound`:
+    `_fit.solver_settings`."""
 
     def one(dyn, r, s):
-        return _fit._solve(eqx.combine(dyn, static), r, s, rtol, atol, max_steps)
+        return _fit._solve(eqx.combine(dyn, static), r, s, rtol, atol, max_steps, bound)
 
     return map_over_items(one, dynamic, raw, sigma, active=active)
 
@@ -452,7 +453,8 @@ def _run_items(prepared, items, chunk, rtol, atol, max_steps, say, label, counte
             np.stack([s for _, _, s in padded]),
             np.arange(chunk) < len(part),
         )
-        out = _solve_many(stacked, group.static, raw, sig, rtol, atol, max_steps, active)
+        settings = _fit.solver_settings(rtol, atol, max_steps)
+        out = _solve_many(stacked, group.static, raw, sig, *settings, active)
         out = jax.device_get(out)
         counter[0] += 1
         for j in range(len(part)):

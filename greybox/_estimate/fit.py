@@ -48,6 +48,7 @@ from greybox._model.freeparams import (
     as_leaves,
     levenberg_marquardt,
     pinned_fn,
+    step_bound,
 )
 from greybox._estimate.identifiability import RANK_TOL, IdentifiabilityReport, analyse
 from greybox._estimate.metrics import (
@@ -370,9 +371,9 @@ class _Problem(eqx.Module):
 
     A PyTree: data arrays, the model and the free parameters' numbers (bounds, scales,
     priors: `as_leaves`) are leaves; the settings' paths, the free parameters' structure and
-    the solver options are static, so one compiled solver serves every data set of the same
-    shapes and every device of the same structure, whatever its starts, bounds, scales and
-    priors.
+    the simulation's solver options are static, so one compiled solver serves every data set
+    of the same shapes and every device of the same structure, whatever its starts, bounds,
+    scales and priors (and the optimiser's tolerances and budget: `solver_settings`).
     """
 
     model: object
@@ -554,14 +555,25 @@ def _block_predictions(problem: _Problem, raw):
     return predict(raw)
 
 
+def solver_settings(rtol: float, atol: float, max_steps: int) -> tuple:
+    """`_solve`'s (rtol, atol, max_steps, bound): the tolerances and the step budget as
+    arrays, inputs of the compiled solver (a fit with another budget or tolerance compiles
+    nothing new), and the loop's static bound (`step_bound`)."""
+    return (
+        jnp.asarray(float(rtol), dtype=float),
+        jnp.asarray(float(atol), dtype=float),
+        jnp.asarray(int(max_steps)),
+        step_bound(max_steps),
+    )
+
+
 @jit
-def _solve(
-    problem: _Problem, raw_start, sigma, rtol: float, atol: float, max_steps: int, raw_ref=None
-):
+def _solve(problem: _Problem, raw_start, sigma, rtol, atol, max_steps, bound: int, raw_ref=None):
     """One Levenberg-Marquardt run plus everything the result needs at its end point.
 
-    The run stops early when its cost stalls (`levenberg_marquardt`); "on a bound" is
-    judged from `raw_ref` (the fit's starting values; None: `raw_start`), as the result is.
+    `rtol`, `atol`, `max_steps`, `bound`: `solver_settings`. The run stops early when its
+    cost stalls (`levenberg_marquardt`); "on a bound" is judged from `raw_ref` (the fit's
+    starting values; None: `raw_start`), as the result is.
 
     A single compiled function (the solve, the residuals, the Jacobian and the predictions)
     from one trace of the model keeps compile time down. Never throws: the result code says
@@ -580,8 +592,9 @@ def _solve(
         sigma,
         rtol=rtol,
         atol=atol,
-        max_steps=max_steps,
+        max_steps=bound,
         pinned=pinned,
+        step_cap=max_steps,
     )
 
     def at_end(r):
@@ -997,10 +1010,10 @@ def _fit_least_squares(
             "declared sigma, or the starting guess)"
         )
 
+    settings = solver_settings(rtol, atol, max_steps)
+
     def solve(raw_start, sig):
-        return _solve(
-            problem, raw_start, sig, float(rtol), float(atol), int(max_steps), jnp.asarray(raw0)
-        )
+        return _solve(problem, raw_start, sig, *settings, jnp.asarray(raw0))
 
     if source == "estimated":
         sig = np.full(n_y, _initial_sigma_guess(experiments))

@@ -298,6 +298,13 @@ def apply_raw(model, params, raw):
 STALL_WINDOW = 20  # steps over which a start must still lower its cost ...
 STALL_RTOL = 1e-6  # ... by more than this fraction, or it has stalled;
 STALL_RTOL_AT_BOUND = 1e-4  # ... by more than this while a parameter is on a bound
+MIN_STEP_BOUND = 256  # the static loop bound of every step budget up to it (the default 200)
+
+
+def step_bound(max_steps: int) -> int:
+    """The static loop bound of a solve whose budget `max_steps` is an input of the program:
+    `MIN_STEP_BOUND`, or the next power of two above a larger budget (few programs)."""
+    return max(MIN_STEP_BOUND, 1 << max(int(max_steps) - 1, 0).bit_length())
 
 
 @functools.cache
@@ -320,6 +327,7 @@ def _stall_solver():
         stall_rtol: float
         bound_rtol: float
         pinned: object  # raw -> bool: a parameter on its bound (None: never)
+        cap: object = None  # the step budget as an input of the program (None: optimistix's)
 
         @property
         def rtol(self):
@@ -353,7 +361,15 @@ def _stall_solver():
 
         def terminate(self, fn, y, args, options, state, tags):
             done, result = self.inner.terminate(fn, y, args, options, state[0], tags)
-            return done | state[3], result
+            if self.cap is None:
+                return done | state[3], result
+            # the budget spent, as optimistix's own `max_steps` ends a solve: converging or
+            # stalling on the last step still counts as such
+            out = state[2] >= self.cap
+            spent = optx.RESULTS.where(
+                out & ~done & ~state[3], optx.RESULTS.nonlinear_max_steps_reached, result
+            )
+            return done | state[3] | out, spent
 
         def postprocess(self, fn, y, aux, args, options, state, tags, result):
             return self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
@@ -372,6 +388,7 @@ def levenberg_marquardt(
     stall_window: int | None = STALL_WINDOW,
     stall_rtol: float = STALL_RTOL,
     pinned=None,
+    step_cap=None,
 ):
     """The one least-squares engine: optimistix Levenberg-Marquardt on `residuals(raw, args)`
     from `raw0`, never throwing. Returns (raw, solved flag, steps taken, stalled flag).
@@ -379,14 +396,17 @@ def levenberg_marquardt(
     `stall_window`, `stall_rtol`, `pinned`: a start whose cost fell by no more than
     `stall_rtol` (relative; `STALL_RTOL_AT_BOUND` while `pinned(raw)` is true) over
     `stall_window` steps stops there, not solved and flagged stalled (`_stall_solver`);
-    None runs to the tolerances or `max_steps` only."""
+    None runs to the tolerances or `max_steps` only. `rtol` and `atol` may be arrays (inputs
+    of the compiled program); `step_cap` (an integer array, with a stall window) is then the
+    step budget and `max_steps` only the loop's static bound (`step_bound`), so one program
+    serves every budget up to it."""
     import optimistix as optx
 
     from greybox._model.householder import lm_linear_solver
 
     lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lm_linear_solver())
     solver = lm if stall_window is None else _stall_solver()(
-        lm, int(stall_window), float(stall_rtol), STALL_RTOL_AT_BOUND, pinned
+        lm, int(stall_window), float(stall_rtol), STALL_RTOL_AT_BOUND, pinned, step_cap
     )
     sol = optx.least_squares(
         residuals, solver, raw0, args=args, max_steps=max_steps, throw=False

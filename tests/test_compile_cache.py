@@ -12,6 +12,7 @@ import jax
 import platformdirs
 
 from greybox.cli import _jax_setup
+from greybox.io._atomic import can_make
 
 
 def test_the_default_folder_is_the_users_cache_folder():
@@ -29,13 +30,13 @@ def test_the_environment_turns_it_off_or_moves_it(tmp_path):
 def test_a_folder_that_cannot_be_made_is_skipped_and_none_is_made_beforehand(tmp_path):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
-    assert not _jax_setup._writable(blocker / "jax")
-    assert not _jax_setup._writable(blocker)
-    assert _jax_setup._writable(tmp_path / "new" / "jax")
+    assert not can_make(blocker / "jax")
+    assert not can_make(blocker)
+    assert can_make(tmp_path / "new" / "jax")
     assert not (tmp_path / "new").exists()  # JAX makes it at its first compile
     locked = tmp_path / "locked"
     locked.mkdir(mode=0o500)
-    assert _jax_setup._writable(locked / "jax") == os.access(locked, os.W_OK)  # root may write
+    assert can_make(locked / "jax") == os.access(locked, os.W_OK)  # root may write
 
 
 def test_a_cache_jax_already_has_is_left_as_it_is(tmp_path):

@@ -444,6 +444,7 @@ def _run_items(prepared, items, chunk, rtol, atol, max_steps, say, label, counte
     outputs = []
     n_chunks = math.ceil(len(items) / chunk)
     group = prepared[items[0][0]].group
+    settings = _fit.solver_settings(rtol, atol, max_steps)
     for c in range(n_chunks):
         part = items[c * chunk : (c + 1) * chunk]
         padded = part + [part[-1]] * (chunk - len(part))
@@ -453,7 +454,6 @@ def _run_items(prepared, items, chunk, rtol, atol, max_steps, say, label, counte
             np.stack([s for _, _, s in padded]),
             np.arange(chunk) < len(part),
         )
-        settings = _fit.solver_settings(rtol, atol, max_steps)
         out = _solve_many(stacked, group.static, raw, sig, *settings, active)
         out = jax.device_get(out)
         counter[0] += 1

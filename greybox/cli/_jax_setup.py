@@ -60,16 +60,6 @@ def cache_folder(environ=os.environ) -> Path | None:
     return Path(platformdirs.user_cache_dir("greybox", appauthor=False)) / "jax"
 
 
-def _writable(folder: Path) -> bool:
-    """Whether JAX can make (at its first compile) and write `folder`: it, or the nearest of
-    its parents that exists, is a folder this user may write. Nothing is made here, so a
-    command that stops at bad input leaves no trace."""
-    for at in (folder, *folder.parents):
-        if at.exists():
-            return at.is_dir() and os.access(at, os.W_OK | os.X_OK)
-    return False
-
-
 def configure(environ=os.environ) -> Path | None:
     """float64 on, and the compilation cache (module docstring); returns the cache folder in
     use (None: none). Call before the command compiles anything."""
@@ -78,16 +68,14 @@ def configure(environ=os.environ) -> Path | None:
     jax.config.update("jax_enable_x64", True)
     if jax.config.jax_compilation_cache_dir:  # the program's or JAX_COMPILATION_CACHE_DIR
         return Path(jax.config.jax_compilation_cache_dir)
+    from greybox.io._atomic import can_make
+
     folder = cache_folder(environ)
-    if folder is None or not _writable(folder):
+    # JAX makes the folder at its first compile: a command that stops at bad input leaves none
+    if folder is None or not can_make(folder):
         return None
     if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in environ:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_S)
-    try:  # JAX's least-recently-used eviction locks the folder with filelock
-        import filelock  # noqa: F401
-    except ImportError:  # unbounded rather than failing: each structure's programs are small
-        pass
-    else:
-        jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
+    jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)  # evicts (filelock)
     jax.config.update("jax_compilation_cache_dir", str(folder))
     return folder

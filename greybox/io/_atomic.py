@@ -218,6 +218,14 @@ def _nearest_existing(path: Path) -> Path:
     return path
 
 
+def can_make(path: Path) -> bool:
+    """Whether this user may make `path` (a folder or file, with the folders missing above
+    it) or write into it: it, or the nearest of its parents that exists, is a folder this
+    user may write. Nothing is made."""
+    base = _nearest_existing(Path(path))
+    return base.is_dir() and os.access(base, os.W_OK | os.X_OK)
+
+
 def check_output_dir(out, *, force: bool = False, inputs=(), field: str = "--out") -> Path:
     """Refuse an output folder that is not ours to replace; return it as an absolute path.
 
@@ -375,8 +383,8 @@ def check_output_file(path, *, ours, force: bool = False, field: str = "--out") 
                 file=given,
                 field=field,
             )
-    base = _nearest_existing(path.parent)
-    if not base.is_dir() or not os.access(base, os.W_OK | os.X_OK):
+    if not can_make(path.parent):
+        base = _nearest_existing(path.parent)
         raise InputError(f"cannot write into {base}; choose a writable folder", file=given,
                          field=field)  # fmt: skip
     return path

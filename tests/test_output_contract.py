@@ -115,6 +115,26 @@ def test_marker_force_and_replacement(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "foreign", "res"]
 
 
+def test_written_files_and_folders_get_ordinary_permissions(tmp_path):
+    """A result is what `open(path, "w")` and `mkdir` would leave under the umask (the private
+    temporaries are owner-only, 0600 and 0700); a replaced file keeps its own permissions."""
+    old = os.umask(0o027)
+    try:
+        with atomic.atomic_output_file(tmp_path / "tracks.csv") as fh:
+            fh.write("t,x\n")
+        with atomic_output_dir(tmp_path / "res") as tmp:
+            (tmp / "params.json").write_text("{}")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "tracks.csv").stat().st_mode & 0o777 == 0o640
+    assert (tmp_path / "res").stat().st_mode & 0o777 == 0o750
+    (tmp_path / "tracks.csv").chmod(0o604)
+    with atomic.atomic_output_file(tmp_path / "tracks.csv") as fh:
+        fh.write("t,x\n0,1\n")
+    assert (tmp_path / "tracks.csv").stat().st_mode & 0o777 == 0o604
+    assert (tmp_path / "tracks.csv").read_text() == "t,x\n0,1\n"
+
+
 def test_folder_filled_while_running_is_not_replaced(tmp_path):
     out = tmp_path / "res"
     with pytest.raises(InputError, match="filled by something else"):

@@ -313,10 +313,8 @@ def atomic_output_dir(
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-{os.getpid()}-", dir=out.parent))
     except OSError as err:
         raise _write_error(out, err) from None
-    umask = os.umask(0)
-    os.umask(umask)
     try:
-        os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it owner-only; results are ordinary
+        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it owner-only; results are ordinary
         yield tmp
         _write_marker(tmp, kind)
         with _locked(out.parent):
@@ -390,6 +388,22 @@ def check_output_file(path, *, ours, force: bool = False, field: str = "--out") 
     return path
 
 
+def _umask() -> int:
+    """The process's umask (read by setting it, so set back at once)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _file_mode(path: Path) -> int:
+    """The permissions a written file gets: those of the file it replaces, else an ordinary
+    new file's (0666 less the umask), as an editor or `open(path, "w")` would leave them."""
+    try:
+        return path.stat().st_mode & 0o7777
+    except OSError:
+        return 0o666 & ~_umask()
+
+
 @contextlib.contextmanager
 def atomic_output_file(path: str | os.PathLike, mode: str = "w") -> Iterator:
     """Open a temporary file beside `path`; it is renamed onto `path` only if the block
@@ -402,6 +416,7 @@ def atomic_output_file(path: str | os.PathLike, mode: str = "w") -> Iterator:
     except OSError as err:
         raise _write_error(path, err) from None
     try:
+        os.fchmod(fd, _file_mode(path))  # mkstemp makes it owner-only (0600)
         with os.fdopen(fd, mode) as fh:
             yield fh
         _check_not_interrupted()

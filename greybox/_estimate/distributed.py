@@ -20,6 +20,9 @@ a Dask cluster and gathers one `FitResult` per device:
   (problem building, residual tests, assembly: interpreter work, one core per worker) on a
   core of its own, which a single process cannot (`fit_batch`'s host work is one thread);
   `worker_platform="cpu"` keeps them on the CPU;
+- a local cluster's workers compile into the client's persistent compilation cache, where
+  it has one (`compile_cache_settings`; the `greybox` commands keep one): every call starts
+  new workers, which then load what an earlier call compiled instead of compiling again;
 - device files loaded by the registry (built-in `models/`, a user's device file) are
   registered on the worker from the same folder before the devices are unpickled (a
   cluster's workers must see that folder at the same path);
@@ -87,10 +90,42 @@ def _register_packages(packages: dict) -> None:
             sys.modules[name] = pkg
 
 
-def _fit_task(task_id: int, packages: dict, payload: bytes) -> tuple:
-    """Worker side: float64 on, the device packages registered, then the payload (devices,
-    free, options) unpickled and one `fit_batch`; returns (task_id, ({name: FitResult}
-    pickled, seconds the worker spent on the task)).
+# the client's persistent compilation cache settings that a local cluster's workers take
+CACHE_SETTINGS = (
+    "jax_compilation_cache_dir",
+    "jax_persistent_cache_min_compile_time_secs",
+    "jax_compilation_cache_max_size",
+)
+
+
+def compile_cache_settings() -> dict:
+    """{JAX option: value} of this process's persistent compilation cache (empty where it has
+    none), for the workers of a local cluster: each worker is a new process that would
+    otherwise compile every program again, in every `fit_distributed` call (the cluster is
+    new each time); with the client's cache a worker loads what an earlier worker, call or
+    command compiled (`greybox fit-many --scheduler local` uses the command's cache)."""
+    import jax
+
+    if not jax.config.jax_compilation_cache_dir:
+        return {}
+    return {name: getattr(jax.config, name) for name in CACHE_SETTINGS}
+
+
+def _use_compile_cache(settings: dict) -> None:
+    """Worker side: the client's cache settings, unless this worker has a cache of its own
+    (set before its first compile: JAX reads them then)."""
+    import jax
+
+    if settings and not jax.config.jax_compilation_cache_dir:
+        for name, value in settings.items():
+            jax.config.update(name, value)
+
+
+def _fit_task(task_id: int, packages: dict, payload: bytes, cache: dict | None = None) -> tuple:
+    """Worker side: float64 on, the client's compile cache (`compile_cache_settings`), the
+    device packages registered, then the payload (devices, free, options) unpickled and one
+    `fit_batch`; returns (task_id, ({name: FitResult} pickled, seconds the worker spent on
+    the task)).
 
     The results go back as one pickle: Dask would send each of their arrays as a frame of
     its own (~150 a chevron result), which cost the worker 2.1 ms a result to write against
@@ -100,6 +135,7 @@ def _fit_task(task_id: int, packages: dict, payload: bytes) -> tuple:
 
     t0 = time.perf_counter()
     jax.config.update("jax_enable_x64", True)
+    _use_compile_cache(cache or {})
     _register_packages(packages)
     devices, free, kwargs = cloudpickle.loads(payload)
     with one_core():  # a worker is one of many on its machine: no threads of its own
@@ -344,9 +380,10 @@ def fit_distributed(
 
         kwargs = dict(fit_kwargs, chunk_size=chunk)
         packages = device_packages(devices)
+        cache = compile_cache_settings() if local else {}  # a remote worker's folders differ
         parts = run_tasks(
             _fit_task,
-            _LazyPayloads(tasks, lambda t: (packages, cloudpickle.dumps((t, free, kwargs)))),
+            _LazyPayloads(tasks, lambda t: (packages, cloudpickle.dumps((t, free, kwargs)), cache)),
             client=client,
             retries=retries,
             progress=say,

@@ -1,5 +1,5 @@
 """A command run again: `greybox fit` of a folder in a fresh process, with and without the
-compiled programs that an earlier run kept on disk (`greybox/cli/_jax_setup.py`).
+compiled programs that an earlier run kept on disk (`greybox/io/_jax_setup.py`).
 
 The identification loop runs the same commands over and over (fit, read the report, change
 the folder, fit again; compare, then fit and simulate the preferred structure), each in a

@@ -1,7 +1,8 @@
 """greybox: grey-box identification of physical device models from measured data.
 
 The core is pure (no file I/O, printing, plotting or global JAX configuration). Enable
-float64 in your program before fitting: ``jax.config.update("jax_enable_x64", True)``.
+float64 in your program before fitting: ``jax.config.update("jax_enable_x64", True)``, or
+``greybox.io.configure_jax()``, which also keeps compiled programs on disk as the commands do.
 
 The core names are here (`__all__`): devices and their specs, experiments and waveforms,
 `simulate`, `fit`/`validate` and their results, and the noise, simulation and loss settings.

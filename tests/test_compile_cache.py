@@ -1,4 +1,5 @@
-"""Where the `greybox` command keeps compiled programs (`greybox/cli/_jax_setup.py`).
+"""Where the `greybox` commands (and `greybox.io.configure_jax`) keep compiled programs
+(`greybox/io/_jax_setup.py`).
 
 That a fit whose programs come from the cache gives the same numbers to the bit as one that
 compiled them, and that the command writes the cache at all, is checked by the smoke run of
@@ -11,7 +12,7 @@ from pathlib import Path
 import jax
 import platformdirs
 
-from greybox.cli import _jax_setup
+from greybox.io import _jax_setup
 from greybox.io._atomic import can_make
 
 
@@ -116,3 +117,32 @@ def test_only_a_local_cluster_is_sent_the_clients_cache(monkeypatch):
             pass
         assert sent["cache"] == expected
     assert sent and dist.compile_cache_settings()["jax_compilation_cache_dir"]
+
+
+_SCRIPT = """
+import sys
+import greybox.io
+folder = greybox.io.configure_jax()
+import jax
+print(folder, jax.config.jax_enable_x64)
+jax.jit(lambda x: x * 2.0 + 1.0)(1.0).block_until_ready()
+"""
+
+
+def test_a_script_sets_jax_up_as_the_commands_do(tmp_path):
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "GREYBOX_TEST"))}
+    env["GREYBOX_COMPILE_CACHE"] = str(tmp_path / "cache")
+    env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"  # the lambda compiles in ms
+    out = subprocess.run(
+        [sys.executable, "-c", _SCRIPT],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    assert out.stdout.split() == [str(tmp_path / "cache"), "True"]
+    assert any(p.name.startswith("jit__lambda") for p in (tmp_path / "cache").iterdir())

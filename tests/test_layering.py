@@ -47,7 +47,7 @@ RING = {
 }
 # what every command may import: the package and its helpers (no command)
 CLI_SHARED = {"greybox.cli"} | {
-    f"greybox.cli.{m}" for m in ("_common", "_ticker", "_trust", "_figures", "_jax_setup")
+    f"greybox.cli.{m}" for m in ("_common", "_ticker", "_trust", "_figures")
 }
 
 

@@ -393,7 +393,7 @@ def candidate_record(s, verdict=None) -> dict:
 
 
 def run(args) -> int:
-    from greybox.cli._jax_setup import configure
+    from greybox.io._jax_setup import configure
 
     configure()  # float64, compiled programs kept on disk
     from greybox.cli._common import Progress, print_input_errors

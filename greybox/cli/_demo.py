@@ -93,7 +93,7 @@ def truth_rows(outcome, truth: dict) -> tuple[list[str], bool]:
 
 def run(args) -> int:
     from greybox.cli._common import Progress
-    from greybox.cli._jax_setup import configure
+    from greybox.io._jax_setup import configure
     from greybox.cli._ticker import Ticker
 
     configure()  # float64, compiled programs kept on disk

@@ -113,7 +113,7 @@ def describe_lines(spec, options: dict | None = None) -> list[str]:
 
 
 def run(args) -> int:
-    from greybox.cli._jax_setup import configure
+    from greybox.io._jax_setup import configure
 
     configure()  # float64, compiled programs kept on disk
     from greybox._model.errors import InputError

@@ -118,7 +118,7 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    from greybox.cli._jax_setup import configure
+    from greybox.io._jax_setup import configure
 
     configure()  # float64, compiled programs kept on disk
     import numpy as np

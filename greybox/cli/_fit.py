@@ -104,7 +104,7 @@ def run(args) -> int:
     # on a loaded machine) included
     with Ticker(Progress(args.quiet)) as say:
         say.phase_is("starting (importing JAX and the fitting code)")
-        from greybox.cli._jax_setup import configure
+        from greybox.io._jax_setup import configure
 
         configure()  # float64, compiled programs kept on disk
         from greybox.io._experiment_set import InputErrors

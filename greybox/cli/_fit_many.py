@@ -403,7 +403,7 @@ def write_figures(folder: Path, results, fmt: str = "png") -> list[str]:
 
 
 def run(args) -> int:
-    from greybox.cli._jax_setup import configure
+    from greybox.io._jax_setup import configure
 
     configure()  # float64, compiled programs kept on disk
     from greybox.cli._common import Progress

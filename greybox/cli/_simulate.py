@@ -252,7 +252,7 @@ def run(args) -> int:
 
 
 def _run(args, tick) -> int:
-    from greybox.cli._jax_setup import configure
+    from greybox.io._jax_setup import configure
 
     configure()  # float64, compiled programs kept on disk
     from greybox._model.errors import InputError

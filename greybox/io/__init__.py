@@ -2,7 +2,9 @@
 
 `load_experiment_set` reads an experiment folder (``experiment.toml`` + run CSVs, format in
 ``experiments/README.md``); `params_document`/`write_params`/`load_params` write and read
-``params.json``; `experiment_writer` helpers write the inverse of the loader. Video I/O
+``params.json``; `experiment_writer` helpers write the inverse of the loader;
+`configure_jax` sets JAX up as the `greybox` commands do (float64, compiled programs kept on
+disk). Video I/O
 (`probe`, `iter_frames`, `write_video`) needs the ``video`` extra.
 
 Names are imported on first use.
@@ -27,6 +29,7 @@ _NAMES = {
     "candidate_names": ("greybox.io._experiment_set", "candidate_names"),
     "configure_model": ("greybox.io._experiment_set", "configure_model"),
     "fit_memory_estimate": ("greybox.io._experiment_set", "fit_memory_estimate"),
+    "configure_jax": ("greybox.io._jax_setup", "configure"),
     "load_experiment_set": ("greybox.io._experiment_set", "load_experiment_set"),
     "format_number": ("greybox.io._experiment_writer", "format_number"),
     "inline_table": ("greybox.io._experiment_writer", "inline_table"),
@@ -69,6 +72,7 @@ if TYPE_CHECKING:
     from greybox.io._experiment_writer import run_table as run_table
     from greybox.io._export import StateSpaceExport as StateSpaceExport
     from greybox.io._export import to_state_space as to_state_space
+    from greybox.io._jax_setup import configure as configure_jax  # noqa: F401 (re-export)
     from greybox.io._params_file import FittedModel as FittedModel
     from greybox.io._params_file import load_params as load_params
     from greybox.io._params_file import params_document as params_document

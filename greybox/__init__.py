@@ -69,7 +69,7 @@ _NAMES = {
     "TableFitResult": ("greybox._estimate.table_fit", "TableFitResult"),
     "ParameterEstimate": ("greybox._estimate.fit", "ParameterEstimate"),
     "Posterior": ("greybox._estimate.posterior", "Posterior"),
-    "Band": ("greybox._estimate.prediction", "Band"),
+    "Band": ("greybox._estimate.band", "Band"),
     "OutputError": ("greybox._estimate.noise_models", "OutputError"),
     "ProcessNoise": ("greybox._estimate.noise_models", "ProcessNoise"),
     "NoiseStructure": ("greybox.stochastic._sde_device", "NoiseStructure"),
@@ -169,7 +169,7 @@ if _TYPE_CHECKING:  # static analysers and IDEs see the eager imports
     from greybox._estimate.table_fit import TableFitResult as TableFitResult
     from greybox._estimate.fit import ParameterEstimate as ParameterEstimate
     from greybox._estimate.posterior import Posterior as Posterior
-    from greybox._estimate.prediction import Band as Band
+    from greybox._estimate.band import Band as Band
     from greybox._estimate.noise_models import OutputError as OutputError
     from greybox._estimate.noise_models import ProcessNoise as ProcessNoise
     from greybox.stochastic._sde_device import NoiseStructure as NoiseStructure

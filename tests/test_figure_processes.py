@@ -48,6 +48,18 @@ def _jobs(seed: int) -> list:
     ]
 
 
+def _band_job() -> tuple:
+    """`greybox simulate`'s figure: a response with its band over a pulse train."""
+    from greybox._estimate.band import Band
+
+    t = np.linspace(0.0, 1.0, 200)
+    y = (1e-6 * (1 - np.exp(-t / 0.05)))[:, None]
+    sd = np.full_like(y, 2e-8)
+    band = Band(t, y, y - 2 * sd, y + 2 * sd, sd, sd, 0.95, False)
+    wave = greybox.PiecewiseConstant([0.0, 0.1, 0.25], [0.0, 0.02, 0.0], 1.0)
+    return ("simulation.png", "band_figure", (band, wave), {"title": "chevron: 20 mW"})
+
+
 def _files(folder) -> dict:
     return {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*.png")}
 
@@ -139,6 +151,34 @@ def test_the_drawing_process_shares_the_figures_and_raises_here(tmp_path, monkey
     assert helper._proc.poll() is not None  # it ended with the block
 
 
+def test_a_figure_drawn_beside_the_writing_is_the_one_drawn_here(tmp_path, monkeypatch):
+    """`greybox simulate`: its figure goes to the drawing process while the tables are
+    written, the same bytes as drawn here; an error in the block waits for the figure in
+    hand (nothing is drawn into the folder after its writer has left)."""
+    (tmp_path / "here").mkdir()
+    _drawing.draw_figures(tmp_path / "here", [_band_job()])
+    monkeypatch.setattr(_drawing, "spare_core", lambda: True)
+    drawn_here = []
+    draw = _drawing._draw_one
+    monkeypatch.setattr(
+        _drawing, "_draw_one", lambda p, f, j: drawn_here.append(j) or draw(p, f, j)
+    )
+    with _drawing.drawing_process():
+        (tmp_path / "there").mkdir()
+        with _drawing.drawing_beside(tmp_path / "there", [_band_job()]):
+            (tmp_path / "there" / "simulation.csv").write_text("t_s\n")
+        assert drawn_here == []  # the other process drew it
+        assert _files(tmp_path / "there") == _files(tmp_path / "here")
+        (tmp_path / "failed").mkdir()
+        with pytest.raises(RuntimeError, match="disk full"):
+            with _drawing.drawing_beside(tmp_path / "failed", [_band_job()]):
+                raise RuntimeError("disk full")
+        assert _files(tmp_path / "failed") == _files(tmp_path / "here")  # finished first
+    with _drawing.drawing_beside(tmp_path / "alone", [_band_job()]):  # no process: here
+        (tmp_path / "alone").mkdir()
+    assert len(drawn_here) == 1 and _files(tmp_path / "alone") == _files(tmp_path / "here")
+
+
 def test_no_drawing_process_without_an_idle_core(monkeypatch):
     monkeypatch.setattr(_platform, "usable_cores", lambda: 2)
     monkeypatch.setattr(_drawing.os, "getloadavg", lambda: (1.8, 1.8, 1.8))
@@ -190,12 +230,13 @@ def test_a_script_without_a_main_guard_runs_once(tmp_path):
 
 def test_a_drawing_process_does_not_import_jax(tmp_path):
     """What a drawing process imports (the plotting modules, and what unpickling a result's
-    jobs needs) leaves JAX out: its start is ~0.35 s, not ~1.4 s."""
+    jobs needs, a simulation's band included) leaves JAX out: its start is ~0.35 s, not
+    ~1.4 s."""
     import pickle
     import subprocess
     import sys
 
-    (tmp_path / "jobs.pkl").write_bytes(pickle.dumps(_jobs(0)))
+    (tmp_path / "jobs.pkl").write_bytes(pickle.dumps([*_jobs(0), _band_job()]))
     code = (
         "import pickle, sys\n"
         "from greybox.io import _drawing\n"

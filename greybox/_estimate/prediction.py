@@ -22,7 +22,6 @@ does depend on them, the band is infinite rather than falsely narrow.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 
 import jax
@@ -30,54 +29,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from greybox._compile import jit
+from greybox._estimate.band import Band, SampledBand
 from greybox._model.device import check_method
 from greybox._model.freeparams import apply_raw, as_leaves
 from greybox._simulate.schedules import schedule_for
 from greybox._simulate.simulate import as_arrays, observe_schedule, require_x64
 
 NEGLIGIBLE_SENSITIVITY = 1e-6  # relative |dy/d direction| treated as "does not depend"
-
-
-@dataclasses.dataclass(frozen=True)
-class Band:
-    """A simulated response with a pointwise band (SI units of the outputs).
-
-    `y`, `lower`, `upper`, `sd_model`, `sd`: shape (N, n_y). `sd_model` is the parameter
-    part, `sd` what the band uses (with noise for a prediction interval).
-    """
-
-    t_s: np.ndarray
-    y: np.ndarray
-    lower: np.ndarray
-    upper: np.ndarray
-    sd_model: np.ndarray
-    sd: np.ndarray
-    level: float
-    includes_noise: bool
-
-    @property
-    def kind(self) -> str:
-        pct = f"{self.level * 100:g} %"
-        if self.includes_noise:
-            return (
-                f"{pct} prediction interval for new readings: parameter "
-                "uncertainty (delta method) plus measurement noise sigma"
-            )
-        return (
-            f"{pct} confidence band of the model response: parameter uncertainty only "
-            "(delta method); single readings scatter further by the noise sigma"
-        )
-
-
-@dataclasses.dataclass(frozen=True)
-class SampledBand(Band):
-    """A band from sample paths (process noise), which says how it was made in `kind`."""
-
-    description: str = ""
-
-    @property
-    def kind(self) -> str:
-        return self.description
 
 
 N_PATHS = 200  # sample paths behind a process-noise band

@@ -219,29 +219,32 @@ def write_simulation(
     out, force, header, cols, meta, band, wave, device, text, outputs, inputs, fmt="png"
 ):
     """simulation.csv, simulation.json and simulation.<fmt>, written atomically to `out`."""
-    from greybox.report import _plots as plots
-    from greybox.io._results import usual_permissions
     from greybox.io._atomic import atomic_output_dir
+    from greybox.io._drawing import drawing_beside
+    from greybox.io._results import usual_permissions
 
-    table = np.column_stack(cols)
-    with atomic_output_dir(out, kind="simulate", force=force) as tmp:
-        usual_permissions(tmp)
-        rows = [",".join(header)]
-        for k in range(table.shape[0]):
-            rows.append(",".join([f"{table[k, 0]:.6f}"] + [_fmt(v) for v in table[k, 1:]]))
-        (tmp / "simulation.csv").write_text("\n".join(rows) + "\n")
-        (tmp / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
-        plots.band_figure(
-            tmp / f"simulation.{fmt}",
-            band,
-            wave,
+    figure = (
+        f"simulation.{fmt}",
+        "band_figure",
+        (band, wave),
+        dict(
             title=f"{device}: {text}"[:200],
             output_labels=tuple((c.description or c.name, c.si_unit) for c in outputs),
             input_labels=tuple((c.description or c.name, c.si_unit) for c in inputs),
             output_channels=outputs,
             input_channels=inputs,
             file_units=meta.get("file_units") or {},
-        )
+        ),
+    )
+    table = np.column_stack(cols)
+    with atomic_output_dir(out, kind="simulate", force=force) as tmp:
+        usual_permissions(tmp)
+        with drawing_beside(tmp, [figure]):  # in the drawing process, where `run` has one
+            rows = [",".join(header)]
+            for k in range(table.shape[0]):
+                rows.append(",".join([f"{table[k, 0]:.6f}"] + [_fmt(v) for v in table[k, 1:]]))
+            (tmp / "simulation.csv").write_text("\n".join(rows) + "\n")
+            (tmp / "simulation.json").write_text(json.dumps(meta, indent=2) + "\n")
 
 
 def run(args) -> int:
@@ -257,17 +260,26 @@ def _run(args, tick) -> int:
     configure()  # float64, compiled programs kept on disk
     from greybox._model.errors import InputError
     from greybox.io._atomic import check_output_dir
-    from greybox.io._params_file import load_params
+    from greybox.io._drawing import drawing_process
 
     if args.dt_ms is not None and not (math.isfinite(args.dt_ms) and args.dt_ms > 0):
         raise InputError(f"must be a positive number of ms, got {args.dt_ms}", field="--dt-ms")
     check_output_dir(args.out, force=args.force, inputs=[args.params])
-    from greybox._usercode import trusted_devices
-
     if args.duration_s is not None and not (math.isfinite(args.duration_s) and args.duration_s > 0):
         raise InputError(
             f"must be a positive number of seconds, got {args.duration_s}", field="--duration-s"
         )
+
+    # a drawing process's start (matplotlib) overlaps the simulation; it draws the figure
+    with drawing_process():
+        return _simulate_and_write(args, tick)
+
+
+def _simulate_and_write(args, tick) -> int:
+    from greybox._model.errors import InputError
+    from greybox._usercode import trusted_devices
+    from greybox.io._params_file import load_params
+
     with trusted_devices(args.params, args.trust_device):
         # least squares or process noise (params/2 and /3)
         fitted = with_initial_state(load_params(args.params), args.initial_state)

@@ -13,7 +13,9 @@ twice). Two ways:
   leaves idle; it shares the fit's figures with this process when they are drawn
   (`draw_figures`; the TCLab two-heater result: writing 1.4-1.6 -> 1.0 s).
 - `draw_many`: many result folders (`greybox fit-many`), shared out a folder at a time
-  among processes started for them and this one.
+  among processes started for them and this one;
+- `drawing_beside`: inside `drawing_process`, figures drawn there while this process writes
+  the rest of its result (`greybox simulate`).
 
 The work is shared as it goes (`_share`): the other processes take items from the front,
 each as it finishes one, and this process takes them from the back, until they meet, so a
@@ -45,10 +47,9 @@ _DRAWING = contextvars.ContextVar("greybox_drawing_process", default=None)
 
 
 def draw_figures(folder, jobs) -> None:
-    """Draw `figure_jobs` into `folder` (its figures/ made here); inside `drawing_process`
-    shared with that process."""
+    """Draw `figure_jobs` into `folder` (the folders of their paths made as they are drawn);
+    inside `drawing_process` shared with that process."""
     folder = Path(folder)
-    (folder / "figures").mkdir(exist_ok=True)
     helper = _DRAWING.get()
     shared = helper is not None and len(jobs) >= 2
     payloads = [_payload(folder, [job]) for job in jobs] if shared else []
@@ -59,6 +60,42 @@ def draw_figures(folder, jobs) -> None:
 
     with plots.png_writes_in_background():
         failed = _share([helper], payloads, lambda k: _draw_one(plots, folder, jobs[k]))
+    if failed:  # it failed or is gone: its jobs are drawn (or raise) here
+        _draw_here(folder, [jobs[k] for k in failed])
+
+
+@contextlib.contextmanager
+def drawing_beside(folder, jobs):
+    """Draw `jobs` into `folder` while the block runs (the caller's other writing): inside
+    `drawing_process` they go to that process first and are waited for when the block ends;
+    drawn here after the block where there is no such process, a job cannot be sent, or the
+    process failed (a drawing error is then raised here). On an error in the block no job is
+    handed out any more and those in hand are waited for (nothing is drawn into a folder its
+    caller is about to remove). `greybox simulate`: its figure is drawn while its tables are
+    written."""
+    folder = Path(folder)
+    helper = _DRAWING.get()
+    payloads = [_payload(folder, [job]) for job in jobs] if helper is not None else []
+    if not payloads or None in payloads:
+        yield
+        _draw_here(folder, jobs)
+        return
+    pending, lock = collections.deque(range(len(payloads))), threading.Lock()
+
+    def hand_out():
+        with lock:
+            k = pending.popleft() if pending else None
+        return None if k is None else (k, payloads[k])
+
+    helper.start(hand_out)
+    try:
+        yield
+    except BaseException:
+        with lock:
+            pending.clear()
+        helper.answers()
+        raise
+    failed = sorted(k for k, drawn in helper.answers() if not drawn)
     if failed:  # it failed or is gone: its jobs are drawn (or raise) here
         _draw_here(folder, [jobs[k] for k in failed])
 
@@ -126,6 +163,7 @@ def _draw_here(folder: Path, jobs) -> None:
 
 def _draw_one(plots, folder: Path, job) -> None:
     rel, function, args, kwargs = job
+    (folder / rel).parent.mkdir(parents=True, exist_ok=True)  # figures/ of a fit's result
     getattr(plots, function)(folder / rel, *args, **kwargs)
 
 

@@ -11,7 +11,7 @@ from greybox._lazy import lazy_names as _lazy_names
 # public name -> (module, attribute)
 _NAMES = {
     "Posterior": ("greybox._estimate.posterior", "Posterior"),
-    "Band": ("greybox._estimate.prediction", "Band"),
+    "Band": ("greybox._estimate.band", "Band"),
     "prediction_band": ("greybox._estimate.prediction", "prediction_band"),
     "delta_method": ("greybox._estimate.prediction", "delta_method"),
     "propagate": ("greybox._estimate.prediction", "propagate"),
@@ -22,7 +22,7 @@ __getattr__, __dir__ = _lazy_names(__name__, _NAMES)
 
 if _TYPE_CHECKING:  # static analysers and IDEs see the eager imports
     from greybox._estimate.posterior import Posterior as Posterior
-    from greybox._estimate.prediction import Band as Band
+    from greybox._estimate.band import Band as Band
     from greybox._estimate.prediction import prediction_band as prediction_band
     from greybox._estimate.prediction import delta_method as delta_method
     from greybox._estimate.prediction import propagate as propagate

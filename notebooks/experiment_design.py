@@ -38,8 +38,11 @@ import time
 from pathlib import Path
 
 import jax
+import greybox.io
 
-jax.config.update("jax_enable_x64", True)
+# float64, and compiled programs kept on disk as the greybox commands keep them (a second
+# run of this notebook loads them instead of compiling)
+greybox.io.configure_jax()
 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import math
 
-import diffrax as dfx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -192,7 +191,7 @@ def input_at(breaks, levels, t):
     return jnp.where(idx >= 0, levels[jnp.clip(idx, 0)], 0.0)
 
 
-ADJOINTS = {"forward": dfx.ForwardMode, "reverse": dfx.RecursiveCheckpointAdjoint}
+ADJOINTS = {"forward": "ForwardMode", "reverse": "RecursiveCheckpointAdjoint"}  # diffrax's
 
 
 def _adaptive_states(
@@ -213,6 +212,8 @@ def _adaptive_states(
     Kvaerno5 (implicit, L-stable ESDIRK; its Newton iterations take their tolerances from
     the step-size controller) instead of Tsit5."""
 
+    import diffrax as dfx  # here: a device simulated by ZOH never imports it (0.13 s)
+
     def vector_field(t, x, args):
         return model.vector_field(t, x, input_at(breaks, levels, t))
 
@@ -228,7 +229,7 @@ def _adaptive_states(
         x0,
         saveat=dfx.SaveAt(ts=eval_t),
         stepsize_controller=controller,
-        adjoint=ADJOINTS[adjoint](),
+        adjoint=getattr(dfx, ADJOINTS[adjoint])(),
         max_steps=max_steps,
         throw=False,
     )

@@ -399,7 +399,7 @@ def _file_mode(path: Path) -> int:
     """The permissions a written file gets: those of the file it replaces, else an ordinary
     new file's (0666 less the umask), as an editor or `open(path, "w")` would leave them."""
     try:
-        return path.stat().st_mode & 0o7777
+        return path.stat().st_mode & 0o777  # not its set-id or sticky bits
     except OSError:
         return 0o666 & ~_umask()
 

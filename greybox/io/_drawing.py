@@ -80,22 +80,15 @@ def drawing_beside(folder, jobs):
         yield
         _draw_here(folder, jobs)
         return
-    pending, lock = collections.deque(range(len(payloads))), threading.Lock()
-
-    def hand_out():
-        with lock:
-            k = pending.popleft() if pending else None
-        return None if k is None else (k, payloads[k])
-
-    helper.start(hand_out)
+    pending = _Pending(payloads)
+    helper.start(pending.hand_out)
     try:
         yield
     except BaseException:
-        with lock:
-            pending.clear()
+        pending.close()
         helper.answers()
         raise
-    failed = sorted(k for k, drawn in helper.answers() if not drawn)
+    failed = _not_drawn([helper])
     if failed:  # it failed or is gone: its jobs are drawn (or raise) here
         _draw_here(folder, [jobs[k] for k in failed])
 
@@ -124,6 +117,37 @@ def draw_many(deferred) -> None:
             helper.stop()
 
 
+class _Pending:
+    """The indices of `payloads` not yet handed out: drawing processes take them from the
+    front (`hand_out`, the function their `start` is given), this process from the back
+    (`take_back`); `close` hands out nothing more."""
+
+    def __init__(self, payloads):
+        self._payloads = payloads
+        self._left, self._lock = collections.deque(range(len(payloads))), threading.Lock()
+
+    def _take(self, pop):
+        with self._lock:
+            return pop() if self._left else None
+
+    def hand_out(self):
+        k = self._take(self._left.popleft)
+        return None if k is None else (k, self._payloads[k])
+
+    def take_back(self):
+        return self._take(self._left.pop)
+
+    def close(self) -> None:
+        with self._lock:
+            self._left.clear()
+
+
+def _not_drawn(helpers) -> list:
+    """The indices the `helpers` took and did not draw (one failed, or died), once every
+    item they took has finished."""
+    return sorted(k for helper in helpers for k, drawn in helper.answers() if not drawn)
+
+
 def _share(helpers, payloads, draw_here) -> list:
     """Draw the items `payloads` (by index): `helpers` take them from the front, each as it
     finishes one, while this process draws them from the back (`draw_here(index)`) until
@@ -131,26 +155,16 @@ def _share(helpers, payloads, draw_here) -> list:
     error here no item is handed out any more, and the helpers' items are waited for."""
     if not helpers:
         return []
-    pending, lock = collections.deque(range(len(payloads))), threading.Lock()
-
-    def take(pop):
-        with lock:
-            return pop() if pending else None
-
-    def hand_out():
-        k = take(pending.popleft)
-        return None if k is None else (k, payloads[k])
-
+    pending = _Pending(payloads)
     for helper in helpers:
-        helper.start(hand_out)
+        helper.start(pending.hand_out)
     try:
-        while (k := take(pending.pop)) is not None:
+        while (k := pending.take_back()) is not None:
             draw_here(k)
     finally:  # nothing is handed out any more; their items finished before this returns
-        with lock:
-            pending.clear()
-        answers = [a for helper in helpers for a in helper.answers()]
-    return sorted(k for k, drawn in answers if not drawn)
+        pending.close()
+        failed = _not_drawn(helpers)
+    return failed
 
 
 def _draw_here(folder: Path, jobs) -> None:

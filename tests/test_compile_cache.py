@@ -51,6 +51,24 @@ def test_a_cache_jax_already_has_is_left_as_it_is(tmp_path):
     assert jax.config.jax_enable_x64
 
 
+def _fresh_process(code: str, *args: str, environ=None) -> str:
+    """The output of `code` in a fresh interpreter (as a Dask worker or a user's script
+    starts), without the test session's compile cache, with `environ` added."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "GREYBOX_TEST"))}
+    out = subprocess.run(
+        [sys.executable, "-c", code, *args],
+        env={**env, **(environ or {})},
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    return out.stdout.strip()
+
+
 _WORKER = """
 import sys, jax
 from greybox._estimate.distributed import _use_compile_cache
@@ -63,21 +81,9 @@ jax.jit(lambda x: x * 2.0 + 1.0)(1.0).block_until_ready()
 
 
 def _worker(tmp_path, environ) -> str:
-    """A process as a Dask worker starts (a fresh interpreter, this environment), given the
-    client's cache settings: the folder its compiles went to."""
-    import subprocess
-    import sys
-
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "GREYBOX_TEST"))}
-    out = subprocess.run(
-        [sys.executable, "-c", _WORKER, str(tmp_path / "client")],
-        env={**env, **environ},
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=True,
-    )
-    return out.stdout.strip()
+    """A process as a Dask worker starts, given the client's cache settings: the folder its
+    compiles went to."""
+    return _fresh_process(_WORKER, str(tmp_path / "client"), environ=environ)
 
 
 def test_a_local_clusters_workers_compile_into_the_clients_cache(tmp_path):
@@ -120,7 +126,6 @@ def test_only_a_local_cluster_is_sent_the_clients_cache(monkeypatch):
 
 
 _SCRIPT = """
-import sys
 import greybox.io
 folder = greybox.io.configure_jax()
 import jax
@@ -130,19 +135,9 @@ jax.jit(lambda x: x * 2.0 + 1.0)(1.0).block_until_ready()
 
 
 def test_a_script_sets_jax_up_as_the_commands_do(tmp_path):
-    import subprocess
-    import sys
-
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "GREYBOX_TEST"))}
-    env["GREYBOX_COMPILE_CACHE"] = str(tmp_path / "cache")
-    env["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"  # the lambda compiles in ms
-    out = subprocess.run(
-        [sys.executable, "-c", _SCRIPT],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        check=True,
-    )
-    assert out.stdout.split() == [str(tmp_path / "cache"), "True"]
+    environ = {
+        "GREYBOX_COMPILE_CACHE": str(tmp_path / "cache"),
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",  # the lambda compiles in ms
+    }
+    assert _fresh_process(_SCRIPT, environ=environ).split() == [str(tmp_path / "cache"), "True"]
     assert any(p.name.startswith("jit__lambda") for p in (tmp_path / "cache").iterdir())

@@ -102,7 +102,6 @@ def test_other_bounds_scales_and_priors_compile_no_solver(compiles):
     assert scales and scales != [q.scale for q in first.free if q.path == "camera.offset_m"]
 
 
-
 def test_other_step_budgets_and_tolerances_compile_no_solver(compiles):
     """The optimiser's step budget and tolerances are inputs of the compiled solver too (every
     budget up to `MIN_STEP_BOUND` shares one program). Truth that they are the ones used: a
@@ -116,6 +115,7 @@ def test_other_step_budgets_and_tolerances_compile_no_solver(compiles):
     assert [n for n in compiles[before:] if "_solve" in n] == []
     assert short.status == "ran out of steps" and short.n_steps == 2 + 2  # and the re-fit's
     assert default.converged and loose.n_steps < default.n_steps
+
 
 def test_a_batch_of_other_bounds_is_one_structure():
     """`fit_batch` groups devices by structure: devices whose free parameters differ only

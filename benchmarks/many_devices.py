@@ -23,13 +23,15 @@ constant are drawn from a known log-normal population. It measures
 (c) `solve_share`: the fraction of the warm batch's wall time spent inside compiled code:
     the batched solver (`_batch._solve_many`, waited for, `solve_s`) and the vmapped fitted
     models (`_batch._fitted_models`, `models_s`), both run back to back by the calling
-    thread; beside it the host phases (`prepare_s`: `_batch._prepare`, before any solve;
-    `residual_tests_s`: the residual tests of each wave of devices in one vectorised pass;
-    `sandwich_s`: the model-error regressions and HAC meats of each wave, stacked;
-    `scores_s`: the fit %, outliers and noise ceilings of each wave's runs, stacked;
-    `assemble_s`: the per-device `_fit._assemble`). The last three run in `fit_batch`'s host
-    thread while the next wave solves, so the phases add up to more than the wall time;
-    `host_overlap_s` is by how much;
+    thread; beside it the host phases (`prepare_s`: the problems made, `plan_s` of it
+    before any solve (`_batch._plan`: checks, schedules padded jointly), the rest
+    (`_batch._build`, in blocks of 64 devices) in the host thread, the first block before the
+    first solve and the others beside it; `residual_tests_s`: the residual tests of each
+    wave of devices in one vectorised pass; `sandwich_s`: the model-error regressions and
+    HAC meats of each wave, stacked; `scores_s`: the fit %, outliers and noise ceilings of
+    each wave's runs, stacked; `assemble_s`: the per-device `_fit._assemble`). These run in
+    `fit_batch`'s host thread while the next wave solves, so the phases add up to more than
+    the wall time; `host_overlap_s` is by how much;
 (c') `compiled_alone_s`: the same compiled calls run alone (`compiled_alone`: every wave's
     starts, re-fits and models back to back, problems built beforehand, no host work), and
     `compiled_alone_share` = that over the batch's wall time: beside the host thread the
@@ -271,16 +273,17 @@ def synthetic_devices(n, seed=0, population=POPULATION, runs=RUNS, outlier=None)
 
 
 class PhaseTimer:
-    """Wall time spent in `_batch._solve_many` (waited for), `_batch._prepare`, the
-    vectorised residual tests of every device (`_batch.analyse_residuals`), the fitted
-    models (`_batch._fitted_models`, waited for), the sandwich meats of each wave of devices
-    (`_fit._sandwich_meats`), the runs' scores of each wave (`_fit._scored_runs_many`) and
-    the per-device `_fit._assemble` while active: the module attributes are wrapped, then
-    restored."""
+    """Wall time spent in `_batch._solve_many` (waited for), `_batch._plan` and `_batch._build`
+    (the two halves of preparing the problems), the vectorised residual tests of every
+    device (`_batch.analyse_residuals`), the fitted models (`_batch._fitted_models`, waited
+    for), the sandwich meats of each wave of devices (`_fit._sandwich_meats`), the runs'
+    scores of each wave (`_fit._scored_runs_many`) and the per-device `_fit._assemble` while
+    active: the module attributes are wrapped, then restored."""
 
     NAMES = {
         "solve": ("_solve_many", True),
-        "prepare": ("_prepare", False),
+        "plan": ("_plan", False),
+        "build": ("_build", False),
         "residual_tests": ("analyse_residuals", False),
         "models": ("_fitted_models", True),
     }
@@ -557,7 +560,8 @@ def main(argv=None):
         "batch_first_s": round(batch_first_s, 3),
         "solve_share": round((phases.t["solve"] + phases.t["models"]) / batch_s, 3),
         "solve_s": round(phases.t["solve"], 3),
-        "prepare_s": round(phases.t["prepare"], 3),
+        "prepare_s": round(phases.t["plan"] + phases.t["build"], 3),
+        "plan_s": round(phases.t["plan"], 3),
         "residual_tests_s": round(phases.t["residual_tests"], 3),
         "models_s": round(phases.t["models"], 3),
         "sandwich_s": round(phases.t["sandwich"], 3),

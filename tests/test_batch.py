@@ -131,6 +131,31 @@ def test_a_batch_of_another_size_reuses_the_solver_and_skips_its_padding(batch):
         np.testing.assert_array_equal(small[d.name].raw, out[d.name].raw)
 
 
+def test_devices_built_block_by_block_give_the_one_block_results(batch, monkeypatch):
+    """On a CPU the problems are built in blocks of devices while the first ones solve
+    (`_build_blocks`); their schedules are padded jointly beforehand (`_plan`), so blocks of
+    5 (three waves) compile no solver beyond the fixture's one block and give its results
+    bit for bit (the same compiled solve of the same padded problem)."""
+    from greybox._estimate import batch as _batch
+    from greybox._platform import on_accelerator
+
+    if on_accelerator():
+        pytest.skip("an accelerator builds one block (its chunk is sized from all the work)")
+    devices, _, out, _ = batch
+    monkeypatch.setattr(
+        _batch, "_build_blocks", lambda n, *_a: [range(a, min(a + 5, n)) for a in range(0, n, 5)]
+    )
+    with backend_compiles() as compiled:
+        blocks = fit_batch(devices, SPEC.free_parameters())
+    assert not [n for n in compiled if "_solve_many" in n], compiled
+    assert blocks.groups == 1 and blocks.n_calls == 6  # three waves: starts and refits each
+    for d in devices:
+        a, b = blocks[d.name], out[d.name]
+        np.testing.assert_array_equal(a.raw, b.raw)
+        np.testing.assert_array_equal(a.covariance_raw, b.covariance_raw)
+        np.testing.assert_array_equal(a.residuals.p_value, b.residuals.p_value)
+
+
 def test_a_batch_pauses_the_cyclic_collector_and_restores_it(batch, monkeypatch):
     """The waves are assembled with the cyclic collector off (`greybox._collector`: its walks
     of a growing heap were 0.2-0.5 s of a 512-device batch); it is on again afterwards."""

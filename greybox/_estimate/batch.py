@@ -236,6 +236,7 @@ class _Group:
     members: list
     static: object
     stacked: object
+    key: object = None  # the structure: (tree, which leaves are arrays) of a member's problem
 
     def rows(self, positions, *extra) -> object:
         """The stacked leaves of members at `positions`, and `extra` arrays, on the device in
@@ -287,7 +288,25 @@ def _check(device: Device, free, method):
 
 
 def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver):
-    """Per-device problems (padded jointly), start points and first noise scales."""
+    """Per-device problems (padded jointly), start points and first noise scales: `_plan`
+    then `_build` of every device at once."""
+    plan = _plan(devices, free, method, loss)
+    part, groups = _build(
+        plan, range(len(plan)), loss, huber_c, student_nu, sigma, n_starts, seed, solver
+    )
+    return [part[i] for i in range(len(plan))], groups
+
+
+def _plan(devices, free, method, loss) -> list:
+    """The cheap first half of `_prepare`, for every device at once: the checks, each
+    device's free parameters (scaled from its start), its simulation method and its runs'
+    schedules, padded jointly. Returns (device, free, method, padded schedule) per device.
+
+    Joint padding sets the compiled shapes (`stacked_schedules` buckets the lengths: one
+    compiled solver per structure), so it is done here over all devices, and the problems
+    `_build` makes from any subset of them have the shapes they would have had together.
+    Padding is inert: a structure whose runs are shorter than another's only carries more
+    zero-weight frames."""
     if loss not in _fit.LOSSES:
         raise ValueError(f"loss: {loss!r} is unknown; use one of {_fit.LOSSES}")
     paths = [p.path for p in free]
@@ -297,9 +316,7 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
     if len(set(names)) != len(names):
         raise ValueError("devices: two devices share a name; names must be unique")
     # the runs of all devices whose schedules stack (same input channels and readout
-    # quadrature size) built and padded once, jointly (`stacked_schedules` buckets the
-    # lengths: one compiled solver per structure); padding is inert, so a structure whose
-    # runs are shorter than another's only carries more zero-weight frames
+    # quadrature size) built and padded once, jointly
     checked, families = [], {}
     for d in devices:
         f = tuple(d.free) if d.free is not None else free
@@ -317,8 +334,17 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
             n_e = len(checked[i][0].experiments)
             padded[i] = {k: v[start : start + n_e] for k, v in joint.items()}
             start += n_e
+    return [(d, f, m, sched) for (d, f, m, _), sched in zip(checked, padded)]
+
+
+def _build(plan, indices, loss, huber_c, student_nu, sigma, n_starts, seed, solver) -> tuple:
+    """The second half of `_prepare`, for the devices of `plan` at `indices`: their problems,
+    grouped by structure (each group's array leaves stacked once), start points and first
+    noise scales. Returns ({index: `_Prepared`}, groups); a device's entry does not depend on
+    which others are built with it."""
     built = []
-    for (d, f, m, _), sched in zip(checked, padded):
+    for i in indices:
+        d, f, m, sched = plan[i]
         sig_d = d.sigma if d.sigma is not None else _device_sigma(sigma, d.name)
         source = _fit._noise_source(d.experiments, sig_d)
         prob = _fit._Problem.build(
@@ -340,35 +366,35 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
         raw0 = _fit._initial_raw(prob, d.model)
         # the starting values live in raw0; `FreeParameter.initial` takes no part in the static
         # part's equality, so every device of the same structure shares one compiled solver
-        built.append((d, prob, f, source, sig_d, raw0))
+        built.append((i, d, prob, f, source, sig_d, raw0))
 
     # group by structure (static fields), each group's array leaves stacked once
     # (one flatten per device: its tree and where its array leaves sit are its structure)
     groups: dict = {}
-    flat = [jtu.tree_flatten(prob) for _, prob, *_rest in built]
-    for i, (leaves, tree) in enumerate(flat):
+    flat = [jtu.tree_flatten(prob) for _, _, prob, *_rest in built]
+    for k, (leaves, tree) in enumerate(flat):
         key = (tree, tuple(eqx.is_array(x) for x in leaves))
-        groups.setdefault(key, []).append(i)
-    prepared: list = [None] * len(built)
+        groups.setdefault(key, []).append(k)
+    prepared: dict = {}
     out_groups = []
-    for (_, is_array), members in groups.items():
-        dyn, static = eqx.partition(built[members[0]][1], eqx.is_array)
-        columns = [k for k, a in enumerate(is_array) if a]  # dyn's leaves, in flatten order
+    for key, rows in groups.items():
+        dyn, static = eqx.partition(built[rows[0]][2], eqx.is_array)
+        columns = [c for c, a in enumerate(key[1]) if a]  # dyn's leaves, in flatten order
         stacked = jtu.tree_unflatten(
             jtu.tree_structure(dyn),
-            [np.stack([np.asarray(flat[i][0][k]) for i in members]) for k in columns],
+            [np.stack([np.asarray(flat[k][0][c]) for k in rows]) for c in columns],
         )
-        group = _Group(list(members), static, stacked)
+        group = _Group([built[k][0] for k in rows], static, stacked, key)
         out_groups.append(group)
-        for row, i in enumerate(members):
-            d, prob, f, source, sig_d, raw0 = built[i]
-            k = n_starts
-            if k is None:
-                k = _fit.AUTO_STARTS if len(prob.shared) > 2 else 1
-            if int(k) < 1:
-                raise ValueError(f"n_starts: {k} starts; give at least 1 (or None for auto)")
+        for row, k in enumerate(rows):
+            i, d, prob, f, source, sig_d, raw0 = built[k]
+            n = n_starts
+            if n is None:
+                n = _fit.AUTO_STARTS if len(prob.shared) > 2 else 1
+            if int(n) < 1:
+                raise ValueError(f"n_starts: {n} starts; give at least 1 (or None for auto)")
             rng = np.random.default_rng(seed)
-            starts = [raw0] + [_fit._perturbed(prob, raw0, rng) for _ in range(int(k) - 1)]
+            starts = [raw0] + [_fit._perturbed(prob, raw0, rng) for _ in range(int(n) - 1)]
             n_y = prob.y.shape[-1]
             if source == "estimated":
                 sig = np.full(n_y, _fit._initial_sigma_guess(d.experiments))
@@ -546,54 +572,80 @@ def _fit_output_error(
     devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, max_steps, rtol,
     atol, solver, chunk_size, memory_budget_bytes, say,
 ) -> BatchResult:
-    """`fit_batch` of output-error (least-squares) problems, group by group and, within a
-    group, wave by wave (a wave: the devices whose solves fill one chunk). This thread runs
-    the compiled calls of each wave (its starts, its re-fits at the re-estimated noise, its
-    fitted models) back to back, while one host thread assembles the waves already solved
-    (residual tests and `_fit._assemble`): a compiled call releases the interpreter, so on
-    two or more cores the host work of wave k overlaps the solves of wave k + 1 instead of
-    following all of them."""
+    """`fit_batch` of output-error (least-squares) problems, block by block of devices and,
+    within a block's group of one structure, wave by wave (a wave: the devices whose solves
+    fill one chunk). This thread runs the compiled calls of each wave (its starts, its
+    re-fits at the re-estimated noise, its fitted models) back to back, while one host
+    thread builds the blocks' problems ahead of them and then assembles the waves already
+    solved (residual tests and `_fit._assemble`): a compiled call releases the interpreter,
+    so on two or more cores the host work overlaps the solves instead of preceding or
+    following all of them. Only the first block is built before the first solve
+    (`_build_blocks`)."""
     max_steps = 200 if max_steps is None else int(max_steps)
-    prepared, groups = _prepare(
-        devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver
-    )
+    plan = _plan(devices, free, method, loss)
     opts = (float(rtol), float(atol), int(max_steps))
     budget, max_chunk = device_budget()
     if memory_budget_bytes is not None:
         budget = float(memory_budget_bytes)
+    padding_free = not on_accelerator()
     counter = [0]
-    results, item_bytes, chunk_used = {}, 0, 0
+    results, item_bytes, chunk_used, structures = {}, 0, 0, set()
+    prepared, solved_devices = [None] * len(plan), 0
     host = ThreadPoolExecutor(max_workers=1, thread_name_prefix="greybox-assemble")
     try:
+        blocks = [
+            host.submit(
+                _build, plan, block, loss, huber_c, student_nu, sigma, n_starts, seed, solver
+            )
+            for block in _build_blocks(len(plan), max_chunk, padding_free)
+        ]
         assembled = []
-        for g, group in enumerate(groups):
-            members = group.members
-            n_items = sum(len(prepared[i].starts) for i in members)
-            b = bytes_per_item(prepared[members[0]].problem)
-            chunk = (
-                int(chunk_size)
-                if chunk_size
-                else chunk_size_for(b, budget, n_items, max_chunk, not on_accelerator())
-            )
-            item_bytes, chunk_used = max(item_bytes, b), max(chunk_used, chunk)
-            label = f"group {g + 1}/{len(groups)}"
-            say(
-                f"{label}: {len(members)} devices, {n_items} solves, chunks of {chunk} "
-                f"(~{b * chunk / 1e6:.0f} MB each)"
-            )
-            waves = _waves(members, [len(prepared[i].starts) for i in members], chunk)
-            for w, wave in enumerate(waves):
-                wave_label = f"{label} wave {w + 1}/{len(waves)}"
-                solved = _solve_wave(prepared, wave, chunk, opts, say, wave_label, counter)
-                assembled.append(host.submit(_assemble_wave, prepared, wave, *solved))
-            say(f"{label}: {len(members)} devices solved")
+        for block in blocks:
+            part, groups = block.result()
+            for i, p in part.items():
+                prepared[i] = p
+            for group in groups:
+                members = group.members
+                n_items = sum(len(prepared[i].starts) for i in members)
+                b = bytes_per_item(prepared[members[0]].problem)
+                chunk = (
+                    int(chunk_size)
+                    if chunk_size
+                    else chunk_size_for(b, budget, n_items, max_chunk, padding_free)
+                )
+                item_bytes, chunk_used = max(item_bytes, b), max(chunk_used, chunk)
+                if group.key not in structures:
+                    structures.add(group.key)
+                    say(
+                        f"structure {len(structures)}: chunks of {chunk} solves "
+                        f"(~{b * chunk / 1e6:.0f} MB each)"
+                    )
+                for wave in _waves(members, [len(prepared[i].starts) for i in members], chunk):
+                    label = (
+                        f"devices {solved_devices + 1}-{solved_devices + len(wave)} "
+                        f"of {len(plan)}"
+                    )
+                    solved = _solve_wave(prepared, wave, chunk, opts, say, label, counter)
+                    solved_devices += len(wave)
+                    assembled.append(host.submit(_assemble_wave, prepared, wave, *solved))
+        say(f"{len(plan)} devices solved")
         for future in assembled:
             results.update(future.result())
-    finally:  # an error or an interrupt: drop the waves not yet assembled, do not wait on them
+    finally:  # an error or an interrupt: drop the work not yet done, do not wait on it
         host.shutdown(wait=True, cancel_futures=True)
     say(f"{len(results)} devices assembled")
     ordered = {d.name: results[d.name] for d in devices}
-    return BatchResult(ordered, len(groups), chunk_used, counter[0], item_bytes)
+    return BatchResult(ordered, len(structures), chunk_used, counter[0], item_bytes)
+
+
+def _build_blocks(n: int, max_chunk: int, padding_free: bool) -> list:
+    """The devices' indices in the blocks `_build` makes one after another: where a chunk's
+    padding is free (a CPU) blocks of `max_chunk` devices, so the first wave solves while the
+    others are built; elsewhere one block (an accelerator's chunk is sized from the whole
+    group's number of solves, which must be known first)."""
+    if not padding_free:
+        return [range(n)]
+    return [range(a, min(a + max_chunk, n)) for a in range(0, n, max_chunk)]
 
 
 def _waves(members, n_starts, chunk) -> list:

@@ -160,6 +160,12 @@ With the residual tests' p-values in unmasked passes and the shuffles held in on
 well (1403e38), three alternating runs against 80e954b (loads 1.1-1.4): 7,835, 9,627, 8,821
 -> 10,044, 10,454, 10,705 fits/min; residual_tests_s 1.53-1.78 -> 1.23-1.35; solve_share
 0.55-0.68 -> 0.59-0.61; compiled_alone_share 0.46-0.50 -> 0.51-0.59; the same results.
+With the problems built in blocks by the host thread ahead of the waves (2026-11-29, four
+alternating pairs against 74fc79d, four warm batches each): walls 2.51-3.28 s before and
+2.37-3.03 s after, within this machine's noise; solve_share 0.62-0.64 -> 0.67-0.69 (0.72 in
+a full run: solve_s 1.30 -> 1.55 s, the solves slower beside the build), compiled_alone_share
+0.55 -> 0.57; the same estimates to the bit. Its gain is the first progress line of a large
+batch (2,048 devices: 2.3-2.5 -> 1.4-1.6 s), not the throughput.
 """
 
 from __future__ import annotations

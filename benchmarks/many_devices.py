@@ -280,7 +280,7 @@ def synthetic_devices(n, seed=0, population=POPULATION, runs=RUNS, outlier=None)
 
 class PhaseTimer:
     """Wall time spent in `_batch._solve_many` (waited for), `_batch._plan` and `_batch._build`
-    (the two halves of preparing the problems), the vectorised residual tests of every
+    (the two parts of preparing the problems), the vectorised residual tests of every
     device (`_batch.analyse_residuals`), the fitted models (`_batch._fitted_models`, waited
     for), the sandwich meats of each wave of devices (`_fit._sandwich_meats`), the runs'
     scores of each wave (`_fit._scored_runs_many`) and the per-device `_fit._assemble` while

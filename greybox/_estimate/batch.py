@@ -298,7 +298,7 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
 
 
 def _plan(devices, free, method, loss) -> list:
-    """The cheap first half of `_prepare`, for every device at once: the checks, each
+    """The first part of `_prepare`, for every device at once: the checks, each
     device's free parameters (scaled from its start), its simulation method and its runs'
     schedules, padded jointly. Returns (device, free, method, padded schedule) per device.
 
@@ -338,7 +338,7 @@ def _plan(devices, free, method, loss) -> list:
 
 
 def _build(plan, indices, loss, huber_c, student_nu, sigma, n_starts, seed, solver) -> tuple:
-    """The second half of `_prepare`, for the devices of `plan` at `indices`: their problems,
+    """The rest of `_prepare`, for the devices of `plan` at `indices`: their problems,
     grouped by structure (each group's array leaves stacked once), start points and first
     noise scales. Returns ({index: `_Prepared`}, groups); a device's entry does not depend on
     which others are built with it."""

@@ -597,7 +597,7 @@ def _fit_output_error(
             host.submit(
                 _build, plan, block, loss, huber_c, student_nu, sigma, n_starts, seed, solver
             )
-            for block in _build_blocks(len(plan), max_chunk, padding_free)
+            for block in _build_blocks(len(plan), max(max_chunk, chunk_size or 0), padding_free)
         ]
         assembled = []
         for block in blocks:
@@ -638,14 +638,15 @@ def _fit_output_error(
     return BatchResult(ordered, len(structures), chunk_used, counter[0], item_bytes)
 
 
-def _build_blocks(n: int, max_chunk: int, padding_free: bool) -> list:
+def _build_blocks(n: int, size: int, padding_free: bool) -> list:
     """The devices' indices in the blocks `_build` makes one after another: where a chunk's
-    padding is free (a CPU) blocks of `max_chunk` devices, so the first wave solves while the
-    others are built; elsewhere one block (an accelerator's chunk is sized from the whole
-    group's number of solves, which must be known first)."""
+    padding is free (a CPU) blocks of `size` devices (the most solves of a chunk, so a
+    block of one-start devices fills one), and the first wave solves while the others are
+    built; elsewhere one block (an accelerator's chunk is sized from the whole group's
+    number of solves, which must be known first)."""
     if not padding_free:
         return [range(n)]
-    return [range(a, min(a + max_chunk, n)) for a in range(0, n, max_chunk)]
+    return [range(a, min(a + size, n)) for a in range(0, n, size)]
 
 
 def _waves(members, n_starts, chunk) -> list:

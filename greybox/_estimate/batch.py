@@ -580,7 +580,8 @@ def _fit_output_error(
     solved (residual tests and `_fit._assemble`): a compiled call releases the interpreter,
     so on two or more cores the host work overlaps the solves instead of preceding or
     following all of them. Only the first block is built before the first solve
-    (`_build_blocks`)."""
+    (`_build_blocks`), so progress starts sooner; the wall time is set by the interpreter's
+    work either way (DEVELOPING.md, "The core API in one screen": the batch's host work)."""
     max_steps = 200 if max_steps is None else int(max_steps)
     plan = _plan(devices, free, method, loss)
     opts = (float(rtol), float(atol), int(max_steps))

@@ -236,7 +236,7 @@ class _Group:
     members: list
     static: object
     stacked: object
-    key: object = None  # the structure: (tree, which leaves are arrays) of a member's problem
+    key: object  # the structure: (tree, which leaves are arrays) of a member's problem
 
     def rows(self, positions, *extra) -> object:
         """The stacked leaves of members at `positions`, and `extra` arrays, on the device in
@@ -590,7 +590,9 @@ def _fit_output_error(
         budget = float(memory_budget_bytes)
     padding_free = not on_accelerator()
     counter = [0]
-    results, item_bytes, chunk_used, structures = {}, 0, 0, set()
+    # chunk size per structure: on a CPU the same for all its blocks; elsewhere there is
+    # one block, whose group is the whole structure (what `chunk_size_for` sizes)
+    results, item_bytes, chunks = {}, 0, {}
     prepared, solved_devices = [None] * len(plan), 0
     host = ThreadPoolExecutor(max_workers=1, thread_name_prefix="greybox-assemble")
     try:
@@ -607,20 +609,20 @@ def _fit_output_error(
                 prepared[i] = p
             for group in groups:
                 members = group.members
-                n_items = sum(len(prepared[i].starts) for i in members)
-                b = bytes_per_item(prepared[members[0]].problem)
-                chunk = (
-                    int(chunk_size)
-                    if chunk_size
-                    else chunk_size_for(b, budget, n_items, max_chunk, padding_free)
-                )
-                item_bytes, chunk_used = max(item_bytes, b), max(chunk_used, chunk)
-                if group.key not in structures:
-                    structures.add(group.key)
-                    say(
-                        f"structure {len(structures)}: chunks of {chunk} solves "
-                        f"(~{b * chunk / 1e6:.0f} MB each)"
+                if group.key not in chunks:  # a structure's first group sizes its chunks
+                    n_items = sum(len(prepared[i].starts) for i in members)
+                    b = bytes_per_item(prepared[members[0]].problem)
+                    chunks[group.key] = (
+                        int(chunk_size)
+                        if chunk_size
+                        else chunk_size_for(b, budget, n_items, max_chunk, padding_free)
                     )
+                    item_bytes = max(item_bytes, b)
+                    say(
+                        f"structure {len(chunks)}: chunks of {chunks[group.key]} solves "
+                        f"(~{b * chunks[group.key] / 1e6:.0f} MB each)"
+                    )
+                chunk = chunks[group.key]
                 for wave in _waves(members, [len(prepared[i].starts) for i in members], chunk):
                     label = (
                         f"devices {solved_devices + 1}-{solved_devices + len(wave)} "
@@ -636,7 +638,7 @@ def _fit_output_error(
         host.shutdown(wait=True, cancel_futures=True)
     say(f"{len(results)} devices assembled")
     ordered = {d.name: results[d.name] for d in devices}
-    return BatchResult(ordered, len(structures), chunk_used, counter[0], item_bytes)
+    return BatchResult(ordered, len(chunks), max(chunks.values()), counter[0], item_bytes)
 
 
 def _build_blocks(n: int, size: int, padding_free: bool) -> list:

@@ -533,6 +533,7 @@ def test_a_column_in_its_si_unit_is_read_without_loading_pint():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
 
+
 def test_a_logit_value_is_scipys_expit_to_the_bit():
     """A logit-transformed parameter's value from its raw number without importing scipy
     (~0.1 s of `greybox simulate`): the same numbers as scipy.special.expit, overflow and

@@ -517,7 +517,6 @@ def test_times_in_years_are_refused(unit):
     assert time_conversion("min") == 60.0 and time_conversion("h") == 3600.0
 
 
-
 def test_a_column_in_its_si_unit_is_read_without_loading_pint():
     """`t_s`, `T_K`: scale 1, offset 0, without importing pint (~0.5 s of every command)."""
     import subprocess

@@ -1,6 +1,7 @@
 """Many devices (issue 19): batched fits equal single fits, the population model recovers a
 known population and flags a planted outlier, and a Dask batch survives a killed worker."""
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -156,6 +157,62 @@ def test_devices_built_block_by_block_give_the_one_block_results(batch, monkeypa
         np.testing.assert_array_equal(a.residuals.p_value, b.residuals.p_value)
 
 
+def _with_runs(device, **changes):
+    """`device` with `changes` made to every run."""
+    runs = tuple(dataclasses.replace(e, **changes) for e in device.experiments)
+    return dataclasses.replace(device, experiments=runs)
+
+
+def _blanked(device):
+    """`device` with every reading but each run's first dropped (NaN): 3 readings for 5
+    parameters (two shared, an offset per run)."""
+    runs = []
+    for e in device.experiments:
+        y = np.full_like(e.y, np.nan)
+        y[0] = e.y[0]
+        runs.append(dataclasses.replace(e, y=y))
+    return dataclasses.replace(device, experiments=tuple(runs))
+
+
+def _first_run_noisy(device):
+    """`device` whose first run alone carries a per-frame noise level."""
+    first, *rest = device.experiments
+    first = dataclasses.replace(first, sigma=np.full_like(first.y, 1e-7))
+    return dataclasses.replace(device, experiments=(first, *rest))
+
+
+@pytest.mark.parametrize(
+    "spoil, sigma, message",
+    [
+        (_blanked, None, "valid frames cannot determine"),
+        (lambda d: _with_runs(d, settings={"thermal.no_such_m": 1.0}), None, "no_such_m"),
+        (lambda d: d, -1.0, "sigma must be > 0"),
+        (_first_run_noisy, None, "per-frame noise level"),
+    ],
+    ids=["too few readings", "unknown setting", "negative sigma", "per-frame noise mixed"],
+)
+def test_a_bad_device_late_in_the_batch_is_refused_before_any_solve(
+    batch, monkeypatch, spoil, sigma, message
+):
+    """Every device's input is checked before the first solve, as one `greybox.fit` each
+    would check it, though the problems are built block by block while the first blocks solve
+    (`_build_blocks`): a bad last device costs no work and says which device it is."""
+    from greybox._estimate import batch as _batch
+
+    devices, _, _, _ = batch
+    monkeypatch.setattr(
+        _batch, "_build_blocks", lambda n, *_a: [range(a, min(a + 5, n)) for a in range(0, n, 5)]
+    )
+    bad = spoil(devices[-1])
+    sigmas = {bad.name: sigma} if sigma is not None else None
+    progress = []
+    with pytest.raises(ValueError, match=message) as err:
+        fit_batch([*devices[:-1], bad], SPEC.free_parameters(), sigma=sigmas,
+                  progress=progress.append)  # fmt: skip
+    assert str(err.value).startswith(f"{bad.name}: ")
+    assert not [line for line in progress if "done" in line], progress
+
+
 def test_a_batch_pauses_the_cyclic_collector_and_restores_it(batch, monkeypatch):
     """The waves are assembled with the cyclic collector off (`greybox._collector`: its walks
     of a growing heap were 0.2-0.5 s of a 512-device batch); it is on again afterwards."""
@@ -204,7 +261,6 @@ def test_padding_items_are_skipped_on_a_cpu():
 
 def test_a_result_survives_pickling_whole(batch):
     # results cross processes by pickle (fit_distributed), their run models as leaves only
-    import dataclasses
     import pickle
 
     import jax

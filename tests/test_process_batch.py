@@ -134,3 +134,16 @@ def test_records_of_other_lengths_ride_in_the_same_group(devices, batch):
     for d in devices:
         log_l = batch[d.name].log_likelihood
         assert again[d.name].log_likelihood == pytest.approx(log_l, rel=1e-10)
+
+
+def test_a_bad_device_is_refused_by_name_before_any_solve(devices):
+    """Every device is set up (and so checked) before the batch solves any, and the error
+    says which device failed: here the last one names a parameter its model lacks."""
+    from greybox.parameters import FreeParameter
+
+    bad = dataclasses.replace(devices[-1], free=(*od.FREE, FreeParameter("no_such_K")))
+    progress = []
+    with pytest.raises(ValueError, match="no_such_K") as err:
+        greybox.fit_batch([*devices[:-1], bad], od.FREE, noise=NOISE, progress=progress.append)
+    assert str(err.value).startswith(f"{bad.name}: ")
+    assert not progress

@@ -38,12 +38,14 @@ Pure: no printing, plotting or files; `progress` receives short text lines.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import math
 import os
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -54,8 +56,9 @@ from greybox._collector import collector_paused
 from greybox._compile import jit
 from greybox._estimate import fit as _fit
 from greybox._estimate.blas import small_blas
-from greybox._estimate.problem import best_start
+from greybox._estimate.problem import best_start, n_starts_for, settings_matrix
 from greybox._estimate.problem import solve_bytes as bytes_per_item
+from greybox._estimate.problem import split as split_free
 from greybox._estimate.residuals import analyse_many as analyse_residuals
 from greybox._model.data import Experiment
 from greybox._model.device import check_method
@@ -290,17 +293,17 @@ def _check(device: Device, free, method):
 def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, seed, solver):
     """Per-device problems (padded jointly), start points and first noise scales: `_plan`
     then `_build` of every device at once."""
-    plan = _plan(devices, free, method, loss)
-    part, groups = _build(
-        plan, range(len(plan)), loss, huber_c, student_nu, sigma, n_starts, seed, solver
-    )
+    plan = _plan(devices, free, method, loss, sigma, n_starts)
+    part, groups = _build(plan, range(len(plan)), loss, huber_c, student_nu, n_starts, seed, solver)
     return [part[i] for i in range(len(plan))], groups
 
 
-def _plan(devices, free, method, loss) -> list:
-    """The first part of `_prepare`, for every device at once: the checks, each
-    device's free parameters (scaled from its start), its simulation method and its runs'
-    schedules, padded jointly. Returns (device, free, method, padded schedule) per device.
+def _plan(devices, free, method, loss, sigma=None, n_starts=None) -> list:
+    """The first part of `_prepare`, for every device at once: the checks (every one a
+    device's input can fail, `_checked_input`, so a bad device late in a large batch is
+    refused before any solve, not when its block is built), each device's free parameters
+    (scaled from its start), its simulation method, its noise and its runs' schedules,
+    padded jointly. Returns a `_Planned` per device.
 
     Joint padding sets the compiled shapes (`stacked_schedules` buckets the lengths: one
     compiled solver per structure), so it is done here over all devices, and the problems
@@ -315,38 +318,88 @@ def _plan(devices, free, method, loss) -> list:
     names = [d.name for d in devices]
     if len(set(names)) != len(names):
         raise ValueError("devices: two devices share a name; names must be unique")
+    n_starts_for(n_starts, ())  # a count below 1 is refused here, before any solve
     # the runs of all devices whose schedules stack (same input channels and readout
     # quadrature size) built and padded once, jointly
     checked, families = [], {}
     for d in devices:
         f = tuple(d.free) if d.free is not None else free
-        m = _check(d, f, method)
-        f = tuple(p.with_scale_from(v) for p, v in zip(f, _fit._start_values(f, d.model)))
+        with _naming(d.name):
+            m = _check(d, f, method)
+            f = tuple(p.with_scale_from(v) for p, v in zip(f, _fit._start_values(f, d.model)))
+            noise = _checked_input(d, f, sigma)
         runs = schedule_runs(d.model, d.experiments)
         _, _, _, offsets, n_u = runs[0]
         families.setdefault((n_u, np.size(offsets)), []).append(len(checked))
-        checked.append((d, f, m, runs))
+        checked.append((d, f, m, noise, runs))
     padded = [None] * len(checked)
     for members in families.values():
-        joint = stacked_schedules([r for i in members for r in checked[i][3]], on_device=False)
+        joint = stacked_schedules([r for i in members for r in checked[i][4]], on_device=False)
         start = 0
         for i in members:
             n_e = len(checked[i][0].experiments)
             padded[i] = {k: v[start : start + n_e] for k, v in joint.items()}
             start += n_e
-    return [(d, f, m, sched) for (d, f, m, _), sched in zip(checked, padded)]
+    return [_Planned(d, f, m, *noise, sched) for (d, f, m, noise, _), sched in zip(checked, padded)]
 
 
-def _build(plan, indices, loss, huber_c, student_nu, sigma, n_starts, seed, solver) -> tuple:
-    """The rest of `_prepare`, for the devices of `plan` at `indices`: their problems,
-    grouped by structure (each group's array leaves stacked once), start points and first
-    noise scales. Returns ({index: `_Prepared`}, groups); a device's entry does not depend on
-    which others are built with it."""
+class _Planned(NamedTuple):
+    """One device as `_plan` leaves it for `_build`: checked, its free parameters scaled,
+    its noise settled, its schedule padded with the others'."""
+
+    device: Device
+    free: tuple
+    method: str
+    source: str  # `_fit._noise_source`
+    sigma: object  # the declared noise [SI per output], else None
+    sched: dict
+
+
+@contextlib.contextmanager
+def _naming(name: str):
+    """A plain ValueError raised inside says it is about device `name` (said once; an
+    `InputError` keeps its own type and words)."""
+    try:
+        yield
+    except ValueError as e:
+        if type(e) is not ValueError or str(e).startswith(f"{name}: "):
+            raise
+        raise ValueError(f"{name}: {e}") from e
+
+
+def _checked_input(d: Device, free, sigma) -> tuple:
+    """(noise source, declared sigma) of device `d` after the checks of its input that
+    building its problem would make (`_fit._Problem.build`, `_build`): its noise, its runs'
+    output columns and settings, enough readings for its parameters."""
+    sig_d = d.sigma if d.sigma is not None else _device_sigma(sigma, d.name)
+    source = _fit._noise_source(d.experiments, sig_d)
+    n_y = d.experiments[0].y.shape[1]
+    for e in d.experiments:
+        if e.y.shape[1] != n_y:
+            raise ValueError(f"{e.name}: has {e.y.shape[1]} output columns, others {n_y}")
+    settings_matrix(d.model, d.experiments, free)
+    shared, per_exp = split_free(free)
+    n_raw = len(shared) + len(d.experiments) * len(per_exp)
+    n_data = sum(int(e.mask.sum()) for e in d.experiments)
+    if n_data <= n_raw:
+        raise ValueError(f"{n_data} valid frames cannot determine {n_raw} parameters")
+    if source == "declared":
+        sig = np.asarray(sig_d, dtype=float)
+        if sig.ndim > 1 or sig.size not in (1, n_y) or not np.all(sig > 0):
+            raise ValueError(
+                f"sigma must be > 0 (SI units of the output), one value or one per output ({n_y})"
+            )
+    return source, sig_d
+
+
+def _build(plan, indices, loss, huber_c, student_nu, n_starts, seed, solver) -> tuple:
+    """The rest of `_prepare`, for the devices of `plan` at `indices` (checked by `_plan`):
+    their problems, grouped by structure (each group's array leaves stacked once), start
+    points and first noise scales. Returns ({index: `_Prepared`}, groups); a device's entry
+    does not depend on which others are built with it."""
     built = []
     for i in indices:
-        d, f, m, sched = plan[i]
-        sig_d = d.sigma if d.sigma is not None else _device_sigma(sigma, d.name)
-        source = _fit._noise_source(d.experiments, sig_d)
+        d, f, m, source, sig_d, sched = plan[i]
         prob = _fit._Problem.build(
             d.model,
             d.experiments,
@@ -359,10 +412,6 @@ def _build(plan, indices, loss, huber_c, student_nu, sigma, n_starts, seed, solv
             padded=sched,
             on_device=False,
         )
-        if prob.n_data <= prob.n_raw:
-            raise ValueError(
-                f"{d.name}: {prob.n_data} valid frames cannot determine {prob.n_raw} parameters"
-            )
         raw0 = _fit._initial_raw(prob, d.model)
         # the starting values live in raw0; `FreeParameter.initial` takes no part in the static
         # part's equality, so every device of the same structure shares one compiled solver
@@ -388,20 +437,14 @@ def _build(plan, indices, loss, huber_c, student_nu, sigma, n_starts, seed, solv
         out_groups.append(group)
         for row, k in enumerate(rows):
             i, d, prob, f, source, sig_d, raw0 = built[k]
-            n = n_starts
-            if n is None:
-                n = _fit.AUTO_STARTS if len(prob.shared) > 2 else 1
-            if int(n) < 1:
-                raise ValueError(f"n_starts: {n} starts; give at least 1 (or None for auto)")
             rng = np.random.default_rng(seed)
-            starts = [raw0] + [_fit._perturbed(prob, raw0, rng) for _ in range(int(n) - 1)]
+            n = n_starts_for(n_starts, prob.shared)
+            starts = [raw0] + [_fit._perturbed(prob, raw0, rng) for _ in range(n - 1)]
             n_y = prob.y.shape[-1]
             if source == "estimated":
                 sig = np.full(n_y, _fit._initial_sigma_guess(d.experiments))
             elif source == "declared":
                 sig = np.broadcast_to(np.asarray(sig_d, dtype=float), (n_y,)).copy()
-                if not np.all(sig > 0):
-                    raise ValueError(f"{d.name}: sigma must be > 0 (SI units of the output)")
             else:
                 sig = np.ones(n_y)
             prepared[i] = _Prepared(d, group, row, f, source, raw0, starts, sig)
@@ -421,21 +464,15 @@ def _fit_process(devices, free, noise, sigma, n_starts, seed, max_steps, chunk_s
             "sigma: a ProcessNoise fit estimates the measurement sd (free measurement.* "
             "parameters) or takes it from the stochastic device; give no sigma"
         )
-    setups = [
-        (
-            d.name,
-            _lik.setup(
-                d.model,
-                d.experiments,
-                tuple(d.free) if d.free is not None else free,
-                noise,
-                n_starts=n_starts,
-                seed=seed,
+    setups = []  # every device set up (and so checked) before any is solved
+    for d in devices:
+        f = tuple(d.free) if d.free is not None else free
+        with _naming(d.name):
+            setup = _lik.setup(
+                d.model, d.experiments, f, noise, n_starts=n_starts, seed=seed,
                 max_steps=max_steps,
-            ),
-        )
-        for d in devices
-    ]
+            )  # fmt: skip
+        setups.append((d.name, setup))
     results, groups, chunk, calls = fit_likelihood_batch(
         setups, chunk_size=chunk_size, progress=say
     )
@@ -533,6 +570,10 @@ def fit_batch(
     `loss`, `sigma` and the solver tolerances do not apply).
 
     **Returns:** a `BatchResult` whose `results[name]` is that device's `FitResult`.
+
+    **Raises:** `ValueError` naming the device whose input a `fit` of it would refuse (an
+    unknown path, mixed or non-positive noise, fewer readings than parameters), before any
+    device is solved.
     """
     require_x64("fit_batch")
     devices = list(devices)
@@ -583,7 +624,7 @@ def _fit_output_error(
     (`_build_blocks`), so progress starts sooner; the wall time is set by the interpreter's
     work either way (DEVELOPING.md, "The core API in one screen": the batch's host work)."""
     max_steps = 200 if max_steps is None else int(max_steps)
-    plan = _plan(devices, free, method, loss)
+    plan = _plan(devices, free, method, loss, sigma, n_starts)
     opts = (float(rtol), float(atol), int(max_steps))
     budget, max_chunk = device_budget()
     if memory_budget_bytes is not None:
@@ -597,9 +638,7 @@ def _fit_output_error(
     host = ThreadPoolExecutor(max_workers=1, thread_name_prefix="greybox-assemble")
     try:
         blocks = [
-            host.submit(
-                _build, plan, block, loss, huber_c, student_nu, sigma, n_starts, seed, solver
-            )
+            host.submit(_build, plan, block, loss, huber_c, student_nu, n_starts, seed, solver)
             for block in _build_blocks(len(plan), max(max_chunk, chunk_size or 0), padding_free)
         ]
         assembled = []

@@ -213,6 +213,22 @@ def test_a_bad_device_late_in_the_batch_is_refused_before_any_solve(
     assert not [line for line in progress if "done" in line], progress
 
 
+def test_a_bad_device_is_refused_before_a_cluster_starts(batch, monkeypatch):
+    """`fit_distributed` checks every device on the client as `fit_batch` would: a bad one is
+    refused by name before any worker starts (not by a worker, after its retries)."""
+    from greybox._estimate import distributed as dist
+
+    def start_client(*_a, **_k):
+        raise AssertionError("a cluster was started for a batch with a bad device")
+
+    monkeypatch.setattr(dist, "start_client", start_client)
+    devices, _, _, _ = batch
+    bad = _blanked(devices[3])
+    with pytest.raises(ValueError, match="valid frames cannot determine") as err:
+        dist.fit_distributed([*devices[:3], bad], SPEC.free_parameters(), n_workers=1)
+    assert str(err.value).startswith(f"{bad.name}: ")
+
+
 def test_a_batch_pauses_the_cyclic_collector_and_restores_it(batch, monkeypatch):
     """The waves are assembled with the cyclic collector off (`greybox._collector`: its walks
     of a growing heap were 0.2-0.5 s of a 512-device batch); it is on again afterwards."""

@@ -299,35 +299,22 @@ def _prepare(devices, free, method, loss, huber_c, student_nu, sigma, n_starts, 
 
 
 def _plan(devices, free, method, loss, sigma=None, n_starts=None) -> list:
-    """The first part of `_prepare`, for every device at once: the checks (every one a
-    device's input can fail, `_checked_input`, so a bad device late in a large batch is
-    refused before any solve, not when its block is built), each device's free parameters
-    (scaled from its start), its simulation method, its noise and its runs' schedules,
-    padded jointly. Returns a `_Planned` per device.
+    """The first part of `_prepare`, for every device at once: the checks
+    (`checked_devices`: a bad device late in a large batch is refused before any solve, not
+    when its block is built), each device's free parameters (scaled from its start), its
+    simulation method, its noise and its runs' schedules, padded jointly. Returns a
+    `_Planned` per device.
 
     Joint padding sets the compiled shapes (`stacked_schedules` buckets the lengths: one
     compiled solver per structure), so it is done here over all devices, and the problems
     `_build` makes from any subset of them have the shapes they would have had together.
     Padding is inert: a structure whose runs are shorter than another's only carries more
     zero-weight frames."""
-    if loss not in _fit.LOSSES:
-        raise ValueError(f"loss: {loss!r} is unknown; use one of {_fit.LOSSES}")
-    paths = [p.path for p in free]
-    if len(set(paths)) != len(paths):
-        raise ValueError(f"free: a parameter is listed twice ({paths})")
-    names = [d.name for d in devices]
-    if len(set(names)) != len(names):
-        raise ValueError("devices: two devices share a name; names must be unique")
-    n_starts_for(n_starts, ())  # a count below 1 is refused here, before any solve
     # the runs of all devices whose schedules stack (same input channels and readout
     # quadrature size) built and padded once, jointly
     checked, families = [], {}
-    for d in devices:
-        f = tuple(d.free) if d.free is not None else free
-        with _naming(d.name):
-            m = _check(d, f, method)
-            f = tuple(p.with_scale_from(v) for p, v in zip(f, _fit._start_values(f, d.model)))
-            noise = _checked_input(d, f, sigma)
+    settled = checked_devices(devices, free, method, loss, sigma, n_starts)
+    for d, (f, m, noise) in zip(devices, settled):
         runs = schedule_runs(d.model, d.experiments)
         _, _, _, offsets, n_u = runs[0]
         families.setdefault((n_u, np.size(offsets)), []).append(len(checked))
@@ -341,6 +328,30 @@ def _plan(devices, free, method, loss, sigma=None, n_starts=None) -> list:
             padded[i] = {k: v[start : start + n_e] for k, v in joint.items()}
             start += n_e
     return [_Planned(d, f, m, *noise, sched) for (d, f, m, noise, _), sched in zip(checked, padded)]
+
+
+def checked_devices(devices, free, method=None, loss="huber", sigma=None, n_starts=None):
+    """(free parameters scaled from the device's start, simulation method, (noise source,
+    declared sigma)) of every device, after every check of the batch's settings and of each
+    device's input that fitting it would make: a bad device is refused, by name, before
+    any is solved (`_plan`, and `fit_distributed` before it starts a cluster)."""
+    if loss not in _fit.LOSSES:
+        raise ValueError(f"loss: {loss!r} is unknown; use one of {_fit.LOSSES}")
+    paths = [p.path for p in free]
+    if len(set(paths)) != len(paths):
+        raise ValueError(f"free: a parameter is listed twice ({paths})")
+    names = [d.name for d in devices]
+    if len(set(names)) != len(names):
+        raise ValueError("devices: two devices share a name; names must be unique")
+    n_starts_for(n_starts, ())  # a count below 1
+    out = []
+    for d in devices:
+        f = tuple(d.free) if d.free is not None else tuple(free)
+        with _naming(d.name):
+            m = _check(d, f, method)
+            f = tuple(p.with_scale_from(v) for p, v in zip(f, _fit._start_values(f, d.model)))
+            out.append((f, m, _checked_input(d, f, sigma)))
+    return out
 
 
 class _Planned(NamedTuple):

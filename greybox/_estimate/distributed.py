@@ -264,6 +264,17 @@ def start_client(
     return distributed.Client(scheduler, timeout="10s"), None
 
 
+def _check_on_client(devices, free, kw) -> None:
+    """`fit_batch`'s checks of the batch's settings and of every device
+    (`_batch.checked_devices`), with `fit_batch`'s keyword arguments `kw`."""
+    from greybox._estimate.noise_models import OutputError
+
+    loss, sigma = kw.get("loss", "huber"), kw.get("sigma")
+    if isinstance(kw.get("noise"), OutputError):
+        loss, sigma = kw["noise"].loss.name, kw["noise"].sigma
+    _batch.checked_devices(devices, free, kw.get("method"), loss, sigma, kw.get("n_starts"))
+
+
 def plan(
     devices,
     free,
@@ -344,14 +355,16 @@ def fit_distributed(
     accelerator memory: `worker_budget`), `retries` per task, `progress`.
 
     The result's `worker_s` holds the seconds each task spent on its worker (unpickling,
-    fitting), so that the cluster's own overhead is the wall time less that work.
+    fitting), so that the cluster's own overhead is the wall time less that work. A device
+    `fit_batch` would refuse is refused here, by name, before a cluster starts.
     """
     devices = list(devices)
     free = tuple(free)
     say = progress or (lambda _msg: None)
+    # every device checked here, as `fit_batch` checks it: a bad one is refused by name
+    # before a cluster starts, not by a worker after its retries (the other tasks' work lost)
+    _check_on_client(devices, free, fit_kwargs)  # unique names among them
     names = [d.name for d in devices]
-    if len(set(names)) != len(names):
-        raise ValueError("devices: two devices share a name; names must be unique")
     own = client is None
     local = own and scheduler in (None, "local")
     if worker_platform is not None:

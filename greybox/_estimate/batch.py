@@ -343,7 +343,7 @@ def checked_devices(devices, free, method=None, loss="huber", sigma=None, n_star
     names = [d.name for d in devices]
     if len(set(names)) != len(names):
         raise ValueError("devices: two devices share a name; names must be unique")
-    n_starts_for(n_starts, ())  # a count below 1
+    n_starts_for(n_starts, ())  # refuses a count below 1
     out = []
     for d in devices:
         f = tuple(d.free) if d.free is not None else tuple(free)

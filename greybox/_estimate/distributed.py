@@ -266,12 +266,15 @@ def start_client(
 
 def _check_on_client(devices, free, kw) -> None:
     """`fit_batch`'s checks of the batch's settings and of every device
-    (`_batch.checked_devices`), with `fit_batch`'s keyword arguments `kw`."""
-    from greybox._estimate.noise_models import OutputError
+    (`_batch.checked_devices`), with `fit_batch`'s keyword arguments `kw` (those of a
+    least-squares fit: a process-noise batch is left to its workers, as before)."""
+    from greybox._estimate.noise_models import OutputError, ProcessNoise
 
-    loss, sigma = kw.get("loss", "huber"), kw.get("sigma")
-    if isinstance(kw.get("noise"), OutputError):
-        loss, sigma = kw["noise"].loss.name, kw["noise"].sigma
+    loss, sigma, noise = kw.get("loss", "huber"), kw.get("sigma"), kw.get("noise")
+    if isinstance(noise, ProcessNoise):
+        return
+    if isinstance(noise, OutputError):
+        loss, sigma = noise.loss.name, noise.sigma
     _batch.checked_devices(devices, free, kw.get("method"), loss, sigma, kw.get("n_starts"))
 
 

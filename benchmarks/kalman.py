@@ -52,8 +52,8 @@ import numpy as np  # noqa: E402
 import scipy.linalg as sla  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from greybox.stochastic import FilterGrid, LinearGaussianSDE, log_likelihood  # noqa: E402
 from greybox._estimate.stochastic_fit import fit_stochastic  # noqa: E402  (the LinearGaussianSDE estimator)
+from greybox.stochastic import FilterGrid, LinearGaussianSDE, log_likelihood  # noqa: E402
 
 # ------------------------------------------------------------------------------------------
 # speed: 3 states, 2 outputs, 2,000 frames
@@ -420,7 +420,8 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--coverage", type=int, default=0, metavar="N", help="replicates")
     parser.add_argument(
-        "--coverage-device", type=int, default=0, metavar="N", help="replicates (greybox.fit, ProcessNoise)"
+        "--coverage-device", type=int, default=0, metavar="N",
+        help="replicates (greybox.fit, ProcessNoise)",
     )
     parser.add_argument(
         "--frames", type=int, default=600, metavar="N", help="frames per --coverage-device record"

@@ -106,7 +106,9 @@ def main() -> None:
     ap.add_argument("--sizes", nargs="+", default=["2000x1", "20000x1", "50000x2", "100000x2",
                                                    "150000x2"], help="FRAMESxRUNS")  # fmt: skip
     ap.add_argument("--max-steps", type=int, default=2)
-    ap.add_argument("--smoke", action="store_true", help="one small folder; never fails on the ratio")
+    ap.add_argument(
+        "--smoke", action="store_true", help="one small folder; never fails on the ratio"
+    )
     args = ap.parse_args()
     if args.smoke:
         args.sizes = ["2000x1"]

@@ -142,44 +142,44 @@ except _metadata.PackageNotFoundError:  # a source tree on PYTHONPATH, not insta
 __getattr__, __dir__ = _lazy_names(__name__, _NAMES, _SUBPACKAGES, moved=_MOVED)
 
 if _TYPE_CHECKING:  # static analysers and IDEs see the eager imports
-    from greybox._model.spec import DeviceSpec as DeviceSpec
-    from greybox._model.spec import DeviceSpecError as DeviceSpecError
-    from greybox._model.spec import Option as Option
-    from greybox._model.parameters import ParameterInfo as ParameterInfo
+    from greybox._estimate.band import Band as Band
+    from greybox._estimate.batch import fit_batch as fit_batch
+    from greybox._estimate.fit import FitResult as FitResult
+    from greybox._estimate.fit import ParameterEstimate as ParameterEstimate
+    from greybox._estimate.fit import ValidationResult as ValidationResult
+    from greybox._estimate.fit import fit as fit
+    from greybox._estimate.fit import validate as validate
+    from greybox._estimate.noise_models import L2 as L2
+    from greybox._estimate.noise_models import ZOH as ZOH
+    from greybox._estimate.noise_models import Adaptive as Adaptive
+    from greybox._estimate.noise_models import ExtendedKalmanFilter as ExtendedKalmanFilter
+    from greybox._estimate.noise_models import Huber as Huber
+    from greybox._estimate.noise_models import InitialState as InitialState
+    from greybox._estimate.noise_models import KalmanFilter as KalmanFilter
+    from greybox._estimate.noise_models import OutputError as OutputError
+    from greybox._estimate.noise_models import ProcessNoise as ProcessNoise
+    from greybox._estimate.noise_models import Stiff as Stiff
+    from greybox._estimate.noise_models import StudentT as StudentT
+    from greybox._estimate.posterior import Posterior as Posterior
+    from greybox._estimate.table_fit import TableFitResult as TableFitResult
+    from greybox._estimate.table_fit import fit_table as fit_table
     from greybox._model.channels import Channel as Channel
-    from greybox._model.freeparams import FreeParameter as FreeParameter
+    from greybox._model.data import Experiment as Experiment
     from greybox._model.device import AbstractDevice as AbstractDevice
     from greybox._model.device import AbstractLinearDevice as AbstractLinearDevice
     from greybox._model.device import AbstractODEDevice as AbstractODEDevice
     from greybox._model.device import AbstractStateAffineDevice as AbstractStateAffineDevice
     from greybox._model.device import AbstractSteppedDevice as AbstractSteppedDevice
-    from greybox._model.data import Experiment as Experiment
+    from greybox._model.errors import InputError as InputError
+    from greybox._model.freeparams import FreeParameter as FreeParameter
+    from greybox._model.parameters import ParameterInfo as ParameterInfo
+    from greybox._model.spec import DeviceSpec as DeviceSpec
+    from greybox._model.spec import DeviceSpecError as DeviceSpecError
+    from greybox._model.spec import Option as Option
     from greybox._model.waveforms import PiecewiseConstant as PiecewiseConstant
     from greybox._model.waveforms import PulseTrain as PulseTrain
-    from greybox._registry import available as available_devices
-    from greybox._registry import get_device as get_device
+    from greybox._registry import available as available_devices  # noqa: F401 (re-exported)
     from greybox._registry import device_module as device_module
+    from greybox._registry import get_device as get_device
     from greybox._simulate.simulate import simulate as simulate
-    from greybox._estimate.fit import fit as fit
-    from greybox._estimate.fit import validate as validate
-    from greybox._estimate.batch import fit_batch as fit_batch
-    from greybox._estimate.table_fit import fit_table as fit_table
-    from greybox._estimate.fit import FitResult as FitResult
-    from greybox._estimate.fit import ValidationResult as ValidationResult
-    from greybox._estimate.table_fit import TableFitResult as TableFitResult
-    from greybox._estimate.fit import ParameterEstimate as ParameterEstimate
-    from greybox._estimate.posterior import Posterior as Posterior
-    from greybox._estimate.band import Band as Band
-    from greybox._estimate.noise_models import OutputError as OutputError
-    from greybox._estimate.noise_models import ProcessNoise as ProcessNoise
     from greybox.stochastic._sde_device import NoiseStructure as NoiseStructure
-    from greybox._estimate.noise_models import InitialState as InitialState
-    from greybox._estimate.noise_models import KalmanFilter as KalmanFilter
-    from greybox._estimate.noise_models import ExtendedKalmanFilter as ExtendedKalmanFilter
-    from greybox._estimate.noise_models import ZOH as ZOH
-    from greybox._estimate.noise_models import Adaptive as Adaptive
-    from greybox._estimate.noise_models import Stiff as Stiff
-    from greybox._estimate.noise_models import Huber as Huber
-    from greybox._estimate.noise_models import StudentT as StudentT
-    from greybox._estimate.noise_models import L2 as L2
-    from greybox._model.errors import InputError as InputError

@@ -46,8 +46,8 @@ def _axes(axes, n: int, height_ratios=None):
 
 def _label(item, j: int, file_units=None, kind: str = "output"):
     """(label, SI -> shown values, unit) of a `Channel` or a (label, SI unit) pair."""
-    from greybox.report._plots import axis_unit
     from greybox.report._markdown import display_unit
+    from greybox.report._plots import axis_unit
 
     if item is None:
         return f"{kind} {j + 1}", (lambda v: np.asarray(v)), "SI"

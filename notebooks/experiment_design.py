@@ -37,7 +37,6 @@ import os
 import time
 from pathlib import Path
 
-import jax
 import greybox.io
 
 # float64, and compiled programs kept on disk as the greybox commands keep them (a second

@@ -39,7 +39,6 @@ import os
 import time
 from pathlib import Path
 
-import jax
 import greybox.io
 
 # float64, and compiled programs kept on disk as the greybox commands keep them (a second
@@ -55,12 +54,12 @@ ROOT = next(p for p in (Path.cwd(), *Path.cwd().parents) if (p / "experiments").
 DATA = ROOT / "experiments" / "chevron_laser"
 
 from greybox import PulseTrain, fit, validate  # noqa: E402
+from greybox import blackbox as bb  # noqa: E402
+from greybox.io import load_experiment_set  # noqa: E402
 from greybox.metrics import fit_percent  # noqa: E402
 from greybox.parameters import parameter_table, set_values  # noqa: E402
 from greybox.uncertainty import propagate  # noqa: E402
 from greybox.waveforms import CameraDefects, concatenate, multilevel_prbs, record  # noqa: E402
-from greybox import blackbox as bb  # noqa: E402
-from greybox.io import load_experiment_set  # noqa: E402
 
 
 def table(header, rows):

@@ -57,9 +57,9 @@ ROOT = next(p for p in (Path.cwd(), *Path.cwd().parents) if (p / "experiments").
 DATA = ROOT / "experiments" / "microrobot"
 
 from greybox import fit, validate  # noqa: E402
+from greybox.io import load_experiment_set  # noqa: E402
 from greybox.parameters import set_values  # noqa: E402
 from greybox.uncertainty import delta_method, propagate  # noqa: E402
-from greybox.io import load_experiment_set  # noqa: E402
 
 microrobot = greybox.device_module("microrobot")  # noqa: E402
 

@@ -36,6 +36,7 @@ import time
 from pathlib import Path
 
 import jax
+
 import greybox.io
 
 # float64, and compiled programs kept on disk as the greybox commands keep them (a second
@@ -51,14 +52,20 @@ ROOT = next(p for p in (Path.cwd(), *Path.cwd().parents) if (p / "experiments").
 DATA = ROOT / "experiments" / "chevron_laser"
 
 from greybox import PulseTrain, fit  # noqa: E402
-from greybox.parameters import as_arrays, with_shared  # noqa: E402
-from greybox.uncertainty import prediction_band, propagate  # noqa: E402
-from greybox.waveforms import concatenate, from_samples, multilevel_prbs, response_function, square_wave_response  # noqa: E402
 from greybox.io import (  # noqa: E402
     load_experiment_set,  # noqa: E402
     load_params,
     params_document,
     write_params,
+)
+from greybox.parameters import as_arrays, with_shared  # noqa: E402
+from greybox.uncertainty import prediction_band, propagate  # noqa: E402
+from greybox.waveforms import (  # noqa: E402
+    concatenate,
+    from_samples,
+    multilevel_prbs,
+    response_function,
+    square_wave_response,
 )
 
 T_START = time.perf_counter()

@@ -40,7 +40,6 @@ import os
 import time
 from pathlib import Path
 
-import jax
 import greybox.io
 
 # float64, and compiled programs kept on disk as the greybox commands keep them (a second
@@ -56,9 +55,9 @@ DATA = ROOT / "experiments" / "chevron_laser"
 
 from greybox import blackbox as bb  # noqa: E402
 from greybox import fit, simulate, validate  # noqa: E402
+from greybox.io import load_experiment_set  # noqa: E402
 from greybox.metrics import fit_percent, rmse  # noqa: E402
 from greybox.parameters import set_values  # noqa: E402
-from greybox.io import load_experiment_set  # noqa: E402
 
 T_START = time.perf_counter()
 fitset = load_experiment_set(DATA)

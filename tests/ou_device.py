@@ -5,7 +5,6 @@ import numpy as np
 
 import greybox
 from greybox.blocks import SensorReadout
-
 from tests import ou_reference as ou
 from tests.rc_building_device import RCBuilding
 

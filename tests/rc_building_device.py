@@ -68,7 +68,10 @@ class RCBuilding(greybox.AbstractLinearDevice):
             b = jnp.array([[1 / (rea * ci), 1 / ci, aw / ci]])
         elif self.nodes == 2:
             a = jnp.array(
-                [[-1 / (rie * ci), 1 / (rie * ci)], [1 / (rie * ce), -1 / (rie * ce) - 1 / (rea * ce)]]
+                [
+                    [-1 / (rie * ci), 1 / (rie * ci)],
+                    [1 / (rie * ce), -1 / (rie * ce) - 1 / (rea * ce)],
+                ]
             )
             b = jnp.array([[0.0, 1 / ci, aw / ci], [1 / (rea * ce), 0.0, 0.0]])
         else:
@@ -154,5 +157,9 @@ SPEC_AIR = greybox.DeviceSpec(
     build=_builder(1),
     parameters=parameter_table,
     default_free=default_free,
-    options=(greybox.Option("nodes", 3, "thermal nodes: 1 air, 2 + envelope, 3 + heater", choices=(1, 2, 3)),),
+    options=(
+        greybox.Option(
+            "nodes", 3, "thermal nodes: 1 air, 2 + envelope, 3 + heater", choices=(1, 2, 3)
+        ),
+    ),
 )

@@ -35,7 +35,9 @@ def run_csv(data: dict, outputs=("Ti", "Te")) -> str:
     for t, lv in zip(rows_t, level):
         k = frame.get(float(t))
         ys = [
-            "" if k is None or not np.isfinite(data["y"][k, cols[o]]) else f"{data['y'][k, cols[o]]:.9f}"
+            ""
+            if k is None or not np.isfinite(data["y"][k, cols[o]])
+            else f"{data['y'][k, cols[o]]:.9f}"
             for o in outputs
         ]
         lines.append(",".join([f"{t:.1f}", f"{lv[0]:.9f}", f"{lv[1]:.6f}", f"{lv[2]:.6f}", *ys]))

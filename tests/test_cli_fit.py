@@ -228,8 +228,8 @@ def test_prior_dominated_parameter_is_reported(tmp_path):
 
     jax.config.update("jax_enable_x64", True)
     from greybox._estimate.fit import fit
-    from greybox.io._results import report_text
     from greybox.io import load_experiment_set
+    from greybox.io._results import report_text
 
     folder = tmp_path / "prior"
     shutil.copytree(EMBEDDED, folder, ignore=shutil.ignore_patterns("*.py", "v*.csv"))

@@ -19,12 +19,10 @@ import io
 import json
 import time
 
-import numpy as np
 import pytest
 from scipy.stats import chi2
 
 from greybox.cli import main
-
 from tests import rc3_reference as ref
 from tests.rc_folder import CANDIDATES, write_candidates_folder, write_folder
 
@@ -150,7 +148,9 @@ def test_noise_and_fit_settings_are_checked_by_name(
 ):
     from tests.rc_folder import THREE_STATE_NOISE
 
-    folder = _folder_with(tmp_path, data, noise=THREE_STATE_NOISE + noise_extra, fit_extra=fit_extra)
+    folder = _folder_with(
+        tmp_path, data, noise=THREE_STATE_NOISE + noise_extra, fit_extra=fit_extra
+    )
     out = tmp_path / "out"
     assert main(["fit", str(folder), "--out", str(out), "--quiet"]) == 2
     assert field in capsys.readouterr().err

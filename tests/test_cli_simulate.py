@@ -10,10 +10,10 @@ import pytest
 from test_cli_fit import EMBEDDED, fitted_dir
 
 import greybox
-from greybox._model.parameters import get_value, set_values
 from greybox._estimate.prediction import prediction_band
-from greybox._simulate.simulate import simulate
+from greybox._model.parameters import get_value, set_values
 from greybox._model.waveforms import PulseTrain
+from greybox._simulate.simulate import simulate
 from greybox.cli import main
 from greybox.io._params_file import load_params
 

@@ -16,7 +16,7 @@ def _cells(rng, n, formats, decades):
     for _ in range(n):
         x = float(rng.standard_normal() * 10.0 ** rng.integers(-decades, decades + 1))
         f = str(rng.choice(formats))
-        out.append("%d" % int(x) if f == "%d" else f % x)
+        out.append(f"{int(x):d}" if f == "%d" else f % x)
     return out
 
 
@@ -52,10 +52,10 @@ def test_other_cells_are_read_by_float():
     rng = np.random.default_rng(1)
     cells = _cells(rng, 30_000, ["%.6g", "%.3f"], 5)
     cells[::50] = _cells(rng, 600, ["%.17g", "%r"], 30)  # 17 digits, 1e-30: float()
-    cells[7::1000] = ["nan", "NaN", "inf", "-inf", "na", " 1.5", "2.5 ", "1e-400", "1e400", "1.5e-022",
-                      "1" * 20, "-0e5", "0.000000000000000000001", "1.5e+3", "5", "-7", "8",
-                      "9", "10", "11", "12", "13", "14", "15", "16", "17", "18", "19", "20",
-                      "21", "22"][: len(cells[7::1000])]
+    cells[7::1000] = ["nan", "NaN", "inf", "-inf", "na", " 1.5", "2.5 ", "1e-400", "1e400",
+                      "1.5e-022", "1" * 20, "-0e5", "0.000000000000000000001", "1.5e+3", "5",
+                      "-7", "8", "9", "10", "11", "12", "13", "14", "15", "16", "17", "18",
+                      "19", "20", "21", "22"][: len(cells[7::1000])]
     _same(*_parse(cells))
 
 

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 import greybox
-from greybox._simulate.simulate import simulate
 from greybox._estimate.table_fit import fit_table
 from greybox._model.waveforms import PulseTrain
+from greybox._simulate.simulate import simulate
 from greybox.blocks._joule import JouleHeating
 
 ec = greybox.device_module("electrothermal_chevron")

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 import greybox
-from greybox._model.data import Experiment
 from greybox._estimate.fit import fit, validate
+from greybox._model.data import Experiment
 from greybox._model.freeparams import FreeParameter
 from greybox._model.parameters import set_values
 from greybox._model.waveforms import PiecewiseConstant, PulseTrain

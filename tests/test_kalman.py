@@ -20,6 +20,7 @@ import scipy.stats
 from scipy.integrate import quad_vec
 from threadpoolctl import threadpool_limits
 
+from greybox._estimate.stochastic_fit import fit_stochastic, ljung_box
 from greybox.stochastic._kalman import (
     FilterGrid,
     LinearGaussianSDE,
@@ -31,7 +32,6 @@ from greybox.stochastic._kalman import (
     rts_smoother,
     with_output_random_walks,
 )
-from greybox._estimate.stochastic_fit import fit_stochastic, ljung_box
 
 
 @pytest.fixture(autouse=True, scope="module")

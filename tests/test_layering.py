@@ -90,7 +90,8 @@ def test_every_library_module_has_a_ring():
 
 def test_the_rings_are_populated():
     modules = {_module(p) for p in LIB_FILES}
-    for package in ("greybox._model", "greybox._simulate", "greybox._estimate", "greybox.stochastic"):
+    packages = ("greybox._model", "greybox._simulate", "greybox._estimate", "greybox.stochastic")
+    for package in packages:
         assert any(m.startswith(package + ".") for m in modules), package
 
 
@@ -101,7 +102,8 @@ def test_no_import_reaches_outward(path):
         m for m in _imports(path) if m.startswith("greybox.") and m != "greybox.__version__"
     ]
     bad = sorted(m for m in greybox_imports if _ring(m) is None or _ring(m) > own)
-    devices = sorted(m for m in _imports(path) if m.split(".")[0] in ("models", "greybox_builtin_devices"))
+    homes = ("models", "greybox_builtin_devices")
+    devices = sorted(m for m in _imports(path) if m.split(".")[0] in homes)
     if own < RING["greybox.io"]:
         bad += devices
     assert not bad, f"{path.relative_to(ROOT)} (ring {own}) imports {bad}"

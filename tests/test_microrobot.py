@@ -17,8 +17,8 @@ import scipy.linalg
 import greybox
 from greybox._estimate.fit import fit
 from greybox._model.parameters import set_values
-from greybox._simulate.synthetic import CameraDefects, record
 from greybox._model.waveforms import PulseTrain
+from greybox._simulate.synthetic import CameraDefects, record
 from greybox.blocks._robot import TwoSidedThermal
 
 mr = greybox.device_module("microrobot")

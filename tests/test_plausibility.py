@@ -15,8 +15,8 @@ a constant absorptance, so
 - with the angle fixed (the standard fit), the residual test rejects the structure and the
   headline says the intervals cover the best approximation within this structure.
 
-Also: [physical_ranges] overrides a range (a known 5e4 K/W inter-node resistance, 17 times the silicon nominal, becomes
-acceptable) and every out-of-range setting is reported together.
+Also: [physical_ranges] overrides a range (a known 5e4 K/W inter-node resistance, 17 times the
+silicon nominal, becomes acceptable) and every out-of-range setting is reported together.
 """
 
 from __future__ import annotations
@@ -30,8 +30,6 @@ from scipy.special import erf
 
 import greybox
 from greybox._estimate.compare import preferred, score
-from greybox._model.errors import InputError
-from greybox._model.plausibility import implausible_values
 from greybox._estimate.verdict import (
     IMPLAUSIBLE,
     REJECTED,
@@ -41,6 +39,8 @@ from greybox._estimate.verdict import (
     preferred_plausible,
     standard_error_text,
 )
+from greybox._model.errors import InputError
+from greybox._model.plausibility import implausible_values
 from greybox.io import load_experiment_set
 
 # the thesis device, restated (PHYSICS.md §4, §6, §12): silicon, one node, tau = 40 ms

@@ -89,8 +89,8 @@ def test_initial_state_is_refused_for_a_device_without_one(lab, tmp_path, capsys
 
 
 def test_band_figure_reads_back_in_mm(lab, tmp_path):
-    from greybox.report import _plots
     from greybox.io._params_file import load_params
+    from greybox.report import _plots
 
     _, _, out, _ = lab
     fitted = load_params(out / "params.json")

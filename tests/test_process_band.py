@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 
 import greybox
-
 from tests import ou_device as od
 from tests import ou_reference as ou
 

@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 import greybox
-
 from tests import ou_device as od
 from tests import ou_reference as ou
 

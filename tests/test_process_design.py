@@ -20,7 +20,6 @@ import pytest
 import greybox
 from greybox.design import design_problem, run_information
 from greybox.design._design import design_score
-
 from tests import ou_device as od
 from tests import ou_reference as ou
 

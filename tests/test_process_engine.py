@@ -30,7 +30,6 @@ import scipy.linalg as sla
 import greybox
 from greybox.blocks._camera import SensorReadout
 from greybox.cli import main
-
 from tests import rc3_reference as ref
 from tests.rc_building_device import NOMINAL, RCBuilding
 from tests.rc_folder import write_folder
@@ -65,7 +64,9 @@ def RC3(**values):  # noqa: N802 (the reference's TiTeTh model, air and envelope
     return RCBuilding(**values, readout=SensorReadout(), nodes=3, outputs_read=2)
 
 
-STRUCTURE = greybox.NoiseStructure(process_groups=(("air", (0,)), ("envelope", (1,)), ("heater", (2,))))
+STRUCTURE = greybox.NoiseStructure(
+    process_groups=(("air", (0,)), ("envelope", (1,)), ("heater", (2,)))
+)
 
 
 def _experiment(data):
@@ -115,15 +116,21 @@ def data():
 def _noise_table(data) -> str:
     """The three-state noise table with start values a factor 3-10 from the truth."""
     start = ", ".join(
-        f'"{path}" = {data["truth"][k] * NOISE_FACTORS[k]!r}' for k, path in {**NOISE, **MEAS}.items()
+        f'"{path}" = {data["truth"][k] * NOISE_FACTORS[k]!r}'
+        for k, path in {**NOISE, **MEAS}.items()
     )
-    return f"[noise]\nprocess = {{ air = [0], envelope = [1], heater = [2] }}\ninitial = {{ {start} }}\n"
+    return (
+        "[noise]\nprocess = { air = [0], envelope = [1], heater = [2] }\n"
+        f"initial = {{ {start} }}\n"
+    )
 
 
 @pytest.fixture(scope="module")
 def folder(tmp_path_factory, data):
     root = tmp_path_factory.mktemp("rc3")
-    return write_folder(root, data, noise=_noise_table(data), validation=ref.simulate(seed=1, n=100))
+    return write_folder(
+        root, data, noise=_noise_table(data), validation=ref.simulate(seed=1, n=100)
+    )
 
 
 @pytest.fixture(scope="module")
@@ -287,7 +294,9 @@ def test_process_noise_not_needed_leaves_fit_valid(data):
     dev = RC3(**{k: t[k] for k in PHYS}, Ti0=ref.X0[0], Te0=ref.X0[1], Th0=ref.X0[2])
     values = {"process.air": t["q_i"], "process.envelope": 1e-7, "process.heater": t["q_h"]}
     values |= {v: t[k] for k, v in MEAS.items()}
-    model = greybox.stochastic.stochastic_device(dev, STRUCTURE, outputs=("Ti", "Te"), values=values)
+    model = greybox.stochastic.stochastic_device(
+        dev, STRUCTURE, outputs=("Ti", "Te"), values=values
+    )
     free = [greybox.FreeParameter(v, "K^2/s", lower=0.0) for v in NOISE.values()]
     free += [greybox.FreeParameter(v, "K", lower=0.0) for v in MEAS.values()]
     free += [greybox.FreeParameter("Rea", "K/W", lower=0.0)]
@@ -422,7 +431,8 @@ def test_process_params_load_and_drive_simulate(cli_fit, data, tmp_path):
         assert float(get_value(loaded.model, path)) == pytest.approx(value, rel=1e-12)
     sim = tmp_path / "sim"
     args = ["simulate", "--params", str(out / "params.json"), "--out", str(sim)]
-    args += ["--trust-device", device_file, "--dt-ms", "600000", "--waveform", "Ta=const:280", "--waveform", "Ps=const:0"]
+    args += ["--trust-device", device_file, "--dt-ms", "600000"]
+    args += ["--waveform", "Ta=const:280", "--waveform", "Ps=const:0"]
     args += ["--waveform", "Ph=pulse:Ph_W=1500,period_s=86400,duty=0.5,n=2"]
     assert main(args) == 0
     meta = json.loads((sim / "simulation.json").read_text())

@@ -17,10 +17,7 @@ import pytest
 from scipy.special import erf
 
 import greybox
-from greybox._model.data import Experiment
 from greybox._estimate.fit import fit
-from greybox._model.parameters import set_values
-from greybox.report._markdown import fit_report
 from greybox._estimate.residuals import (
     LjungBox,
     analyse,
@@ -29,7 +26,10 @@ from greybox._estimate.residuals import (
     portmanteau,
 )
 from greybox._estimate.sandwich import hac_meat, model_error_residuals
+from greybox._model.data import Experiment
+from greybox._model.parameters import set_values
 from greybox._model.waveforms import PiecewiseConstant
+from greybox.report._markdown import fit_report
 from tests.helpers import chevron_runs
 
 CHEVRON = greybox.get_device("chevron_laser")
@@ -192,8 +192,9 @@ def test_model_error_residuals_remove_what_the_input_explains():
 
 
 def test_one_portmanteau_core():
-    """`greybox._estimate.stochastic_fit.ljung_box` is the core's; the core's textbook Ljung-Box equals
-    `analyse_run`'s statistic on a gap-free series without the mean-removal correction."""
+    """`greybox._estimate.stochastic_fit.ljung_box` is the core's; the core's textbook
+    Ljung-Box equals `analyse_run`'s statistic on a gap-free series without the mean-removal
+    correction."""
     import greybox._estimate.stochastic_fit as stochastic
 
     assert stochastic.ljung_box is ljung_box and stochastic.LjungBox is LjungBox

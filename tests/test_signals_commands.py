@@ -11,8 +11,9 @@ the command has finished). Every time the exit status is 130
 ``.partial-*`` leftover exists. (`tests/test_signals.py` covers `compare` at five moments.)
 
 A signal that lands while Python runs a garbage-collector callback (JAX's `_xla_gc_callback`
-runs at every collection), a ``__del__`` or a weakref callback -- where an exception is printed as "Exception
-ignored" and lost, and the command ran on for seconds -- stops the command just after.
+runs at every collection), a ``__del__`` or a weakref callback -- where an exception is
+printed as "Exception ignored" and lost, and the command ran on for seconds -- stops the
+command just after.
 """
 
 import gc

@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 
 import greybox
-from greybox.video._render import exposure_times, render_shuttle
-from greybox._simulate.simulate import simulate
 from greybox._model.waveforms import PulseTrain
+from greybox._simulate.simulate import simulate
 from greybox.cli import main
 from greybox.io._video import write_video
+from greybox.video._render import exposure_times, render_shuttle
 
 chevron_laser = greybox.device_module("chevron_laser")
 

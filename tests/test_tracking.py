@@ -1,4 +1,5 @@
-"""Sub-pixel tracking against rendered sequences with known motion (greybox.video._tracking/render)."""
+"""Sub-pixel tracking against rendered sequences with known motion
+(greybox.video._tracking, greybox.video._render)."""
 
 import numpy as np
 import pytest

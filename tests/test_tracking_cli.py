@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from greybox.video._render import render_markers, render_shuttle
 from greybox.cli import main
 from greybox.io._video import probe, read_frames, write_image_stack, write_video
+from greybox.video._render import render_markers, render_shuttle
 
 REST = 8
 

@@ -22,7 +22,8 @@ DYNAMICS = "        m, k, c = self.mass_kg, self.stiffness_N_per_m, self.damping
 
 
 GOOD_BUILD = "def build(*, mass_kg: float = 1.0):"
-HANGS = {  # where the device's code never returns: (edit of the example, the looping lines, [model])
+# where the device's code never returns: (edit of the example, the looping lines, [model])
+HANGS = {
     "dynamics when traced": (
         lambda s: s.replace(DYNAMICS, "        while True:\n            pass\n" + DYNAMICS),
         "trial simulation", ""),

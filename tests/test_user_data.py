@@ -354,8 +354,8 @@ def test_state_space_export_matches_the_fitted_model(fitted):
 
 def test_simulate_figure_has_a_panel_per_output_and_input(tmp_path):
     """`greybox simulate`'s figure: one panel per output (line + band) and per input (step)."""
-    from greybox.report import _plots as plots
     from greybox._estimate.prediction import Band
+    from greybox.report import _plots as plots
 
     t = np.linspace(0.0, 10.0, 11)
     y = np.column_stack([t, 2 * t, 3 * t])

@@ -10,7 +10,6 @@ import types
 import numpy as np
 import pytest
 
-from greybox._model.plausibility import PhysicalRange, implausible_values, parse_physical_ranges
 from greybox._estimate.verdict import (
     IMPLAUSIBLE,
     NOT_VALID,
@@ -26,6 +25,7 @@ from greybox._estimate.verdict import (
     refined_verdict,
     standard_error_text,
 )
+from greybox._model.plausibility import PhysicalRange, implausible_values, parse_physical_ranges
 
 
 def estimate(name, value, ci, verdict="identifiable", **kw):

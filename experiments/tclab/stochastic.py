@@ -78,7 +78,9 @@ def analyse(folder: str, say=print) -> dict:
     out = {"folder": folder, "outputs": outputs, "options": options, "free": fs.free}
 
     t0 = time.perf_counter()
-    sdev = greybox.stochastic.stochastic_device(model, STRUCTURE, outputs=spec.outputs, inputs=spec.inputs)
+    sdev = greybox.stochastic.stochastic_device(
+        model, STRUCTURE, outputs=spec.outputs, inputs=spec.inputs
+    )
     free = list(fs.free) + [
         dataclasses.replace(p, **NOISE_PRIORS.get(p.path, {}))
         for p in greybox.stochastic.noise_parameters(sdev, UNITS)

@@ -37,19 +37,6 @@ import numpy as np
 from greybox._compile import jit
 from greybox._estimate import problem as _problem
 from greybox._estimate.blas import small_blas
-from greybox._model.data import Experiment
-from greybox._model.device import check_method
-from greybox._model.freeparams import (
-    STALL_RTOL,
-    STALL_RTOL_AT_BOUND,
-    STALL_WINDOW,
-    FreeParameter,
-    apply_raw,
-    as_leaves,
-    levenberg_marquardt,
-    pinned_fn,
-    step_bound,
-)
 from greybox._estimate.identifiability import RANK_TOL, IdentifiabilityReport, analyse
 from greybox._estimate.metrics import (
     OUTLIER_SIGMAS,
@@ -63,9 +50,23 @@ from greybox._estimate.residuals import (
     goodness_of_fit,
     padded_stack,
 )
+from greybox._estimate.residuals import analyse as analyse_residuals
 from greybox._estimate.sandwich import HACMeat, hac_meats, model_error_residuals_many
 from greybox._estimate.starts import run_starts
-from greybox._estimate.residuals import analyse as analyse_residuals
+from greybox._estimate.verdict import interval_verdict
+from greybox._model.data import Experiment
+from greybox._model.device import check_method
+from greybox._model.freeparams import (
+    STALL_RTOL,
+    STALL_RTOL_AT_BOUND,
+    STALL_WINDOW,
+    FreeParameter,
+    apply_raw,
+    as_leaves,
+    levenberg_marquardt,
+    pinned_fn,
+    step_bound,
+)
 from greybox._simulate.schedules import schedules_for
 from greybox._simulate.simulate import (
     SOLVER_FAILED,
@@ -74,7 +75,6 @@ from greybox._simulate.simulate import (
     observe_schedule,
     require_x64,
 )
-from greybox._estimate.verdict import interval_verdict
 
 LOSSES = ("l2", "huber", "student_t")
 FAILED_SOLVE_RESIDUAL = 1e3  # per residual, in units of sigma: far worse than any real misfit

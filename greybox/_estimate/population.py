@@ -3,8 +3,8 @@
 Method: a **two-stage estimator with measurement-error correction** (the normal-normal
 random-effects model of meta-analysis, fitted by restricted maximum likelihood).
 
-Stage 1 fits every device on its own (`greybox._estimate.batch.fit_batch`): an estimate theta_d and its
-standard error se_d per device and parameter. Stage 2, per parameter declared
+Stage 1 fits every device on its own (`greybox._estimate.batch.fit_batch`): an estimate
+theta_d and its standard error se_d per device and parameter. Stage 2, per parameter declared
 
 - ``"random"``: on the log scale, x_d = log theta_d, s_d = se_d / theta_d (delta method),
   x_d = mu + eta_d + eps_d, eta_d ~ N(0, omega^2) (the population: log-normal with median

@@ -39,9 +39,9 @@ class Posterior:
         """The response to `inputs` at `t_s` with its pointwise band (`greybox.Band`): a
         confidence band of the model response, or with `noise` a prediction interval.
 
-        With process noise (`model` a `StochasticDevice`: a `ProcessNoise` fit) the band is that of sample
-        paths (`greybox._estimate.prediction.process_band`): process noise and parameter
-        draws, with `noise` measurement noise too; its `kind` says so."""
+        With process noise (`model` a `StochasticDevice`: a `ProcessNoise` fit) the band is
+        that of sample paths (`greybox._estimate.prediction.process_band`): process noise and
+        parameter draws, with `noise` measurement noise too; its `kind` says so."""
         from greybox._estimate.prediction import prediction_band, process_band
         from greybox.stochastic._sde_device import StochasticDevice
 

@@ -6,8 +6,9 @@ per-run ones per run (`flat_free`). Known per-run values (`Experiment.settings`)
 settings matrix (runs x paths), applied before the per-run estimates. Starting values are each
 parameter's `initial` or else the model's value (after the device's data-based `start_values`
 hook); multi-start points move the log/logit coordinates of the shared parameters. The least
-squares back end (`greybox._estimate.fit`) and the likelihood back end (`greybox._estimate.likelihood`) both
-build on these functions, so labels, start values, priors and the raw map agree.
+squares back end (`greybox._estimate.fit`) and the likelihood back end
+(`greybox._estimate.likelihood`) both build on these functions, so labels, start values,
+priors and the raw map agree.
 """
 
 from __future__ import annotations

@@ -37,11 +37,17 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
-from greybox.stochastic._kalman import FilterGrid, LinearGaussianSDE, free_run, kalman_filter, log_likelihood
 from greybox._estimate.likelihood import _newton
 from greybox._estimate.metrics import fit_percent
 from greybox._estimate.residuals import LjungBox, ljung_box  # the one portmanteau core
 from greybox._simulate.simulate import require_x64
+from greybox.stochastic._kalman import (
+    FilterGrid,
+    LinearGaussianSDE,
+    free_run,
+    kalman_filter,
+    log_likelihood,
+)
 
 __all__ = [
     "LjungBox",

@@ -6,8 +6,9 @@ of a simulated trajectory. The fit reuses the core pieces of `greybox._estimate.
 
 - `FreeParameter` transforms (log/logit/linear) and log-normal priors (extra residuals);
 - optimistix Levenberg-Marquardt on the raw (transformed) vector;
-- the Gauss-Newton covariance and identifiability verdicts of `greybox._estimate.identifiability.analyse`
-  from the weighted Jacobian, reported as `greybox._estimate.fit.ParameterEstimate` rows.
+- the Gauss-Newton covariance and identifiability verdicts of
+  `greybox._estimate.identifiability.analyse` from the weighted Jacobian, reported as
+  `greybox._estimate.fit.ParameterEstimate` rows.
 
 Noise: `sigma` known (scalar or per row, e.g. standard errors of averaged repeats), or estimated
 as sqrt(RSS / (n - p)) (the unbiased Gaussian estimate) and the covariance scaled by it.
@@ -27,9 +28,9 @@ import numpy as np
 
 from greybox._compile import jit
 from greybox._estimate.fit import ParameterEstimate, correlation, parameter_estimates
-from greybox._model.freeparams import FreeParameter, apply_raw, as_leaves, levenberg_marquardt
 from greybox._estimate.identifiability import IdentifiabilityReport, analyse
 from greybox._estimate.metrics import r_squared, rmse
+from greybox._model.freeparams import FreeParameter, apply_raw, as_leaves, levenberg_marquardt
 from greybox._model.parameters import get_value
 from greybox._simulate.simulate import as_arrays, require_x64
 

@@ -6,8 +6,8 @@ each period T = 1 / f, starting at a rising edge. Two paths give the cycle that 
 - "analytic": for dynamics affine in the state, dx/dt = A x + B g(u) (a linear device, or a
   device with `state_affine_form()` such as the Joule-heated chevron at zero TCR), the one-cycle
   fixed point is closed form, x_start = (I - Phi_off Phi_on)^-1 (Phi_off Gamma_on q_on +
-  Gamma_off q_off), with exact ZOH matrices (`greybox._simulate.simulate.zoh_matrices`); states inside the
-  cycle follow by exact ZOH steps.
+  Gamma_off q_off), with exact ZOH matrices (`greybox._simulate.simulate.zoh_matrices`);
+  states inside the cycle follow by exact ZOH steps.
 - "numerical": otherwise (Joule heating with R(T), radiation) the one-cycle map is integrated
   with `n_steps` exponential Rosenbrock-Euler steps per phase, x+ = x + h phi1(h J) f(x) (exact
   for affine dynamics, second order, stable for stiff decay), and its fixed point is found by

@@ -15,6 +15,7 @@ import numpy as np
 
 from greybox._estimate.metrics import fit_percent
 from greybox._estimate.residuals import lagged_sums, portmanteau
+
 from ._data import UniformData
 from ._poly import _ar_recursion, lfilter
 

@@ -20,6 +20,8 @@ import signal
 import sys
 import traceback
 
+from greybox.io._atomic import Terminated, committed, received_signal, signal_handlers
+
 SUBCOMMANDS = ("fit", "compare", "simulate", "describe", "demo", "track", "design", "fit-many")
 
 DESCRIPTION = """\
@@ -35,17 +37,14 @@ simulation or one-step prediction.
 EXIT_STATUS = """\
 Exit status (every command): 0 done; 1 written but not trustworthy (the fit did not
 converge, see report.md); 2 bad input or output location, or an error in your own device
-code (one line naming the file, line and field, nothing written); 3 a bug in greybox (a traceback follows; please report it);
-130 interrupted (Ctrl-C); 143 terminated (SIGTERM). An interrupted or terminated run
-leaves no partial result and an earlier result unchanged.
+code (one line naming the file, line and field, nothing written); 3 a bug in greybox (a
+traceback follows; please report it); 130 interrupted (Ctrl-C); 143 terminated (SIGTERM).
+An interrupted or terminated run leaves no partial result and an earlier result unchanged.
 
 Compiled programs are kept in your cache folder (greybox/jax), so running a command again
 skips compiling them; GREYBOX_COMPILE_CACHE=off keeps none, GREYBOX_COMPILE_CACHE=FOLDER
 keeps them there.
 """
-
-
-from greybox.io._atomic import Terminated, committed, received_signal, signal_handlers
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -93,8 +93,8 @@ def truth_rows(outcome, truth: dict) -> tuple[list[str], bool]:
 
 def run(args) -> int:
     from greybox.cli._common import Progress
-    from greybox.io._jax_setup import configure
     from greybox.cli._ticker import Ticker
+    from greybox.io._jax_setup import configure
 
     configure()  # float64, compiled programs kept on disk
     with Ticker(Progress(args.quiet)) as say:  # a line at least every 5 s, in every phase

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from greybox.cli._trust import add_trust_device_option
+
 HELP = """\
 Print what a device is: its input and output channels with the file units they accept, its
 structural options ([model] in experiment.toml) with allowed values and defaults, its
@@ -20,8 +22,6 @@ depend on the structure: --option key=value (repeatable, as in [model]) shows th
 another structure, e.g. `greybox describe chevron_laser --option thermal_nodes=3 --option
 elongation_lag=true`.
 """
-
-from greybox.cli._trust import add_trust_device_option
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -117,8 +117,8 @@ def run(args) -> int:
 
     configure()  # float64, compiled programs kept on disk
     from greybox._model.errors import InputError
-    from greybox._registry import DeviceNotFound, available, resolve
     from greybox._model.spec import DeviceSpecError
+    from greybox._registry import DeviceNotFound, available, resolve
 
     if args.device is None:
         for name in available():

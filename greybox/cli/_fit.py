@@ -8,13 +8,12 @@ import textwrap
 from pathlib import Path
 
 from greybox._estimate.verdict import exit_status_help
-
 from greybox.cli._common import (  # re-exported: the API of `greybox fit` used by tests
     FitOutcome as FitOutcome,
 )
 from greybox.cli._common import Progress, default_out, fit_lines, parameter_lines
-from greybox.cli._figures import add_figure_format
 from greybox.cli._common import fit_experiment_dir as fit_experiment_dir
+from greybox.cli._figures import add_figure_format
 
 HELP = """\
 Fit the physical parameters of a device model to an experiment folder and write the
@@ -127,7 +126,9 @@ def run(args) -> int:
         f"wrote {out}/ (params.json, report.md, {figures}predictions/, metrics.csv, "
         f"validation_runs.json) in {say.elapsed:.1f} s"
     )
-    from greybox._estimate.verdict import fit_headline  # one verdict: status, bounds, physics, residuals
+    from greybox._estimate.verdict import (
+        fit_headline,  # one verdict: status, bounds, physics, residuals
+    )
 
     head = fit_headline(outcome.result, outcome.fitset.physical_ranges, strict=args.strict)
     print("\n".join([head.text, *[f"  {d}" for d in head.details], head.intervals]))

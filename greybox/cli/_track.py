@@ -149,10 +149,12 @@ def is_track_csv(first_line: str) -> bool:
 
 
 def run(args) -> int:
-    from greybox._model.errors import InputError
     from greybox._extras import require_extra
+    from greybox._model.errors import InputError
 
     require_extra("video", what="greybox track")
+    from greybox.io._atomic import atomic_output_file, check_output_file
+    from greybox.io._video import frame_shortfall, iter_frames, prefetch, probe
     from greybox.video._tracking import (
         FeatureTracker,
         measure_sequence,
@@ -162,8 +164,6 @@ def run(args) -> int:
         search_crop,
         shuttle_track,
     )
-    from greybox.io._atomic import atomic_output_file, check_output_file
-    from greybox.io._video import frame_shortfall, iter_frames, prefetch, probe
 
     # Cheap checks first, so bad options fail before any decoding.
     _positive(args.um_per_px, "--um-per-px")

@@ -2,8 +2,8 @@
 shrink chosen standard errors under lab constraints, and waveforms that track a target."""
 
 from greybox.design._design import Design as Design
-from greybox.design._design import DesignProblem as DesignProblem
 from greybox.design._design import DesignedRun as DesignedRun
+from greybox.design._design import DesignProblem as DesignProblem
 from greybox.design._design import LabConstraints as LabConstraints
 from greybox.design._design import TrackingDesign as TrackingDesign
 from greybox.design._design import comparison_table as comparison_table

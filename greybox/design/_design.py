@@ -64,14 +64,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from greybox._compile import jit
+from greybox._estimate.identifiability import TINY, WEAK_SD
+from greybox._estimate.prediction import Band, prediction_band, raw_draws
 from greybox._model.device import check_method, with_camera
 from greybox._model.freeparams import FreeParameter, as_leaves
-from greybox._estimate.identifiability import TINY, WEAK_SD
 from greybox._model.parameters import get_value, set_values
-from greybox._estimate.prediction import Band, prediction_band, raw_draws
+from greybox._model.waveforms import PiecewiseConstant, PulseTrain
 from greybox._simulate.schedules import model_schedules, schedule_for
 from greybox._simulate.simulate import as_arrays, observe_schedule, require_x64
-from greybox._model.waveforms import PiecewiseConstant, PulseTrain
 
 CRITERIA = ("D", "A", "E")
 FAMILIES = ("pulse_train", "multilevel")

@@ -22,10 +22,10 @@ __all__ = sorted(_NAMES)
 __getattr__, __dir__ = _lazy_names(__name__, _NAMES)
 
 if _TYPE_CHECKING:  # static analysers and IDEs see the eager imports
-    from greybox._registry import available as available_devices
-    from greybox._registry import get_device as get_device
-    from greybox._registry import device_module as device_module
-    from greybox._model.device import default_method as default_method
-    from greybox._model.device import with_camera as with_camera
     from greybox._model.channels import DISPLACEMENT as DISPLACEMENT
     from greybox._model.channels import LASER_POWER as LASER_POWER
+    from greybox._model.device import default_method as default_method
+    from greybox._model.device import with_camera as with_camera
+    from greybox._registry import available as available_devices  # noqa: F401 (re-exported)
+    from greybox._registry import device_module as device_module
+    from greybox._registry import get_device as get_device

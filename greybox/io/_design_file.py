@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from greybox.design._design import Design, DesignedRun
 from greybox._model.freeparams import FreeParameter
+from greybox.design._design import Design, DesignedRun
 from greybox.io._experiment_writer import inline_table, run_table
 
 

@@ -163,7 +163,9 @@ def parse_noise(doc, table, model, spec, *where) -> NoiseTable:
     if "substeps" in table:
         substeps = doc.integer(table, "substeps", *where, minimum=1)
         if substeps > MAX_SUBSTEPS:
-            raise doc.error(f"{substeps} is more than {MAX_SUBSTEPS}; 1-8 is usual", *where, "substeps")
+            raise doc.error(
+                f"{substeps} is more than {MAX_SUBSTEPS}; 1-8 is usual", *where, "substeps"
+            )
     state_unit = doc.string(table, "state_unit", *where, default=None)
     k_step = doc.integer(
         table, "k_step", *where, default=DEFAULT_K_STEP, minimum=1, maximum=MAX_K_STEP

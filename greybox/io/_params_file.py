@@ -483,8 +483,8 @@ def load_params(path, trust_device=()) -> FittedModel:
     A device file it names is imported only from its own folder or from `trust_device`
     paths (files or folders; README, "A params.json is data")."""
     from greybox._model.parameters import set_values
-    from greybox._registry import DeviceNotFound, resolve
     from greybox._model.spec import DeviceSpecError
+    from greybox._registry import DeviceNotFound, resolve
     from greybox._usercode import params_trust
     from greybox.io._experiment_set import configure_model
     from greybox.io._params_checks import check_params_plausible

@@ -404,14 +404,18 @@ def run_outputs(fs, result, validation) -> list:
             by_name = {e.name: e for e in fs.validation}
             for r in validation.runs:
                 e = by_name[r.name]
-                horizons = {label: np.asarray(z).reshape(e.n_frames, -1) for label, z, _ in r.horizons}
+                horizons = {
+                    label: np.asarray(z).reshape(e.n_frames, -1) for label, z, _ in r.horizons
+                }
                 with np.errstate(divide="ignore", invalid="ignore"):
                     sd1 = (e.y - np.asarray(r.y_one_step).reshape(e.y.shape)) / np.asarray(
                         r.standardised_innovation
                     ).reshape(e.y.shape)
                 extra = diagnostics_doc(r, outputs)
                 extra["refitted"] = _refitted(validation, e.name)
-                out.append(RunOutput("validation", e, horizons, None, {ONE_STEP: np.abs(sd1)}, extra))
+                out.append(
+                    RunOutput("validation", e, horizons, None, {ONE_STEP: np.abs(sd1)}, extra)
+                )
         return out
     # the fit's own predictions and band sds: writing simulates and compiles nothing
     for e in result.experiments:

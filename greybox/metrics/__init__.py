@@ -27,14 +27,14 @@ __all__ = sorted(_NAMES)
 __getattr__, __dir__ = _lazy_names(__name__, _NAMES)
 
 if _TYPE_CHECKING:  # static analysers and IDEs see the eager imports
-    from greybox._estimate.metrics import fit_percent as fit_percent
-    from greybox._estimate.metrics import fit_percent_per_output as fit_percent_per_output
-    from greybox._estimate.metrics import rmse as rmse
-    from greybox._estimate.metrics import mae as mae
-    from greybox._estimate.metrics import sae as sae
-    from greybox._estimate.metrics import r_squared as r_squared
-    from greybox._estimate.stochastic_fit import ljung_box as ljung_box
-    from greybox._estimate.stochastic_fit import LjungBox as LjungBox
+    from greybox._estimate.compare import CandidateScore as CandidateScore
     from greybox._estimate.identifiability import IdentifiabilityReport as IdentifiabilityReport
     from greybox._estimate.likelihood import RunDiagnostics as RunDiagnostics
-    from greybox._estimate.compare import CandidateScore as CandidateScore
+    from greybox._estimate.metrics import fit_percent as fit_percent
+    from greybox._estimate.metrics import fit_percent_per_output as fit_percent_per_output
+    from greybox._estimate.metrics import mae as mae
+    from greybox._estimate.metrics import r_squared as r_squared
+    from greybox._estimate.metrics import rmse as rmse
+    from greybox._estimate.metrics import sae as sae
+    from greybox._estimate.stochastic_fit import LjungBox as LjungBox
+    from greybox._estimate.stochastic_fit import ljung_box as ljung_box

@@ -25,12 +25,12 @@ __all__ = sorted(_NAMES)
 __getattr__, __dir__ = _lazy_names(__name__, _NAMES)
 
 if _TYPE_CHECKING:  # static analysers and IDEs see the eager imports
-    from greybox._model.parameters import ParameterInfo as ParameterInfo
+    from greybox._estimate.prediction import with_shared as with_shared
     from greybox._model.freeparams import FreeParameter as FreeParameter
+    from greybox._model.parameters import ParameterInfo as ParameterInfo
+    from greybox._model.parameters import check_scalar_path as check_scalar_path
     from greybox._model.parameters import get_value as get_value
     from greybox._model.parameters import set_values as set_values
     from greybox._model.parameters import with_overrides as with_overrides
-    from greybox._estimate.prediction import with_shared as with_shared
-    from greybox._model.parameters import check_scalar_path as check_scalar_path
     from greybox._simulate.simulate import as_arrays as as_arrays
     from greybox.report._markdown import parameter_table as parameter_table

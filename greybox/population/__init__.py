@@ -25,13 +25,13 @@ __all__ = sorted(_NAMES)
 __getattr__, __dir__ = _lazy_names(__name__, _NAMES)
 
 if _TYPE_CHECKING:  # static analysers and IDEs see the eager imports
-    from greybox._estimate.batch import fit_batch as fit_batch
     from greybox._estimate.batch import BatchResult as BatchResult
-    from greybox._estimate.batch import batch_table as batch_table
     from greybox._estimate.batch import Device as Device
+    from greybox._estimate.batch import batch_table as batch_table
     from greybox._estimate.batch import device_from_spec as device_from_spec
+    from greybox._estimate.batch import fit_batch as fit_batch
     from greybox._estimate.distributed import fit_distributed as fit_distributed
-    from greybox._estimate.population import population_fit as population_fit
-    from greybox._estimate.population import population_from_batch as population_from_batch
     from greybox._estimate.population import PopulationFit as PopulationFit
     from greybox._estimate.population import PopulationParameter as PopulationParameter
+    from greybox._estimate.population import population_fit as population_fit
+    from greybox._estimate.population import population_from_batch as population_from_batch

@@ -21,9 +21,9 @@ __all__ = sorted(_NAMES)
 __getattr__, __dir__ = _lazy_names(__name__, _NAMES)
 
 if _TYPE_CHECKING:  # static analysers and IDEs see the eager imports
-    from greybox._estimate.posterior import Posterior as Posterior
     from greybox._estimate.band import Band as Band
-    from greybox._estimate.prediction import prediction_band as prediction_band
+    from greybox._estimate.posterior import Posterior as Posterior
     from greybox._estimate.prediction import delta_method as delta_method
+    from greybox._estimate.prediction import prediction_band as prediction_band
     from greybox._estimate.prediction import propagate as propagate
     from greybox._estimate.prediction import raw_draws as raw_draws

@@ -3,6 +3,13 @@ render synthetic frames. Needs the ``video`` extra (``pip install "greybox[video
 scikit-image for sub-pixel registration, imageio and imageio-ffmpeg for containers).
 """
 
+from greybox.io._video import VideoInfo as VideoInfo
+from greybox.io._video import iter_frames as iter_frames
+from greybox.io._video import prefetch as prefetch
+from greybox.io._video import probe as probe
+from greybox.io._video import read_frames as read_frames
+from greybox.io._video import write_image_stack as write_image_stack
+from greybox.io._video import write_video as write_video
 from greybox.video._render import RenderedSequence as RenderedSequence
 from greybox.video._render import exposure_times as exposure_times
 from greybox.video._render import render_markers as render_markers
@@ -22,10 +29,3 @@ from greybox.video._tracking import search_crop as search_crop
 from greybox.video._tracking import shuttle_track as shuttle_track
 from greybox.video._tracking import track_pose as track_pose
 from greybox.video._tracking import track_shuttle as track_shuttle
-from greybox.io._video import VideoInfo as VideoInfo
-from greybox.io._video import iter_frames as iter_frames
-from greybox.io._video import prefetch as prefetch
-from greybox.io._video import probe as probe
-from greybox.io._video import read_frames as read_frames
-from greybox.io._video import write_image_stack as write_image_stack
-from greybox.io._video import write_video as write_video

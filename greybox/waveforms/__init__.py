@@ -35,10 +35,10 @@ if _TYPE_CHECKING:  # static analysers and IDEs see the eager imports
     from greybox._model.waveforms import from_samples as from_samples
     from greybox._model.waveforms import multilevel_prbs as multilevel_prbs
     from greybox._model.waveforms import stack_channels as stack_channels
+    from greybox._simulate.periodic import response_function as response_function
+    from greybox._simulate.periodic import response_surface as response_surface
     from greybox._simulate.periodic import square_wave_cycle as square_wave_cycle
     from greybox._simulate.periodic import square_wave_response as square_wave_response
     from greybox._simulate.periodic import steady_state as steady_state
-    from greybox._simulate.periodic import response_function as response_function
-    from greybox._simulate.periodic import response_surface as response_surface
-    from greybox._simulate.synthetic import record as record
     from greybox._simulate.synthetic import CameraDefects as CameraDefects
+    from greybox._simulate.synthetic import record as record

@@ -163,3 +163,25 @@ def test_a_device_whose_code_raises_does_not_lose_the_batch(lab, tmp_path, capsy
     line = text.splitlines().index("        raise RuntimeError('no dynamics today')") + 1
     assert "device raiser failed" in err and f"{raiser / 'msd.py'}:{line}" in err, err
     assert sorted(p.name for p in (out / "devices").iterdir()) == ["d1", "d2"]
+
+
+def test_a_device_refused_by_name_is_left_out_and_the_rest_batched(lab, tmp_path, capsys):
+    """A device whose data cannot determine its parameters (two readings, two parameters)
+    loads, but the batch refuses it by name before solving any device: it is reported with
+    that reason and the others are fitted together in one batch, not one by one."""
+    root, folders = lab
+    few = _folder(tmp_path, "few", lambda t: np.where(t < 0.04, _truth(t, 40.0), np.nan))
+    (tmp_path / "msd.py").write_text(_example())
+    out = tmp_path / "out"
+    argv = ["fit-many", str(folders[0]), str(few), str(folders[1]), "--out", str(out),
+            "--no-device-figures", "--no-validate"]  # fmt: skip
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert "device few: 2 valid frames cannot determine 2 parameters" in err, err
+    assert "fitting the other 2 together" in err and "one by one" not in err, err
+    assert sorted(p.name for p in (out / "devices").iterdir()) == ["d1", "d2"]
+    assert "- few: 2 valid frames cannot determine 2 parameters" in (out / "batch.md").read_text()
+    for name in ("d1", "d2"):
+        doc = json.loads((out / "devices" / name / "params.json").read_text())
+        est = {p["name"]: p for p in doc["parameters"]}["stiffness_N_per_m"]
+        assert abs(est["value"] - STIFF[name]) < max(4 * est["se"], 1e-3 * STIFF[name])

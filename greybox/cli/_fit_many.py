@@ -168,10 +168,40 @@ def _why(err: BaseException) -> str:
     return " ".join(text.split())[:400]
 
 
+def _named_member(err: BaseException, members) -> str | None:
+    """The member a batch's error is about: `fit_batch` checks every device before it solves
+    any and starts such an error with the device's name (None: not one member's)."""
+    if type(err) is not ValueError:
+        return None
+    named = [name for name, _ in members if str(err).startswith(f"{name}: ")]
+    return named[0] if len(named) == 1 else None
+
+
+def _fit_members(members, args, say, failed) -> dict:
+    """{name: FitResult} of `members` fitted as one batch; a member the batch refuses by name
+    (`_named_member`) is recorded in `failed` and the others are batched again without it."""
+    members = list(members)
+    while True:
+        try:
+            return _fit_group(members, args, say)
+        except Exception as err:
+            name = _named_member(err, members)
+            if name is None:
+                raise
+            why, said = _why(err), f"ValueError: {name}: "
+            failed[name] = why[len(said) :] if why.startswith(said) else why
+            members = [m for m in members if m[0] != name]
+            if not members:
+                return {}
+            say(f"device {name}: {failed[name]}; fitting the other {len(members)} together")
+
+
 def fit_devices(loaded, args, say):
     """({name: FitResult}, {name: why}) for every device, batched per distinct fit options.
-    A batch that raises is fitted again device by device, so one device whose code fails
-    (e.g. its `linear_dynamics` raises for its values) loses only itself."""
+    A device the batch refuses by name before solving (too few readings for its parameters,
+    say) is left out and the others batched again; a batch that raises otherwise is fitted
+    again device by device, so one device whose code fails (e.g. its `linear_dynamics`
+    raises for its values) loses only itself."""
     from greybox._model.errors import InputError
 
     by_options: dict = {}
@@ -187,10 +217,11 @@ def fit_devices(loaded, args, say):
         by_options.setdefault(_option_key(fs), []).append((name, fs))
     for members in by_options.values():
         try:
-            results.update(_fit_group(members, args, say))
+            results.update(_fit_members(members, args, say, failed))
         except (InputError, KeyboardInterrupt):
             raise
         except Exception as err:
+            members = [m for m in members if m[0] not in failed]  # refused by name already
             if len(members) == 1:
                 failed[members[0][0]] = _why(err)
                 continue

@@ -186,7 +186,7 @@ def _first_run_noisy(device):
     [
         (_blanked, None, "valid frames cannot determine"),
         (lambda d: _with_runs(d, settings={"thermal.no_such_m": 1.0}), None, "no_such_m"),
-        (lambda d: d, -1.0, "sigma must be > 0"),
+        (lambda d: d, -1.0, "noise scale must be > 0"),
         (_first_run_noisy, None, "per-frame noise level"),
     ],
     ids=["too few readings", "unknown setting", "negative sigma", "per-frame noise mixed"],
@@ -227,6 +227,11 @@ def test_a_bad_device_is_refused_before_a_cluster_starts(batch, monkeypatch):
     with pytest.raises(ValueError, match="valid frames cannot determine") as err:
         dist.fit_distributed([*devices[:3], bad], SPEC.free_parameters(), n_workers=1)
     assert str(err.value).startswith(f"{bad.name}: ")
+    # the noise an `OutputError` carries is checked as `fit_batch` reads it
+    with pytest.raises(ValueError, match="noise scale must be > 0") as err:
+        dist.fit_distributed(devices[:3], SPEC.free_parameters(), n_workers=1,
+                             noise=greybox.OutputError(sigma=-1e-7))  # fmt: skip
+    assert str(err.value).startswith(f"{devices[0].name}: ")
 
 
 def test_a_batch_pauses_the_cyclic_collector_and_restores_it(batch, monkeypatch):

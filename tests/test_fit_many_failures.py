@@ -177,10 +177,12 @@ def test_a_device_refused_by_name_is_left_out_and_the_rest_batched(lab, tmp_path
             "--no-device-figures", "--no-validate"]  # fmt: skip
     assert main(argv) == 1
     err = capsys.readouterr().err
-    assert "device few: 2 valid frames cannot determine 2 parameters" in err, err
+    assert "device few: experiments: 2 valid frames cannot determine 2 parameters" in err, err
     assert "fitting the other 2 together" in err and "one by one" not in err, err
     assert sorted(p.name for p in (out / "devices").iterdir()) == ["d1", "d2"]
-    assert "- few: 2 valid frames cannot determine 2 parameters" in (out / "batch.md").read_text()
+    assert "- few: experiments: 2 valid frames cannot determine 2 parameters" in (
+        out / "batch.md"
+    ).read_text()
     for name in ("d1", "d2"):
         doc = json.loads((out / "devices" / name / "params.json").read_text())
         est = {p["name"]: p for p in doc["parameters"]}["stiffness_N_per_m"]

@@ -56,9 +56,8 @@ from greybox._collector import collector_paused
 from greybox._compile import jit
 from greybox._estimate import fit as _fit
 from greybox._estimate.blas import small_blas
-from greybox._estimate.problem import best_start, n_starts_for, settings_matrix
+from greybox._estimate.problem import best_start, n_starts_for
 from greybox._estimate.problem import solve_bytes as bytes_per_item
-from greybox._estimate.problem import split as split_free
 from greybox._estimate.residuals import analyse_many as analyse_residuals
 from greybox._model.data import Experiment
 from greybox._model.device import check_method
@@ -333,8 +332,9 @@ def _plan(devices, free, method, loss, sigma=None, n_starts=None) -> list:
 def checked_devices(devices, free, method=None, loss="huber", sigma=None, n_starts=None):
     """(free parameters scaled from the device's start, simulation method, (noise source,
     declared sigma)) of every device, after every check of the batch's settings and of each
-    device's input that fitting it would make: a bad device is refused, by name, before
-    any is solved (`_plan`, and `fit_distributed` before it starts a cluster)."""
+    device's input that `fit` makes before it solves (`_fit._checked_data`): a bad device is
+    refused, by name, before any is solved (`_plan`, and `fit_distributed` before it starts
+    a cluster)."""
     if loss not in _fit.LOSSES:
         raise ValueError(f"loss: {loss!r} is unknown; use one of {_fit.LOSSES}")
     paths = [p.path for p in free]
@@ -347,10 +347,12 @@ def checked_devices(devices, free, method=None, loss="huber", sigma=None, n_star
     out = []
     for d in devices:
         f = tuple(d.free) if d.free is not None else tuple(free)
+        sig_d = d.sigma if d.sigma is not None else _device_sigma(sigma, d.name)
         with _naming(d.name):
             m = _check(d, f, method)
             f = tuple(p.with_scale_from(v) for p, v in zip(f, _fit._start_values(f, d.model)))
-            out.append((f, m, _checked_input(d, f, sigma)))
+            source = _fit._checked_data(d.model, d.experiments, f, sig_d)
+        out.append((f, m, (source, sig_d)))
     return out
 
 
@@ -376,31 +378,6 @@ def _naming(name: str):
         if type(e) is not ValueError or str(e).startswith(f"{name}: "):
             raise
         raise ValueError(f"{name}: {e}") from e
-
-
-def _checked_input(d: Device, free, sigma) -> tuple:
-    """(noise source, declared sigma) of device `d` after the checks of its input that
-    building its problem would make (`_fit._Problem.build`, `_build`): its noise, its runs'
-    output columns and settings, enough readings for its parameters."""
-    sig_d = d.sigma if d.sigma is not None else _device_sigma(sigma, d.name)
-    source = _fit._noise_source(d.experiments, sig_d)
-    n_y = d.experiments[0].y.shape[1]
-    for e in d.experiments:
-        if e.y.shape[1] != n_y:
-            raise ValueError(f"{e.name}: has {e.y.shape[1]} output columns, others {n_y}")
-    settings_matrix(d.model, d.experiments, free)
-    shared, per_exp = split_free(free)
-    n_raw = len(shared) + len(d.experiments) * len(per_exp)
-    n_data = sum(int(e.mask.sum()) for e in d.experiments)
-    if n_data <= n_raw:
-        raise ValueError(f"{n_data} valid frames cannot determine {n_raw} parameters")
-    if source == "declared":
-        sig = np.asarray(sig_d, dtype=float)
-        if sig.ndim > 1 or sig.size not in (1, n_y) or not np.all(sig > 0):
-            raise ValueError(
-                f"sigma must be > 0 (SI units of the output), one value or one per output ({n_y})"
-            )
-    return source, sig_d
 
 
 def _build(plan, indices, loss, huber_c, student_nu, n_starts, seed, solver) -> tuple:
@@ -602,9 +579,9 @@ def fit_batch(
                 devices, free, noise, sigma, n_starts, seed, max_steps, chunk_size, say
             )
     if isinstance(noise, nm.OutputError):
-        loss, sigma = noise.loss.name, noise.sigma
-        huber_c = getattr(noise.loss, "c", huber_c)
-        student_nu = getattr(noise.loss, "nu", student_nu)
+        loss, sigma, huber_c, student_nu = output_error_settings(
+            noise, loss, sigma, huber_c, student_nu
+        )
     elif noise is not None:
         raise ValueError(
             f"noise: {noise!r} is not a noise model; use greybox.OutputError(...) or "
@@ -618,6 +595,21 @@ def fit_batch(
             rtol, atol, (solver_rtol, solver_atol, solver_max_steps), chunk_size,
             memory_budget_bytes, say,
         )
+
+
+def output_error_settings(noise, loss, sigma, huber_c, student_nu) -> tuple:
+    """(loss, sigma, huber_c, student_nu) of a least-squares batch: those an `OutputError`
+    `noise` carries, else the arguments as given."""
+    from greybox._estimate import noise_models as nm
+
+    if not isinstance(noise, nm.OutputError):
+        return loss, sigma, huber_c, student_nu
+    return (
+        noise.loss.name,
+        noise.sigma,
+        getattr(noise.loss, "c", huber_c),
+        getattr(noise.loss, "nu", student_nu),
+    )
 
 
 def _fit_output_error(

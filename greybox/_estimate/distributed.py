@@ -268,13 +268,13 @@ def _check_on_client(devices, free, kw) -> None:
     """`fit_batch`'s checks of the batch's settings and of every device
     (`_batch.checked_devices`), with `fit_batch`'s keyword arguments `kw` (those of a
     least-squares fit: a process-noise batch is left to its workers, as before)."""
-    from greybox._estimate.noise_models import OutputError, ProcessNoise
+    from greybox._estimate.noise_models import ProcessNoise
 
-    loss, sigma, noise = kw.get("loss", "huber"), kw.get("sigma"), kw.get("noise")
-    if isinstance(noise, ProcessNoise):
+    if isinstance(kw.get("noise"), ProcessNoise):
         return
-    if isinstance(noise, OutputError):
-        loss, sigma = noise.loss.name, noise.sigma
+    loss, sigma, _, _ = _batch.output_error_settings(
+        kw.get("noise"), kw.get("loss", "huber"), kw.get("sigma"), None, None
+    )
     _batch.checked_devices(devices, free, kw.get("method"), loss, sigma, kw.get("n_starts"))
 
 

@@ -405,13 +405,11 @@ class _Problem(eqx.Module):
             sched = schedules_for(model, experiments, on_device=False)
         n_exp = len(experiments)
         n_frames = sched["t_s"].shape[1]
-        n_y = experiments[0].y.shape[1]
+        n_y = _output_columns(experiments)
         y = np.zeros((n_exp, n_frames, n_y))
         w = np.zeros_like(y)
         noise = np.ones_like(y)
         for i, e in enumerate(experiments):
-            if e.y.shape[1] != n_y:
-                raise ValueError(f"{e.name}: has {e.y.shape[1]} output columns, others {n_y}")
             y[i, : e.n_frames] = np.nan_to_num(e.y)
             w[i, : e.n_frames] = e.mask
             if e.sigma is not None:
@@ -721,6 +719,42 @@ def _outputs_without_data(w: np.ndarray) -> list[int]:
     return [j for j in range(w.shape[-1]) if not np.any(w[..., j] > 0)]
 
 
+def _output_columns(experiments) -> int:
+    """The runs' number of output columns; runs that disagree are refused."""
+    n_y = experiments[0].y.shape[1]
+    for e in experiments:
+        if e.y.shape[1] != n_y:
+            raise ValueError(f"{e.name}: has {e.y.shape[1]} output columns, others {n_y}")
+    return n_y
+
+
+def _checked_data(model, experiments, free, sigma) -> str:
+    """The noise source (`_noise_source`) of a least-squares fit of `free` to `experiments`,
+    after the checks of its data that need no problem built, which `fit` and every device
+    of a batch (`batch.checked_devices`) make before any solve: the runs' output columns and
+    known settings, enough readings for the parameters, a declared sigma > 0 (one value or
+    one per output)."""
+    source = _noise_source(experiments, sigma)
+    n_y = _output_columns(experiments)
+    _problem.settings_matrix(model, experiments, free)
+    shared, per_exp = _problem.split(free)
+    n_raw = len(shared) + len(experiments) * len(per_exp)
+    n_data = sum(int(e.mask.sum()) for e in experiments)
+    if n_data <= n_raw:
+        raise ValueError(
+            f"experiments: {n_data} valid frames cannot determine {n_raw} parameters; add "
+            "data or free fewer parameters"
+        )
+    if source == "declared":
+        s = np.asarray(sigma, dtype=float)
+        if s.ndim > 1 or s.size not in (1, n_y) or not np.all(s > 0):
+            raise ValueError(
+                "sigma: noise scale must be > 0 (SI units of the output), one value or one "
+                f"per output ({n_y})"
+            )
+    return source
+
+
 def _noise_source(experiments, sigma) -> str:
     """ "per-frame" (every run carries `Experiment.sigma`), "declared" (`sigma=` given) or
     "estimated"; mixing is an error (which noise would be meant is ambiguous)."""
@@ -981,7 +1015,7 @@ def _fit_least_squares(
     if loss not in LOSSES:
         raise ValueError(f"loss: {loss!r} is unknown; use one of {LOSSES}")
     free = _problem.with_scales(free, model)
-    source = _noise_source(experiments, sigma)
+    source = _checked_data(model, experiments, free, sigma)
 
     problem = _Problem.build(
         model,
@@ -996,11 +1030,6 @@ def _fit_least_squares(
         solver_max_steps,
     )
     n_y = problem.y.shape[-1]
-    if problem.n_data <= problem.n_raw:
-        raise ValueError(
-            f"experiments: {problem.n_data} valid frames cannot determine "
-            f"{problem.n_raw} parameters; add data or free fewer parameters"
-        )
     raw0 = _initial_raw(problem, model)
     empty = _outputs_without_data(np.asarray(problem.w))
     if empty:
@@ -1019,8 +1048,6 @@ def _fit_least_squares(
         sig = np.full(n_y, _initial_sigma_guess(experiments))
     elif source == "declared":
         sig = np.broadcast_to(np.asarray(sigma, dtype=float), (n_y,)).copy()
-        if not np.all(sig > 0):
-            raise ValueError("sigma: noise scale must be > 0 (SI units of the output)")
     else:
         sig = np.ones(n_y)  # the per-frame levels are in the problem's `noise`
 

@@ -166,6 +166,12 @@ alternating pairs against 74fc79d, four warm batches each): walls 2.51-3.28 s be
 a full run: solve_s 1.30 -> 1.55 s, the solves slower beside the build), compiled_alone_share
 0.55 -> 0.57; the same estimates to the bit. Its gain is the first progress line of a large
 batch (2,048 devices: 2.3-2.5 -> 1.4-1.6 s), not the throughput.
+With the residual tests' shuffles in two stages (2026-11-29: 99 a test, the other 900 only
+where those leave p below 0.11; every p-value below 0.011 and every verdict unchanged), two
+alternating runs against 5ec65c4: residual_tests_s 1.35 and 1.20 -> 0.61 and 0.71;
+10,361 and 11,629 -> 14,582 and 12,562 fits/min; solve_share 0.71 and 0.66 -> 0.73 and
+0.68; compiled_alone_share 0.57 and 0.58 -> 0.68 and 0.63; the same estimates
+(batch_vs_fit_max_rel 1.2e-14). The host thread is still the longer chain.
 """
 
 from __future__ import annotations

@@ -40,7 +40,9 @@ def test_lagged_sums_match_the_double_loop(s):
 
 def naive_p_value(t, e, valid, seed, h, b):
     """Permutation p-value of the gapped, bias-corrected Ljung-Box Q of one run, one output,
-    written out from the module docstring (no outliers in these data)."""
+    written out from the module docstring (no outliers in these data): the share of the
+    first 99 shuffles reaching Q where at least 10 of them do, else of all `b`. Also: was
+    it settled by the first 99."""
     grid = _residuals.FrameGrid.build(t)
     n = int(valid.sum())
     x = np.where(valid, e - e[valid].mean(), 0.0)
@@ -63,21 +65,25 @@ def naive_p_value(t, e, valid, seed, h, b):
     rng = np.random.default_rng([*seed, 0])
     q0 = q_of(g)
     beyond = 0
-    for _ in range(b):
+    for i in range(b):
         shuffled = np.zeros_like(g)
         shuffled[slots] = vals[rng.random(vals.size).argsort()]
         beyond += q_of(shuffled) >= q0
-    return q0, (1 + beyond) / (b + 1)
+        if i + 1 == 99 and beyond >= 10:
+            return q0, (1 + beyond) / 100, True
+    return q0, (1 + beyond) / (b + 1), False
 
 
+@pytest.mark.parametrize("colour", [0.25, 0.45], ids=["settled-by-99", "all-199"])
 @pytest.mark.parametrize("compiled", [False, True], ids=["numpy", "compiled"])
 @pytest.mark.parametrize("cached", [True, False])
 def test_permutation_p_value_matches_the_loop_with_the_documented_stream(
-    monkeypatch, cached, compiled
+    monkeypatch, cached, compiled, colour
 ):
     """Both ways of drawing the shuffles (cached orders, or drawn block by block for a long
     run) are the documented stream, in numpy's blocks (a CPU) and in the compiled kernel (an
-    accelerator; here forced on the CPU)."""
+    accelerator; here forced on the CPU), in both stages: a mildly coloured run whose first
+    99 shuffles settle its p-value, and a more coloured one that takes all 199."""
     if not cached:
         monkeypatch.setattr(_residuals, "ORDER_CACHE_ELEMENTS", 0)
     monkeypatch.setattr(_residuals, "_compiled_shuffles", lambda *_: compiled)
@@ -85,9 +91,10 @@ def test_permutation_p_value_matches_the_loop_with_the_documented_stream(
     n = 90
     t = np.cumsum(rng.uniform(0.9, 1.1, n) * np.where(rng.random(n) < 0.05, 3, 1))
     e = rng.normal(size=n)
-    e[1:] += 0.25 * e[:-1]  # mildly coloured: a p-value away from both ends
+    e[1:] += colour * e[:-1]  # coloured: a p-value away from both ends
     valid = rng.random(n) > 0.08
-    q0, p0 = naive_p_value(t, e, valid, (3, 1), 6, 199)
+    q0, p0, settled = naive_p_value(t, e, valid, (3, 1), 6, 199)
+    assert settled == (colour < 0.3)
     monkeypatch.setattr(_residuals, "LAG_BLOCK", 7 * 128)  # several blocks of shuffles
     r = analyse_run("a", t, e[:, None], valid[:, None], None, 6, 6, permutations=199, seed=(3, 1))
     assert 0.01 < p0 < 0.99
@@ -112,15 +119,52 @@ def test_analyse_many_is_one_analyse_per_fit():
             valid = rng.random((n, 1)) > 0.05
             runs.append((f"r{i}", t, e, valid, rng.normal(size=(n, 1))))
         fits.append(runs)
-    together = _residuals.analyse_many(fits, permutations=99)
+    together = _residuals.analyse_many(fits, permutations=299)  # both stages
     for runs, got in zip(fits, together):
-        alone = analyse(runs, permutations=99)
+        alone = analyse(runs, permutations=299)
         assert got.test_lag == alone.test_lag
         np.testing.assert_array_equal(got.q, alone.q)
         np.testing.assert_array_equal(got.p_value, alone.p_value)
         for a, b in zip(got.runs, alone.runs):
             np.testing.assert_array_equal(a.p_value, b.p_value)
     assert len({a.test_lag for a in together}) > 1  # the fits really had different lags
+
+
+def test_shuffles_in_two_stages_keep_every_small_p_value_and_verdict(monkeypatch):
+    """The sequential rule (module docstring) against both single-stage tests it is made of:
+    a p-value (per run and pooled) is the 99-shuffle one where at least 10 of the 99 reach
+    the observed Q (p >= 0.11), else the 999-shuffle one; so every p-value the 999 put
+    below 0.011 is theirs, bit for bit, and so is every verdict. White and coloured runs,
+    two outputs, several runs a fit."""
+    rng = np.random.default_rng(5)
+    fits = []
+    for k in range(12):
+        runs = []
+        for i in range(3):
+            n = int(rng.integers(50, 120))
+            t = np.cumsum(np.where(rng.random(n) < 0.05, 2.0, 1.0)) / 30.0
+            e = rng.normal(size=(n, 2))
+            e[1:] += (0.05 * k) * e[:-1]  # from white to clearly coloured
+            runs.append((f"r{i}", t, e, rng.random((n, 2)) > 0.05, None))
+        fits.append(runs)
+    staged = _residuals.analyse_many(fits)
+    first = _residuals.analyse_many(fits, permutations=99)
+    monkeypatch.setattr(_residuals, "FIRST_SHUFFLES", 999)
+    full = _residuals.analyse_many(fits)
+
+    def expected(p99, p999):
+        return np.where(p99 >= 0.11, p99, p999)
+
+    small = settled = 0
+    for s_, f99, f999 in zip(staged, first, full):
+        np.testing.assert_array_equal(s_.p_value, expected(f99.p_value, f999.p_value))
+        for a, b, c in zip(s_.runs, f99.runs, f999.runs):
+            np.testing.assert_array_equal(a.p_value, expected(b.p_value, c.p_value))
+        np.testing.assert_array_equal(s_.white, f999.white)
+        assert s_.verdict.split("(")[0] == f999.verdict.split("(")[0]
+        small += int(np.sum(f999.p_value < 0.011))
+        settled += int(np.sum(f99.p_value >= 0.11))
+    assert small >= 4 and settled >= 4  # both stages were exercised
 
 
 def test_pooled_correlations_are_the_pair_weighted_means_of_the_runs():
@@ -276,10 +320,12 @@ def test_compiled_shuffle_kernel_gives_numpys_statistics_on_a_batch(monkeypatch,
         fits.append(runs)
     shuffled, real_p_values = {}, _residuals._run_p_values
 
-    def keep(way):  # the runs' shuffled r(k), as their p-values read them
-        def p_values(runs, stacked):
-            shuffled[way] = [r.permuted_autocorrelation.copy() for r in runs]
-            return real_p_values(runs, stacked)
+    def keep(way):  # the runs' shuffled r(k), as their p-values read them (both stages)
+        def p_values(runs, stacked, rows):
+            shuffled.setdefault(way, []).extend(
+                r.permuted_autocorrelation[:, :rows].copy() for r in runs
+            )
+            return real_p_values(runs, stacked, rows)
 
         return p_values
 
@@ -288,6 +334,7 @@ def test_compiled_shuffle_kernel_gives_numpys_statistics_on_a_batch(monkeypatch,
         monkeypatch.setattr(_residuals, "_compiled_shuffles", lambda *_, c=compiled: c)
         monkeypatch.setattr(_residuals, "_run_p_values", keep(way))
         out[way] = _residuals.analyse_many(fits, permutations=199)
+    assert len(shuffled["numpy"]) == len(shuffled["compiled"]) > sum(map(len, fits))
     for a, b in zip(shuffled["numpy"], shuffled["compiled"]):
         assert np.array_equal(np.isnan(a), np.isnan(b))
         np.testing.assert_allclose(b, a, rtol=0, atol=2e-6)

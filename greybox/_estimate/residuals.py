@@ -40,7 +40,15 @@ whatever the gaps, the run lengths and the pooling. The chi-square reference wit
 of freedom is liberal at these sizes (fitted one-node chevron residuals, two runs of ~120
 frames, 2000 replicates: 1.6 % of rejections at the 1 % level, 5.6 % at 5 %; with the
 shuffles 1.15 % and 5.15 %), so it is used only beyond the shuffles' resolution (a Q larger
-than every shuffled one: p < 1 / (B + 1)), where it orders the evidence. The verdict rejects
+than every shuffled one: p < 1 / (B + 1)), where it orders the evidence. The shuffles are
+drawn in two stages (sequential Monte Carlo p-values, Besag and Clifford 1991): every test
+gets the first `FIRST_SHUFFLES` = 99, and one where `DECIDED_EXCEEDANCES` = 10 of them already
+reach the observed Q (p >= 0.11: clearly white) keeps the p-value of those 99; the others get
+the rest of the `PERMUTATIONS` = 999 of the same stream. The first 99 are among the 999, so a
+test that stops has at least 10 of the 999 reaching its Q: every p-value that all 999 put
+below 0.011, and with it every verdict (p < 0.01 / n_y), is exactly the one they give; only a
+clearly white test's p-value is the coarser estimate of 99 shuffles. Most runs of a right
+structure stop there, which makes the shuffles about a third of their cost. The verdict rejects
 whiteness of an output when p < `ALPHA` / n_y (Bonferroni over outputs); the degrees of
 freedom are not reduced by the fitted parameters (an output-error fit of a few physical
 parameters barely whitens its residuals). `benchmarks/whiteness.py` measures the false-alarm
@@ -68,6 +76,16 @@ ALPHA = 1.0 - CONFIDENCE
 MAX_LAG = 25  # lags shown, in frames (MATLAB `resid` default), fewer for short runs
 TEST_LAG = 10  # lags the portmanteau test uses: min(10, n / 5), the usual Ljung-Box rule
 PERMUTATIONS = 999  # within-run shuffles of the residuals that give the test's null
+# shuffles in two stages (module docstring): every test gets the first FIRST_SHUFFLES, and
+# one that DECIDED_EXCEEDANCES of them reach (p >= 0.11) keeps their p-value; the others get
+# all PERMUTATIONS of the same stream
+FIRST_SHUFFLES = 99
+DECIDED_EXCEEDANCES = 10
+SHUFFLES_TEXT = (  # how a p-value was drawn, as the reports and params.json say it
+    f"{PERMUTATIONS} within-run shuffles of the residuals (the first {FIRST_SHUFFLES} alone "
+    f"where {DECIDED_EXCEEDANCES} of them reach the observed statistic: "
+    f"p >= {(1 + DECIDED_EXCEEDANCES) / (1 + FIRST_SHUFFLES):g})"
+)
 OUTLIER_SCALES = 5.0
 IRREGULAR_SPREAD = 0.5  # 10-90 % spread of frame intervals (x median) that earns a note
 
@@ -365,6 +383,11 @@ class _Shuffled:
         precision's underflow and overflow)."""
         return (self.g / np.sqrt(self.c0)).astype(SHUFFLE_DTYPE)
 
+    @property
+    def output(self) -> int:
+        """The output this job tests (its stream key's last element)."""
+        return self.key[-1]
+
     @functools.cached_property
     def order_key(self) -> tuple:
         """(stream `key`, number of occupied slots): what picks the job's rank orders
@@ -382,19 +405,22 @@ class _Shuffled:
         return slots, first
 
 
-def _pieces(jobs, b: int):
-    """(job, first row of `out`, the order rows of shuffles) in blocks of at most LAG_BLOCK /
-    n_slots shuffles, lazily: slices of the cached orders or, for long runs, the same stream
-    drawn block by block."""
+def _pieces(jobs, shuffles: range):
+    """(job, first row of `out`, the order rows of shuffles) for the shuffles `shuffles` of
+    each job's stream, in blocks of at most LAG_BLOCK / n_slots shuffles, lazily: slices of
+    the cached orders or, for long runs, the same stream drawn block by block."""
     for job in jobs:
-        if not b:
+        if not shuffles:
             continue
         _, slots_n = job.order_key
         rows = max(1, LAG_BLOCK // max(job.g.size, 1))
-        cached = _shuffle_orders(job.key, slots_n, b)
-        rng = None if cached is not None else _stream(job.key)
-        for start in range(0, b, rows):
-            stop = min(start + rows, b)
+        cached = _shuffle_orders(job.key, slots_n, job.out.shape[0] - 1)
+        rng = None
+        if cached is None:
+            rng = _stream(job.key)
+            rng.random((shuffles.start, slots_n))  # the stream's earlier shuffles, skipped
+        for start in range(shuffles.start, shuffles.stop, rows):
+            stop = min(start + rows, shuffles.stop)
             if cached is not None:
                 yield job, 1 + start, cached[start:stop]
             else:
@@ -417,10 +443,11 @@ def _blocks(pieces):
         yield block, size, width
 
 
-def _permuted_autocorrelation(jobs, permutations: int) -> None:
-    """Fill each job's `out` (B + 1, h) with the bias-corrected r(1..h): row 0 its observed
-    one, rows 1.. those of B shuffles of the values among the occupied slots (the gaps stay
-    where they are; single precision, `SHUFFLE_DTYPE`). The rows of every job (all runs of a
+def _permuted_autocorrelation(jobs, shuffles: range) -> None:
+    """Fill rows of each job's `out` (B + 1, h) with the bias-corrected r(1..h): row 0 its
+    observed one, and for each shuffle i of `shuffles` (of the B of its stream) row 1 + i,
+    that of the shuffle of the values among the occupied slots (the gaps stay where they
+    are; single precision, `SHUFFLE_DTYPE`). The rows of every job (all runs of a
     fit, all devices of a batch) go through one product per lag and block (row-wise dot
     products of each row with its lagged self; a row is zero-padded to its block's longest
     grid, and zeros add nothing); blocks bound memory, and a job's shuffles are one stream
@@ -431,26 +458,29 @@ def _permuted_autocorrelation(jobs, permutations: int) -> None:
     is one compiled kernel (`shuffle_kernel`, `_compiled_shuffles`)."""
     if not jobs:
         return
-    if _compiled_shuffles(jobs, permutations):
+    if shuffles and _compiled_shuffles(jobs, len(shuffles)):
         from greybox._estimate import shuffle_kernel
 
-        shuffle_kernel.fill(jobs, permutations, _orders_of(int(permutations)))
-    else:
-        _numpy_shuffles(jobs, int(permutations))
+        total = jobs[0].out.shape[0] - 1  # a pass's jobs share their B
+        shuffle_kernel.fill(jobs, shuffles, _orders_of(shuffles, total))
+    elif shuffles:
+        _numpy_shuffles(jobs, shuffles)
+    rows = slice(1 + shuffles.start, 1 + shuffles.stop)
     for job in jobs:
-        job.out[0] = job.observed
-        job.out[:, job.npairs == 0] = np.nan
+        if not shuffles.start:
+            job.out[0] = job.observed
+        job.out[rows, job.npairs == 0] = np.nan
 
 
-def _numpy_shuffles(jobs, permutations: int) -> None:
-    """`_permuted_autocorrelation`'s rows 1.. by numpy blocks, in threads where
+def _numpy_shuffles(jobs, shuffles: range) -> None:
+    """`_permuted_autocorrelation`'s rows 1 + `shuffles` by numpy blocks, in threads where
     `shuffle_threads` allows."""
     h = max(job.npairs.size for job in jobs)
     # the jobs of one order table (the same run of many devices) one after another: they
     # gather through it while it is in cache (3,072 runs: 0.87 -> 0.72 s); each job writes
     # only its own rows, so the order of the jobs changes no number
     jobs = sorted(jobs, key=lambda job: job.order_key)
-    blocks = _blocks(_pieces(jobs, permutations))
+    blocks = _blocks(_pieces(jobs, shuffles))
     workers = shuffle_threads()
     if workers == 1:
         scratch = _Scratch()
@@ -483,28 +513,32 @@ class _Scratch:
         return grid
 
 
-def _compiled_shuffles(jobs, permutations: int) -> bool:
+def _compiled_shuffles(jobs, shuffles: int) -> bool:
     """Whether the shuffle pass of `jobs` runs as one compiled kernel (`shuffle_kernel`): on
-    an accelerator, for a batch's worth of shuffles (COMPILED_SHUFFLES_MIN elements), where
-    numpy's pass was most of a batch's host work. A single fit's pass (the chevron's six runs:
+    an accelerator, for a batch's worth of shuffles (COMPILED_SHUFFLES_MIN elements, counted
+    over this pass's `shuffles` a job: one of `_shuffle_tests`' stages), where numpy's pass
+    was most of a batch's host work. A single fit's pass (the chevron's six runs:
     ~2.4 million elements, ~10 ms of numpy) stays numpy there: compiling the kernel would
     cost it more than it saves. On a CPU numpy's blocks are faster
     (`benchmarks/shuffle_pass.py`)."""
     from greybox import _platform
 
-    elements = int(permutations) * sum(job.g.size for job in jobs)
+    elements = int(shuffles) * sum(job.g.size for job in jobs)
     return elements >= COMPILED_SHUFFLES_MIN and _platform.on_accelerator()
 
 
-def _orders_of(b: int):
-    """(key, n) -> the (b, n) rank orders of stream `key`: the cached ones, or for a long
-    run (beyond the cache) the same stream drawn whole, as `_pieces` draws it block by block."""
+def _orders_of(shuffles: range, total: int):
+    """(key, n) -> the rank orders of shuffles `shuffles` of the `total` of stream `key`:
+    the cached ones, or for a long run (beyond the cache) the same stream drawn, as
+    `_pieces` draws it block by block."""
 
     def orders(key, n):
-        cached = _shuffle_orders(key, n, b)
+        cached = _shuffle_orders(key, n, total)
         if cached is not None:
-            return cached
-        return _drawn_orders(_stream(key), b, n)
+            return cached[shuffles.start : shuffles.stop]
+        rng = _stream(key)
+        rng.random((shuffles.start, n))  # the stream's earlier shuffles, skipped
+        return _drawn_orders(rng, len(shuffles), n)
 
     return orders
 
@@ -628,32 +662,108 @@ def analyse_run(
     (correlations shown), `test_lag` the lags of the Ljung-Box test (default M),
     `permutations` the shuffles behind its p-value (0: chi-square only), `seed` their seed.
     """
-    ((run, jobs),), shuffled = _pending_runs(
+    pending, shuffled = _pending_runs(
         [(name, t_s, residuals, valid, inputs, max_lag, test_lag, seed)], permutations
     )
-    _permuted_autocorrelation(jobs, permutations)
-    return _finished([run], _run_p_values([run], shuffled))[0]
+    p_runs, _, _ = _shuffle_tests([pending], shuffled, permutations)
+    return _finished([pending[0][0]], p_runs)[0]
 
 
-def _run_p_values(runs, shuffled) -> list:
-    """Each run's p-value (n_y,) from its (now filled) shuffled autocorrelations: read from
-    `shuffled`, the array that holds them all (`_pending_runs`), where there is one, else
-    stacked from the runs' own."""
+def _run_p_values(runs, shuffled, rows: int) -> list:
+    """Each run's p-value (n_y,) from the first `rows` rows (observed and shuffled) of its
+    shuffled autocorrelations: read from `shuffled`, the array that holds them all
+    (`_pending_runs`), where there is one, else stacked from the runs' own."""
     if shuffled is None:
         return _p_values_of(
             [
-                (r.permuted_autocorrelation, r.null_var[:, 1 : r.test_lag + 1], r.test_lag)
+                (r.permuted_autocorrelation[:, :rows], r.null_var[:, 1 : h + 1], h)
                 for r in runs
+                for h in [r.test_lag]
             ]
         )
     h = runs[0].test_lag
     v = np.stack([r.null_var[:, 1 : h + 1] for r in runs])
-    step = _rows_in_cache(shuffled.shape[1:])
+    step = _rows_in_cache((shuffled.shape[1], rows, shuffled.shape[3]))
     return [
         p
         for c in range(0, len(runs), step)
-        for p in _p_values(shuffled[c : c + step], v[c : c + step], h)
+        for p in _p_values(shuffled[c : c + step, :, :rows], v[c : c + step], h)
     ]
+
+
+def _shuffle_tests(fits, shuffled, permutations: int) -> tuple:
+    """The shuffle tests of `fits` (per fit, its runs' (`RunResiduals`, `_Shuffled` jobs)
+    from `_pending_runs`, whose array of all shuffled autocorrelations is `shuffled`, or
+    None): (per run its p-values (n_y,), per fit its pooled statistics (`_pooled`: its
+    autocorrelation and null variances), per fit its pooled p-values (n_y,)). In two stages
+    (module docstring): every job's first FIRST_SHUFFLES shuffles, then the rest of its
+    `permutations` for each job whose own test or whose fit's pooled test of that output
+    they leave undecided. A test's p-value is that of the first stage where it is settled
+    there (at least DECIDED_EXCEEDANCES shuffles reach its Q), else of all `permutations`."""
+    b = int(permutations)
+    first = min(b, FIRST_SHUFFLES)
+    runs = [run for parts in fits for run, _ in parts]
+    every_job = [j for parts in fits for _, jobs in parts for j in jobs]
+    _permuted_autocorrelation(every_job, range(first))
+    p_runs, pooled, p = _stage_p_values(fits, runs, shuffled, first + 1)
+    if first == b:
+        return p_runs, pooled, p
+    settled = (1 + DECIDED_EXCEEDANCES - 0.5) / (first + 1)  # p of 10 of `first` reaching Q
+    more, fits_more, runs_more, r = [], [], [], 0
+    for f, parts in enumerate(fits):
+        open_pooled = p[f] < settled  # NaN (nothing tested) is settled
+        if open_pooled.any():
+            fits_more.append(f)
+        for run, jobs in parts:
+            open_jobs = [j for j in jobs if open_pooled[j.output] or p_runs[r][j.output] < settled]
+            if open_jobs:
+                more += open_jobs
+                runs_more.append(r)
+            r += 1
+    if not more:
+        return p_runs, pooled, p
+    _permuted_autocorrelation(more, range(first, b))
+    full = _run_p_values(
+        [runs[i] for i in runs_more], None if shuffled is None else shuffled[runs_more], b + 1
+    )
+    for i, pf in zip(runs_more, full):  # a settled run kept its shuffles for its pooled test
+        p_runs[i] = np.where(p_runs[i] < settled, pf, p_runs[i])
+    ends = np.cumsum([len(parts) for parts in fits])
+    again = [
+        _pooled(
+            [run for run, _ in fits[f]],
+            None if shuffled is None else _zeroed(shuffled[ends[f] - len(fits[f]) : ends[f]]),
+        )
+        for f in fits_more
+    ]
+    p_more = _p_values_of([(perm, v[:, 1 : h + 1], h) for perm, _, v, h in again])
+    for f, pf in zip(fits_more, p_more):
+        p[f] = np.where(p[f] < settled, pf, p[f])
+    return p_runs, pooled, p
+
+
+def _zeroed(rows: np.ndarray) -> np.ndarray:
+    """`rows` with NaN set to 0, in place (what `_pooled` sums)."""
+    return np.nan_to_num(rows, copy=False)
+
+
+def _stage_p_values(fits, runs, shuffled, rows: int) -> tuple:
+    """`_shuffle_tests`' three results from the first `rows` rows of every job's shuffled
+    autocorrelations (observed and rows - 1 shuffles)."""
+    p_runs = _run_p_values(runs, shuffled, rows)  # before the pooling clears their NaN in place
+    if shuffled is not None:  # each fit's runs: consecutive rows, pooled without a copy
+        _zeroed(shuffled[:, :, :rows])
+    ends = np.cumsum([len(parts) for parts in fits])
+    pooled = [
+        _pooled(
+            [run for run, _ in parts],
+            None if shuffled is None else shuffled[end - len(parts) : end, :, :rows],
+            rows,
+        )
+        for parts, end in zip(fits, ends)
+    ]
+    p = _p_values_of([(perm, v[:, 1 : h + 1], h) for perm, _, v, h in pooled])
+    return p_runs, pooled, p
 
 
 def _finished(runs, p) -> list:
@@ -1099,42 +1209,29 @@ def analyse_many(
     done_runs, shuffled = _pending_runs([spec for specs in pending for spec in specs], permutations)
     done_runs = iter(done_runs)
     pending = [[next(done_runs) for _ in specs] for specs in pending]
-    _permuted_autocorrelation(
-        [j for parts in pending for _, jobs in parts for j in jobs], permutations
-    )
-    runs = [run for parts in pending for run, _ in parts]
-    p_runs = _run_p_values(runs, shuffled)  # before the pooling clears their NaN in place
-    if shuffled is not None:  # each fit's runs: consecutive rows, pooled without a copy
-        np.nan_to_num(shuffled, copy=False)
-    ends = np.cumsum([len(parts) for parts in pending])
-    pooled = [
-        _pooled(
-            [run for run, _ in parts],
-            None if shuffled is None else shuffled[end - len(parts) : end],
-        )
-        for parts, end in zip(pending, ends)
-    ]
-    p = _p_values_of([(perm, v[:, 1 : h + 1], h) for perm, _, v, h in pooled])
-    done = iter(_finished(runs, p_runs))
+    p_runs, pooled, p = _shuffle_tests(pending, shuffled, permutations)
+    done = iter(_finished([run for parts in pending for run, _ in parts], p_runs))
     return [
         _analysis(tuple(next(done) for _ in parts), auto, null_var, output_names, pj)
         for parts, (_, auto, null_var, _), pj in zip(pending, pooled, p)
     ]
 
 
-def _pooled(per_run, shuffled=None) -> tuple:
-    """(pooled shuffled r(1..h) (n_y, B + 1, h), pooled autocorrelation (n_y, M + 1), pooled
+def _pooled(per_run, shuffled=None, rows=None) -> tuple:
+    """(pooled shuffled r(1..h) (n_y, rows, h), pooled autocorrelation (n_y, M + 1), pooled
     null variances (n_y, M + 1), h): each output's runs pooled with their pair counts as
     weights (a run where r(k) is undefined left out), the shuffles the same way as the
     observed autocorrelation (every output of every run in one stacked pass). `shuffled`:
-    the runs' shuffled r(1..h) stacked already, NaN set to 0 (None: stacked here)."""
+    the runs' shuffled r(1..h) stacked already, NaN set to 0 (None: stacked here from the
+    first `rows` rows of each run's, all where None)."""
     h = per_run[0].test_lag
     ra = np.stack([r.autocorrelation for r in per_run])  # (R, n_y, M + 1)
     w = np.where(np.isfinite(ra), np.stack([r.pairs for r in per_run]), 0.0)
     vv = np.nan_to_num(np.stack([r.null_var for r in per_run]), copy=False)
     rk = shuffled
     if rk is None:
-        rk = np.nan_to_num(np.stack([r.permuted_autocorrelation for r in per_run]), copy=False)
+        rk = np.stack([r.permuted_autocorrelation[:, :rows] for r in per_run])
+        rk = np.nan_to_num(rk, copy=False)
     tot = w.sum(axis=0)  # (n_y, M + 1)
     with np.errstate(invalid="ignore", divide="ignore"):
         auto = np.where(tot > 0, (w * np.nan_to_num(ra)).sum(axis=0) / tot, np.nan)

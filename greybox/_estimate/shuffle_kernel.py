@@ -1,7 +1,8 @@
 """The residual tests' shuffle pass as one compiled kernel: what runs on an accelerator.
 
 `residuals._permuted_autocorrelation` fills, for every run and output of a fit or a batch of
-devices, r(1..h) of its 999 within-run shuffles. On a CPU numpy does it (blocks that stay in
+devices, r(1..h) of its within-run shuffles (the first 99, then the rest of the 999 where
+those leave the test undecided). On a CPU numpy does it (blocks that stay in
 cache; a jitted kernel on XLA's CPU back end took 1.5-4.0 s, by how many runs it vmaps
 together, where numpy took 0.8-0.9 s for 3,072 runs, `benchmarks/shuffle_pass.py`). On an
 accelerator that numpy pass was the largest share of a batch's host work (an H200 box,
@@ -44,18 +45,20 @@ def _pow2_within(n: int) -> int:
     return 1 << (max(int(n), 1).bit_length() - 1)
 
 
-def fill(jobs, permutations: int, orders) -> None:
-    """Write rows 1..B of each job's `out` (r(1..h_j) of its B shuffles); `orders(key, n)`
-    gives a stream's (B, n) rank orders (`residuals._shuffle_orders`, or a block-by-block
-    draw of the same stream where that declines to cache)."""
-    b = int(permutations)
+def fill(jobs, shuffles: range, orders) -> None:
+    """Write rows 1 + `shuffles` of each job's `out` (r(1..h_j) of those of its shuffles);
+    `orders(key, n)` gives the (len(shuffles), n) rank orders of those shuffles of a stream
+    (`residuals._orders_of`: slices of `residuals._shuffle_orders`, or a draw of the same
+    stream where that declines to cache)."""
+    b = len(shuffles)
     if not jobs or not b:
         return
     width = _pow2(max(job.g.size for job in jobs), 16)
     n_max = _pow2(max(job.order_key[1] for job in jobs), 16)
     h = max(job.npairs.size for job in jobs)
+    rows = slice(1 + shuffles.start, 1 + shuffles.stop)
     for part in _calls(jobs, b, n_max, h):
-        _fill_call(part, b, orders, width, n_max, h)
+        _fill_call(part, b, orders, width, n_max, h, rows)
 
 
 def _calls(jobs, b: int, n_max: int, h: int):
@@ -76,9 +79,10 @@ def _calls(jobs, b: int, n_max: int, h: int):
     yield part
 
 
-def _fill_call(jobs, b: int, orders, width: int, n_max: int, h: int) -> None:
+def _fill_call(jobs, b: int, orders, width: int, n_max: int, h: int, rows: slice) -> None:
     """One kernel call for `jobs` (grids of at most `width` slots, at most `n_max` readings,
-    `h` lags): inputs padded to powers of two, the result written into each job's `out`."""
+    `h` lags, `b` shuffles): inputs padded to powers of two, the result written into `rows`
+    of each job's `out`."""
     per_call = min(_pow2_within(BLOCK_ELEMENTS // (b * (width + 1))), _pow2(len(jobs)))
     count = per_call * _pow2(-(-len(jobs) // per_call))
     vals = np.zeros((count, n_max), np.float32)
@@ -97,7 +101,7 @@ def _fill_call(jobs, b: int, orders, width: int, n_max: int, h: int) -> None:
         table[k, :, n:] = np.arange(n, n_max)  # padding values (zeros) stay in padding slots
     out = np.asarray(_kernel(width, h, per_call)(vals, slots, index, table, npairs, bias))
     for i, job in enumerate(jobs):
-        job.out[1:, : job.npairs.size] = out[i, :, : job.npairs.size]
+        job.out[rows, : job.npairs.size] = out[i, :, : job.npairs.size]
 
 
 @functools.cache

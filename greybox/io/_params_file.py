@@ -53,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from greybox._estimate.residuals import PERMUTATIONS
+from greybox._estimate.residuals import SHUFFLES_TEXT
 from greybox._model.errors import InputError
 from greybox._model.freeparams import FreeParameter
 from greybox.io._noise_table import NoiseTable
@@ -229,8 +229,8 @@ def _residual_tests(res, outputs, innovations: bool = False) -> dict | None:
         "verdict": a.verdict,
         "white": bool(a.all_white),
         "test": "Ljung-Box over lags 1..test_lag_frames, pooled over runs; p-value from "
-        f"{PERMUTATIONS} within-run shuffles (chi-square with test_lag_frames dof beyond their "
-        "resolution); whiteness rejected at p < 0.01 / n_outputs",
+        f"{SHUFFLES_TEXT}, the chi-square with test_lag_frames dof beyond their "
+        "resolution; whiteness rejected at p < 0.01 / n_outputs",
         "test_lag_frames": a.test_lag,
         "max_lag_frames": a.max_lag,
         "frame_interval_s": _num(a.frame_interval_s),

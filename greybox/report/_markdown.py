@@ -16,7 +16,7 @@ from greybox._estimate.metrics import OUTLIER_SIGMAS
 from greybox._estimate.metrics import noise_ceiling as noise_ceiling
 from greybox._estimate.residuals import (
     OUTLIER_SCALES,
-    PERMUTATIONS,
+    SHUFFLES_TEXT,
     _ranges,
     p_phrase,
     p_value_text,
@@ -204,7 +204,7 @@ def residual_lines(
         f"{result.residuals.max_lag} frames and cross-correlation with each input, with 99 % "
         "bands, as MATLAB `resid`; Ljung-Box statistic over lags 1-"
         f"{result.residuals.test_lag} pooled over the runs of each set, its p-value from "
-        f"{PERMUTATIONS} shuffles of each run's residuals among its frames (the chi-square "
+        f"{SHUFFLES_TEXT} among each run's frames (the chi-square "
         "tail beyond their resolution; whiteness rejected at p < 0.01, split over the "
         "outputs). Frames sit on "
         "a uniform grid at the median frame interval; dropped frames leave empty slots and "

@@ -30,9 +30,10 @@ Measured, on the default JAX backend (`backend`):
   step (`lx.QR`, `solve_chunk_lapack_qr_s`) over the same chunk with this backend's own
   (`householder.lm_linear_solver`: the vectorised Householder QR on an accelerator,
   `solve_chunk_warm_s`).
-- `shuffle_pass`: how this process runs a batch's residual tests (999 shuffles per run):
-  "compiled" on an accelerator (`greybox._estimate.shuffle_kernel`, from 2026-11-28; the
-  figures below predate it and ran numpy's blocks there), "numpy" on a CPU.
+- `shuffle_pass`: how this process runs a batch's residual tests (999 shuffles per run;
+  from 2026-11-29 99, and the other 900 where those leave p below 0.11): "compiled" on an
+  accelerator for a pass of a batch's size (`greybox._estimate.shuffle_kernel`, from
+  2026-11-28; the figures below predate it and ran numpy's blocks there), "numpy" on a CPU.
 
 Each phase prints its figures as soon as it ends (a `partial` line on stderr), so a run cut
 off by its device window still reports what it measured.

@@ -660,7 +660,8 @@ def analyse_run(
     `residuals` (N, n_y) measured - model in any consistent unit, `valid` (N, n_y) readings to
     use, `inputs` (N, n_u) input levels at the frame times (or None), `max_lag` M in frames
     (correlations shown), `test_lag` the lags of the Ljung-Box test (default M),
-    `permutations` the shuffles behind its p-value (0: chi-square only), `seed` their seed.
+    `permutations` the most shuffles behind its p-value (the first FIRST_SHUFFLES alone
+    where they settle it; 0: chi-square only), `seed` their seed.
     """
     pending, shuffled = _pending_runs(
         [(name, t_s, residuals, valid, inputs, max_lag, test_lag, seed)], permutations
@@ -1170,7 +1171,9 @@ def analyse(
     shortest run's valid readings, at least 1). `test_lag`: lags of the Ljung-Box test
     (default `TEST_LAG`, at most a fifth of the shortest run, at least 1; never above
     `max_lag`): with many lags against few frames the chi-square reference is liberal.
-    `permutations`, `seed`: the within-run shuffles behind the p-values (reproducible).
+    `permutations`, `seed`: the most within-run shuffles behind a p-value (the first
+    FIRST_SHUFFLES alone where they settle it: module docstring) and their seed
+    (reproducible).
     """
     return analyse_many(
         [runs],

@@ -102,6 +102,17 @@ def test_permutation_p_value_matches_the_loop_with_the_documented_stream(
     assert r.p_value[0] == p0
 
 
+def coloured_run(rng, name, n, n_y, colour, inputs):
+    """A run as `analyse` takes it: `n` frames at 30 fps (5 % of the intervals doubled, a
+    dropped timestamp), AR(1) residuals of coefficient `colour` in `n_y` outputs, 5 % of the
+    readings invalid, and with `inputs` one input column."""
+    t = np.cumsum(np.where(rng.random(n) < 0.05, 2.0, 1.0)) / 30.0
+    e = rng.normal(size=(n, n_y))
+    e[1:] += colour * e[:-1]
+    valid = rng.random((n, n_y)) > 0.05
+    return (name, t, e, valid, rng.normal(size=(n, 1)) if inputs else None)
+
+
 def test_analyse_many_is_one_analyse_per_fit():
     """Fits of different run lengths (so different lags) and gaps, analysed together, give
     what one `analyse` each gives: the same shuffles (a row padded to a longer one's length
@@ -111,14 +122,7 @@ def test_analyse_many_is_one_analyse_per_fit():
     rng = np.random.default_rng(9)
     fits = []
     for n_runs, n in [(2, 60), (3, 140), (1, 45)]:
-        runs = []
-        for i in range(n_runs):
-            t = np.cumsum(np.where(rng.random(n) < 0.05, 2.0, 1.0)) / 30.0
-            e = rng.normal(size=(n, 1))
-            e[1:] += 0.3 * e[:-1]
-            valid = rng.random((n, 1)) > 0.05
-            runs.append((f"r{i}", t, e, valid, rng.normal(size=(n, 1))))
-        fits.append(runs)
+        fits.append([coloured_run(rng, f"r{i}", n, 1, 0.3, True) for i in range(n_runs)])
     together = _residuals.analyse_many(fits, permutations=299)  # both stages
     for runs, got in zip(fits, together):
         alone = analyse(runs, permutations=299)
@@ -138,15 +142,11 @@ def test_shuffles_in_two_stages_keep_every_small_p_value_and_verdict(monkeypatch
     two outputs, several runs a fit."""
     rng = np.random.default_rng(5)
     fits = []
-    for k in range(12):
-        runs = []
-        for i in range(3):
-            n = int(rng.integers(50, 120))
-            t = np.cumsum(np.where(rng.random(n) < 0.05, 2.0, 1.0)) / 30.0
-            e = rng.normal(size=(n, 2))
-            e[1:] += (0.05 * k) * e[:-1]  # from white to clearly coloured
-            runs.append((f"r{i}", t, e, rng.random((n, 2)) > 0.05, None))
-        fits.append(runs)
+    for k in range(12):  # from white to clearly coloured
+        fits.append(
+            [coloured_run(rng, f"r{i}", int(rng.integers(50, 120)), 2, 0.05 * k, False)
+             for i in range(3)]
+        )  # fmt: skip
     staged = _residuals.analyse_many(fits)
     first = _residuals.analyse_many(fits, permutations=99)
     monkeypatch.setattr(_residuals, "FIRST_SHUFFLES", 999)
@@ -278,14 +278,9 @@ def test_shuffle_blocks_in_threads_give_the_same_p_values(monkeypatch):
     rng = np.random.default_rng(12)
     fits = []
     for _ in range(6):
-        runs = []
-        for i in range(3):
-            n = int(rng.integers(40, 90))
-            t = np.cumsum(np.where(rng.random(n) < 0.05, 2.0, 1.0)) / 30.0
-            e = rng.normal(size=(n, 1))
-            e[1:] += 0.3 * e[:-1]
-            runs.append((f"r{i}", t, e, rng.random((n, 1)) > 0.05, rng.normal(size=(n, 1))))
-        fits.append(runs)
+        fits.append(
+            [coloured_run(rng, f"r{i}", int(rng.integers(40, 90)), 1, 0.3, True) for i in range(3)]
+        )
     monkeypatch.setattr(_residuals, "LAG_BLOCK", 4096)  # many blocks
     monkeypatch.setattr(_residuals, "shuffle_threads", lambda: 1)
     serial = _residuals.analyse_many(fits, permutations=199)
@@ -311,13 +306,7 @@ def test_compiled_shuffle_kernel_gives_numpys_statistics_on_a_batch(monkeypatch,
     rng = np.random.default_rng(21)
     fits = []
     for n_runs, n in [(2, 60), (3, 140), (1, 45), (2, 33)]:
-        runs = []
-        for i in range(n_runs):
-            t = np.cumsum(np.where(rng.random(n) < 0.05, 2.0, 1.0)) / 30.0
-            e = rng.normal(size=(n, 2))
-            e[1:] += 0.3 * e[:-1]
-            runs.append((f"r{i}", t, e, rng.random((n, 2)) > 0.05, None))
-        fits.append(runs)
+        fits.append([coloured_run(rng, f"r{i}", n, 2, 0.3, False) for i in range(n_runs)])
     shuffled, real_p_values = {}, _residuals._run_p_values
 
     def keep(way):  # the runs' shuffled r(k), as their p-values read them (both stages)

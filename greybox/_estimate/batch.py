@@ -340,9 +340,7 @@ def checked_devices(devices, free, method=None, loss="huber", sigma=None, n_star
     paths = [p.path for p in free]
     if len(set(paths)) != len(paths):
         raise ValueError(f"free: a parameter is listed twice ({paths})")
-    names = [d.name for d in devices]
-    if len(set(names)) != len(names):
-        raise ValueError("devices: two devices share a name; names must be unique")
+    check_names(devices)
     n_starts_for(n_starts, ())  # refuses a count below 1
     out = []
     for d in devices:
@@ -354,6 +352,13 @@ def checked_devices(devices, free, method=None, loss="huber", sigma=None, n_star
             source = _fit._checked_data(d.model, d.experiments, f, sig_d)
         out.append((f, m, (source, sig_d)))
     return out
+
+
+def check_names(devices) -> None:
+    """Refuses a batch where two devices share a name (results are keyed by name)."""
+    names = [d.name for d in devices]
+    if len(set(names)) != len(names):
+        raise ValueError("devices: two devices share a name; names must be unique")
 
 
 class _Planned(NamedTuple):
@@ -444,9 +449,7 @@ def _fit_process(devices, free, noise, sigma, n_starts, seed, max_steps, chunk_s
     from greybox._estimate import likelihood as _lik
     from greybox._estimate.likelihood_batch import fit_likelihood_batch
 
-    names = [d.name for d in devices]
-    if len(set(names)) != len(names):
-        raise ValueError("devices: two devices share a name; names must be unique")
+    check_names(devices)
     if sigma is not None or any(d.sigma is not None for d in devices):
         raise ValueError(
             "sigma: a ProcessNoise fit estimates the measurement sd (free measurement.* "

@@ -364,9 +364,8 @@ def fit_distributed(
     devices = list(devices)
     free = tuple(free)
     say = progress or (lambda _msg: None)
+    _batch.check_names(devices)
     names = [d.name for d in devices]
-    if len(set(names)) != len(names):
-        raise ValueError("devices: two devices share a name; names must be unique")
     # every device checked here, as `fit_batch` checks it: a bad one is refused by name
     # before a cluster starts, not by a worker after its retries (the other tasks' work lost)
     _check_on_client(devices, free, fit_kwargs)

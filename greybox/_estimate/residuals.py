@@ -706,7 +706,8 @@ def _shuffle_tests(fits, shuffled, permutations: int) -> tuple:
     runs = [run for parts in fits for run, _ in parts]
     every_job = [j for parts in fits for _, jobs in parts for j in jobs]
     _permuted_autocorrelation(every_job, range(first))
-    p_runs, pooled, p = _stage_p_values(fits, runs, shuffled, first + 1)
+    p_runs = _run_p_values(runs, shuffled, first + 1)  # before the pooling zeroes their NaN
+    pooled, p = _pooled_tests(fits, range(len(fits)), shuffled, first + 1)
     if first == b:
         return p_runs, pooled, p
     settled = (1 + DECIDED_EXCEEDANCES - 0.5) / (first + 1)  # p of 10 of `first` reaching Q
@@ -729,42 +730,28 @@ def _shuffle_tests(fits, shuffled, permutations: int) -> tuple:
     )
     for i, pf in zip(runs_more, full):  # a settled run kept its shuffles for its pooled test
         p_runs[i] = np.where(p_runs[i] < settled, pf, p_runs[i])
-    ends = np.cumsum([len(parts) for parts in fits])
-    again = [
-        _pooled(
-            [run for run, _ in fits[f]],
-            None if shuffled is None else _zeroed(shuffled[ends[f] - len(fits[f]) : ends[f]]),
-        )
-        for f in fits_more
-    ]
-    p_more = _p_values_of([(perm, v[:, 1 : h + 1], h) for perm, _, v, h in again])
+    _, p_more = _pooled_tests(fits, fits_more, shuffled, b + 1)
     for f, pf in zip(fits_more, p_more):
         p[f] = np.where(p[f] < settled, pf, p[f])
     return p_runs, pooled, p
 
 
-def _zeroed(rows: np.ndarray) -> np.ndarray:
-    """`rows` with NaN set to 0, in place (what `_pooled` sums)."""
-    return np.nan_to_num(rows, copy=False)
-
-
-def _stage_p_values(fits, runs, shuffled, rows: int) -> tuple:
-    """`_shuffle_tests`' three results from the first `rows` rows of every job's shuffled
-    autocorrelations (observed and rows - 1 shuffles)."""
-    p_runs = _run_p_values(runs, shuffled, rows)  # before the pooling clears their NaN in place
-    if shuffled is not None:  # each fit's runs: consecutive rows, pooled without a copy
-        _zeroed(shuffled[:, :, :rows])
+def _pooled_tests(fits, which, shuffled, rows: int) -> tuple:
+    """(pooled statistics (`_pooled`), pooled p-values (n_y,)) of the fits at `which`, from
+    the first `rows` rows (observed and rows - 1 shuffles) of their runs' shuffled
+    autocorrelations. In `shuffled` (each fit's runs consecutive: pooled without a copy)
+    those rows get their NaN set to 0 in place, what `_pooled` sums: read the runs' own
+    p-values first."""
     ends = np.cumsum([len(parts) for parts in fits])
-    pooled = [
-        _pooled(
-            [run for run, _ in parts],
-            None if shuffled is None else shuffled[end - len(parts) : end, :, :rows],
-            rows,
-        )
-        for parts, end in zip(fits, ends)
-    ]
+    pooled = []
+    for f in which:
+        runs = [run for run, _ in fits[f]]
+        rk = None
+        if shuffled is not None:
+            rk = np.nan_to_num(shuffled[ends[f] - len(runs) : ends[f], :, :rows], copy=False)
+        pooled.append(_pooled(runs, rk, rows))
     p = _p_values_of([(perm, v[:, 1 : h + 1], h) for perm, _, v, h in pooled])
-    return p_runs, pooled, p
+    return pooled, p
 
 
 def _finished(runs, p) -> list:

@@ -208,7 +208,8 @@ def solve_all(group, stacked, raw, sig, chunk, opts):
         idx = np.concatenate([idx, np.full(chunk - idx.size, idx[-1])])
         rows = jax.tree.map(lambda x: jnp.asarray(np.take(x, idx, axis=0)), stacked)
         raw_c, sig_c = jnp.asarray(raw[idx]), jnp.asarray(sig[idx])
-        out = jax.device_get(_batch._solve_many(rows, group.static, raw_c, sig_c, *opts))
+        index = jnp.arange(chunk)  # item k solves row k
+        out = jax.device_get(_batch._solve_many(rows, index, group.static, raw_c, sig_c, *opts))
         keep = min(chunk, n - c * chunk)
         outs.append({k: v[:keep] for k, v in out.items() if k in ("raw", "steps", "ok", "cost")})
     return {k: np.concatenate([o[k] for o in outs]) for k in outs[0]}

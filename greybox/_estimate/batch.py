@@ -19,7 +19,10 @@ of devices (vmapped on an accelerator, one solve after another on a CPU: `map_ov
   budget allows whatever the batch's size, and a batch of any size reuses the compiled
   solver of an earlier one (a batch of 5 chevrons after one of 64, 4 starts each: 1.9 s with
   a compile for its own chunk size, 0.07 s without); on an accelerator, where a padding item
-  costs a solve, chunks are sized to the work;
+  costs a solve, chunks are sized to the work. A wave's problems (a wave: the devices whose
+  solves fill one chunk) are gathered from the group's stack and sent to the device once,
+  for its starts, its re-fits and its fitted models alike (`_Rows`: each item names its
+  row), not once per call;
 - the noise handling is `fit`'s, per device: a declared `sigma` (one for every device, or one
   per device name), per-frame `Experiment.sigma`, or estimated: a first solve at the
   frame-difference guess, the robust (MAD) scale of its residuals, then the re-fit from that
@@ -27,7 +30,7 @@ of devices (vmapped on an accelerator, one solve after another on a CPU: `map_ov
 - each device's result is assembled by `fit`'s own `_assemble` (covariance, verdicts,
   fit % per run and output), so a `FitResult` per device is what `fit` would return, to
   rounding (the padding changes only the number of zero rows); the residual tests of the
-  devices of a wave (those whose solves fill one chunk) run in one vectorised pass
+  devices of a wave run in one vectorised pass
   (`_residuals.analyse_many`: the same statistics and the same seeded shuffles as one
   `analyse` per device, the shuffle orders drawn once and cached);
 - the host work (residual tests, assembly) of a solved wave runs in one host thread while
@@ -52,7 +55,7 @@ import jax
 import jax.tree_util as jtu
 import numpy as np
 
-from greybox._collector import collector_paused
+from greybox._collector import collect_young, collector_paused
 from greybox._compile import jit
 from greybox._estimate import fit as _fit
 from greybox._estimate.blas import small_blas
@@ -188,45 +191,99 @@ def chunk_size_for(
 
 
 @jit(fast_compile=False)
-def _solve_many(dynamic, static, raw, sigma, rtol, atol, max_steps, bound, active=None):
-    """`_fit._solve` over a stacked chunk of problems (one compiled function; vmapped on an
-    accelerator, one solve after another on a CPU: `map_over_items`, which skips the items
-    that `active` marks as padding); `rtol`, `atol`, `max_steps`, `bound`:
+def _solve_many(rows, index, static, raw, sigma, rtol, atol, max_steps, bound, active=None):
+    """`_fit._solve` over a chunk of items (one compiled function; vmapped on an accelerator,
+    one solve after another on a CPU: `map_over_items`, which skips the items that `active`
+    marks as padding): item k solves the problem at row `index[k]` of `rows` (`_Rows`: the
+    stacked problems of the devices of a wave, sent to the device once for all its calls)
+    from `raw[k]` at noise `sigma[k]`; `rtol`, `atol`, `max_steps`, `bound`:
     `_fit.solver_settings`."""
 
-    def one(dyn, r, s):
-        return _fit._solve(eqx.combine(dyn, static), r, s, rtol, atol, max_steps, bound)
+    def one(k, r, s):
+        # the item's problem sliced once, before the solve's loops (without the barrier XLA
+        # slices it again inside them: the re-fits of a wave ran ~40 % slower)
+        mine = jax.lax.optimization_barrier(jtu.tree_map(lambda x: x[k], rows))
+        return _fit._solve(eqx.combine(mine, static), r, s, rtol, atol, max_steps, bound)
 
-    return map_over_items(one, dynamic, raw, sigma, active=active)
+    return map_over_items(one, index, raw, sigma, active=active)
 
 
 @jit
-def _models_many(dynamic, static, raw):
-    """`_fit._fitted_models` vmapped over a stacked chunk of problems and raw vectors."""
+def _models_many(rows, index, static, raw):
+    """`_fit._fitted_models` vmapped over a chunk: item k at row `index[k]` of `rows`, at its
+    raw vector `raw[k]`."""
 
-    def one(dyn, r):
-        return _fit._fitted_models(eqx.combine(dyn, static), r)
+    def one(k, r):
+        return _fit._fitted_models(eqx.combine(jtu.tree_map(lambda x: x[k], rows), static), r)
 
-    return eqx.filter_vmap(one)(dynamic, raw)
+    return eqx.filter_vmap(one)(index, raw)
 
 
-def _fitted_models(prepared, members, raws, chunk) -> dict:
-    """{member: (shared model, per-run models)} at each member's raw vector, in chunks of
-    `chunk` (the last padded, so every chunk reuses one compiled call); numpy leaves."""
-    group = prepared[members[0]].group
-    out = {}
+class _Rows(NamedTuple):
+    """The stacked problems of some devices of one group on the device (`leaves`, padded to
+    a chunk with copies of the last device's) and each device's row in them (`row_of`)."""
+
+    leaves: object
+    row_of: dict
+
+
+def _rows_of(prepared, devices, chunk) -> _Rows:
+    """`_Rows` of `devices` (indices into `prepared`, all of one group, at most `chunk`): one
+    gather of the group's stacked leaves and one transfer."""
+    padded = devices + [devices[-1]] * (chunk - len(devices))
+    (leaves,) = prepared[devices[0]].group.rows([prepared[i].row for i in padded])
+    return _Rows(leaves, {i: k for k, i in enumerate(devices)})
+
+
+def _rows_for(prepared, devices, chunk, rows) -> _Rows:
+    """`rows` where they hold every one of `devices` (indices into `prepared`, repeats
+    allowed), else the `_Rows` of those devices."""
+    devices = list(dict.fromkeys(devices))
+    if rows is not None and all(i in rows.row_of for i in devices):
+        return rows
+    return _rows_of(prepared, devices, chunk)
+
+
+class _Models(Mapping):
+    """{member: (shared model, per-run models)} as the compiled calls returned them (numpy
+    leaves, one row a member): a member's own models are unflattened when asked for, by the
+    thread that assembles its result."""
+
+    def __init__(self):
+        self._at = {}  # member -> (leaves of its chunk, tree, its row)
+
+    def add(self, leaves, tree, row_of):
+        for i, k in row_of.items():
+            self._at[i] = (leaves, tree, k)
+
+    def __getitem__(self, i):
+        leaves, tree, k = self._at[i]
+        return jtu.tree_unflatten(tree, [x[k] if isinstance(x, np.ndarray) else x for x in leaves])
+
+    def __iter__(self):
+        return iter(self._at)
+
+    def __len__(self):
+        return len(self._at)
+
+
+def _fitted_models(prepared, members, raws, chunk, rows=None) -> _Models:
+    """{member: (shared model, per-run models)} at each member's raw vector (`_Models`), in
+    chunks of `chunk` (the last padded, so every chunk reuses one compiled call), from the
+    members' `rows` where given."""
+    static = prepared[members[0]].group.static
+    out = _Models()
     for c in range(0, len(members), chunk):
         part = members[c : c + chunk]
         padded = part + [part[-1]] * (chunk - len(part))
-        stacked, raw = group.rows(
-            [prepared[i].row for i in padded], np.stack([raws[i] for i in padded])
+        have = _rows_for(prepared, part, chunk, rows)
+        index, raw = jax.device_put(
+            (np.array([have.row_of[i] for i in padded]), np.stack([raws[i] for i in padded]))
         )
-        models = jax.device_get(_models_many(stacked, group.static, raw))
-        leaves, tree = jtu.tree_flatten(models)
-        # each leaf split once into its members' rows (views), not indexed per member
-        rows = [list(x) if isinstance(x, np.ndarray) else [x] * chunk for x in leaves]
-        for k, i in enumerate(part):
-            out[i] = jtu.tree_unflatten(tree, [r[k] for r in rows])
+        leaves, tree = jtu.tree_flatten(
+            jax.device_get(_models_many(have.leaves, index, static, raw))
+        )
+        out.add(leaves, tree, {i: k for k, i in enumerate(part)})
     return out
 
 
@@ -492,23 +549,27 @@ def _device_sigma(sigma, name):
     return sigma
 
 
-def _run_items(prepared, items, chunk, rtol, atol, max_steps, say, label, counter):
-    """Solve `items` ((device index, raw start, sigma), all of one group) in fixed-size chunks;
-    returns one host-side output dict per item."""
+def _run_items(prepared, items, chunk, rtol, atol, max_steps, say, label, counter, rows=None):
+    """Solve `items` ((device index, raw start, sigma), all of one group) in fixed-size chunks,
+    from the devices' `rows` (`_Rows`) where given; returns one host-side output dict per
+    item."""
     outputs = []
     n_chunks = math.ceil(len(items) / chunk)
-    group = prepared[items[0][0]].group
+    static = prepared[items[0][0]].group.static
     settings = _fit.solver_settings(rtol, atol, max_steps)
     for c in range(n_chunks):
         part = items[c * chunk : (c + 1) * chunk]
         padded = part + [part[-1]] * (chunk - len(part))
-        stacked, raw, sig, active = group.rows(
-            [prepared[i].row for i, _, _ in padded],
-            np.stack([r for _, r, _ in padded]),
-            np.stack([s for _, _, s in padded]),
-            np.arange(chunk) < len(part),
+        have = _rows_for(prepared, [i for i, _, _ in part], chunk, rows)
+        index, raw, sig, active = jax.device_put(
+            (
+                np.array([have.row_of[i] for i, _, _ in padded]),
+                np.stack([r for _, r, _ in padded]),
+                np.stack([s for _, _, s in padded]),
+                np.arange(chunk) < len(part),
+            )
         )
-        out = _solve_many(stacked, group.static, raw, sig, *settings, active)
+        out = _solve_many(have.leaves, index, static, raw, sig, *settings, active)
         out = jax.device_get(out)
         counter[0] += 1
         for j in range(len(part)):
@@ -713,8 +774,9 @@ def _solve_wave(prepared, wave, chunk, opts, say, label, counter) -> tuple:
     """The compiled work of one wave: every start, the best start's re-fit at the robust
     noise estimate where the noise is estimated, the fitted models. Returns (runs per device,
     (best index, best solve, sigma, steps) per device, fitted models per device)."""
+    rows = _rows_of(prepared, wave, chunk)  # sent once, for every call below
     items = [(i, s, prepared[i].sigma0) for i in wave for s in prepared[i].starts]
-    outs = _run_items(prepared, items, chunk, *opts, say, f"{label} starts", counter)
+    outs = _run_items(prepared, items, chunk, *opts, say, f"{label} starts", counter, rows)
     runs_of, k = {}, 0
     for i in wave:
         n = len(prepared[i].starts)
@@ -731,12 +793,12 @@ def _solve_wave(prepared, wave, chunk, opts, say, label, counter) -> tuple:
             sig = _fit._robust_sigma(np.asarray(runs[bi]["data_residuals"]), w, p.sigma0)
             refit.append((i, np.asarray(runs[bi]["raw"]), sig))
     if refit:
-        outs = _run_items(prepared, refit, chunk, *opts, say, f"{label} refit", counter)
+        outs = _run_items(prepared, refit, chunk, *opts, say, f"{label} refit", counter, rows)
         for (i, _, sig), out in zip(refit, outs):
             bi, _, _, steps = best_of[i]
             best_of[i] = (bi, out, sig, steps + int(out["steps"]))
     raws = {i: np.asarray(best_of[i][1]["raw"]) for i in wave}
-    models = _fitted_models(prepared, wave, raws, chunk)
+    models = _fitted_models(prepared, wave, raws, chunk, rows)
     return runs_of, best_of, models
 
 
@@ -791,4 +853,5 @@ def _assemble_wave(prepared, wave, runs_of, best_of, models) -> dict:
             hac=hac.get(i),
             scores=score,
         )
+    collect_young()  # this wave's objects examined here, beside the next wave's solves
     return out

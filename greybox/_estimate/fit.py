@@ -556,11 +556,13 @@ def _block_predictions(problem: _Problem, raw):
 def solver_settings(rtol: float, atol: float, max_steps: int) -> tuple:
     """`_solve`'s (rtol, atol, max_steps, bound): the tolerances and the step budget as
     arrays, inputs of the compiled solver (a fit with another budget or tolerance compiles
-    nothing new), and the loop's static bound (`step_bound`)."""
+    nothing new), and the loop's static bound (`step_bound`). numpy's: sent with the call's
+    other inputs, where a JAX array made here costs a dispatch of its own (a batch makes
+    them for every compiled call)."""
     return (
-        jnp.asarray(float(rtol), dtype=float),
-        jnp.asarray(float(atol), dtype=float),
-        jnp.asarray(int(max_steps)),
+        np.asarray(float(rtol)),
+        np.asarray(float(atol)),
+        np.asarray(int(max_steps)),
         step_bound(max_steps),
     )
 

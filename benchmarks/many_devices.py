@@ -172,6 +172,12 @@ alternating runs against 5ec65c4: residual_tests_s 1.35 and 1.20 -> 0.61 and 0.7
 10,361 and 11,629 -> 14,582 and 12,562 fits/min; solve_share 0.71 and 0.66 -> 0.73 and
 0.68; compiled_alone_share 0.57 and 0.58 -> 0.68 and 0.63; the same estimates
 (batch_vs_fit_max_rel 1.2e-14). The host thread is still the longer chain.
+With a wave's problems sent to the device once for all its calls (`_batch._Rows`), numpy
+solver settings and the fitted models unflattened by the host thread (2026-11-29, three
+rounds of six warm batches alternating with 3491738, medians): solve_share 0.716, 0.721,
+0.721 -> 0.742, 0.751, 0.740 (models_s 0.235 -> 0.06-0.07 s), walls 2.15, 2.12, 2.10 ->
+2.14, 2.09, 2.13 s; two full runs after: 13,948 and 13,790 fits/min, solve_share 0.749 and
+0.728, compiled_alone_share 0.64, batch_vs_fit_max_rel 1.2e-14, 512/512 valid.
 """
 
 from __future__ import annotations

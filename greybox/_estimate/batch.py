@@ -231,7 +231,7 @@ def _rows_of(prepared, devices, chunk) -> _Rows:
     """`_Rows` of `devices` (indices into `prepared`, all of one group, at most `chunk`): one
     gather of the group's stacked leaves and one transfer."""
     padded = devices + [devices[-1]] * (chunk - len(devices))
-    (leaves,) = prepared[devices[0]].group.rows([prepared[i].row for i in padded])
+    leaves = prepared[devices[0]].group.rows([prepared[i].row for i in padded])
     return _Rows(leaves, {i: k for k, i in enumerate(devices)})
 
 
@@ -297,12 +297,11 @@ class _Group:
     stacked: object
     key: object  # the structure: (tree, which leaves are arrays) of a member's problem
 
-    def rows(self, positions, *extra) -> object:
-        """The stacked leaves of members at `positions`, and `extra` arrays, on the device in
-        one transfer (a `jax.device_put` of the whole tree, not one per leaf)."""
+    def rows(self, positions) -> object:
+        """The stacked leaves of members at `positions` on the device, in one transfer (a
+        `jax.device_put` of the whole tree, not one per leaf)."""
         idx = np.asarray(positions)
-        rows = jtu.tree_map(lambda x: np.take(x, idx, axis=0), self.stacked)
-        return jax.device_put((rows, *extra))
+        return jax.device_put(jtu.tree_map(lambda x: np.take(x, idx, axis=0), self.stacked))
 
     def member(self, row: int) -> object:
         """The problem of the member at stack position `row` (numpy views of its rows): one

@@ -267,10 +267,10 @@ class _Models(Mapping):
         return len(self._at)
 
 
-def _fitted_models(prepared, members, raws, chunk, rows=None) -> _Models:
+def _fitted_models(prepared, members, raws, chunk, rows) -> _Models:
     """{member: (shared model, per-run models)} at each member's raw vector (`_Models`), in
     chunks of `chunk` (the last padded, so every chunk reuses one compiled call), from the
-    members' `rows` where given."""
+    members' `rows` (`_Rows`; a chunk of members they do not hold gathers its own)."""
     static = prepared[members[0]].group.static
     out = _Models()
     for c in range(0, len(members), chunk):

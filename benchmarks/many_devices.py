@@ -178,6 +178,12 @@ rounds of six warm batches alternating with 3491738, medians): solve_share 0.716
 0.721 -> 0.742, 0.751, 0.740 (models_s 0.235 -> 0.06-0.07 s), walls 2.15, 2.12, 2.10 ->
 2.14, 2.09, 2.13 s; two full runs after: 13,948 and 13,790 fits/min, solve_share 0.749 and
 0.728, compiled_alone_share 0.64, batch_vs_fit_max_rel 1.2e-14, 512/512 valid.
+With less host work (the HAC meats as BLAS products, one pass per device for the noise guess
+and NaN zeroing, a faster plan) and the batch's last wave split in 32, 16 and 16 devices
+(`_batch._tapered`: the host thread now keeps up, and the last wave's assembly is the only
+stretch with nothing compiled running), 2026-11-29, two rounds of six warm batches
+alternating with cdbd33a, medians: solve_share 0.755, 0.736 -> 0.783, 0.790; walls within
+the machine's swings. Full runs after: see the closing figures of DEVELOPING.md.
 """
 
 from __future__ import annotations

@@ -75,6 +75,7 @@ MAX_CHUNK = 64  # solves per compiled call on a CPU (one after another there, `m
 MAX_CHUNK_ACCELERATOR = 65536  # on a GPU/TPU the memory budget is what limits a chunk
 ACCELERATOR_MEMORY_SHARE = 0.5  # of the accelerator memory not in use, for one chunk
 CPU_MEMORY_SHARE = 0.25  # of the physical memory, for one chunk
+TAPER_MIN = 16  # devices in a batch's last wave from which it is split (`_tapered`)
 
 
 def device_budget(device=None) -> tuple[float, int]:
@@ -728,7 +729,10 @@ def _fit_output_error(
                         f"(~{b * chunks[group.key] / 1e6:.0f} MB each)"
                     )
                 chunk = chunks[group.key]
-                for wave in _waves(members, [len(prepared[i].starts) for i in members], chunk):
+                waves = _waves(members, [len(prepared[i].starts) for i in members], chunk)
+                if padding_free and len(blocks) > 1 and block is blocks[-1] and group is groups[-1]:
+                    waves = _tapered(waves)
+                for wave in waves:
                     label = (
                         f"devices {solved_devices + 1}-{solved_devices + len(wave)} "
                         f"of {len(plan)}"
@@ -767,6 +771,19 @@ def _waves(members, n_starts, chunk) -> list:
         wave.append(i)
         size += k
     return waves + [wave] if wave else waves
+
+
+def _tapered(waves) -> list:
+    """`waves` with the last one split in halves and its second half again (64 devices: 32,
+    16, 16): nothing solves while the host thread assembles the last wave, so a shorter one
+    ends the batch sooner. For the last block of a batch of several, where a chunk's padding
+    is free (a CPU); a wave of fewer than TAPER_MIN devices stays whole (each wave's calls
+    cost more than its share of the tail)."""
+    if not waves or len(waves[-1]) < TAPER_MIN:
+        return waves
+    last = waves[-1]
+    half, quarter = len(last) // 2, len(last) * 3 // 4
+    return [*waves[:-1], last[:half], last[half:quarter], last[quarter:]]
 
 
 def _solve_wave(prepared, wave, chunk, opts, say, label, counter) -> tuple:

@@ -410,10 +410,11 @@ class _Problem(eqx.Module):
         w = np.zeros_like(y)
         noise = np.ones_like(y)
         for i, e in enumerate(experiments):
-            y[i, : e.n_frames] = np.nan_to_num(e.y)
+            y[i, : e.n_frames] = e.y
             w[i, : e.n_frames] = e.mask
             if e.sigma is not None:
                 noise[i, : e.n_frames] = np.where(e.mask, e.sigma, 1.0)
+        np.nan_to_num(y, copy=False)  # once for every run (the padding is zero already)
         setting_paths, settings = _problem.settings_matrix(model, experiments, free)
         data = (as_arrays(model, on_device=False), sched, y, w, noise, np.asarray(settings))
         if on_device:  # one transfer, not one per leaf; the parameters' numbers stay on the
@@ -1111,10 +1112,16 @@ def _fit_least_squares(
 
 def _initial_sigma_guess(experiments) -> float:
     """A first noise scale: the spread of frame-to-frame differences (refined after the fit)."""
-    diffs = np.concatenate([np.diff(e.y, axis=0).reshape(-1) for e in experiments])
+    # every run's readings end to end, the differences across a run boundary left out (one
+    # pass over all runs: a batch guesses this for every device)
+    ys = [np.asarray(e.y, dtype=float) for e in experiments]
+    y = np.concatenate([v.reshape(v.shape[0], -1) for v in ys])
+    diffs = np.diff(y, axis=0)
+    ends = np.cumsum([v.shape[0] for v in ys])[:-1]
+    diffs = np.delete(diffs, ends[(ends > 0) & (ends < y.shape[0])] - 1, axis=0).reshape(-1)
     diffs = diffs[np.isfinite(diffs)]
     scale = 1.4826 * np.median(np.abs(diffs)) / np.sqrt(2) if diffs.size else 0.0
-    span = max(np.nanmax(np.abs(e.y)) for e in experiments)
+    span = np.max(np.abs(y), initial=0.0, where=~np.isnan(y))
     return float(max(scale, 1e-3 * span, 1e-300))
 
 

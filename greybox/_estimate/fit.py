@@ -47,6 +47,7 @@ from greybox._estimate.posterior import Posterior
 from greybox._estimate.residuals import (
     GoodnessOfFit,
     ResidualAnalysis,
+    _sorted_median,
     goodness_of_fit,
     padded_stack,
 )
@@ -708,11 +709,22 @@ def _robust_sigma(r_scaled: np.ndarray, w: np.ndarray, sigma: np.ndarray) -> np.
     output with no valid reading in any run (a single-sensor log of a two-sensor device)
     carries no weight in the fit and has nothing to estimate its noise from: it keeps its
     scale `sigma[j]` (the declared noise, or the fit's starting guess), never NaN."""
-    out = np.asarray(sigma, dtype=float).copy()
-    for j in range(r_scaled.shape[-1]):
-        vals = np.abs(r_scaled[..., j][w[..., j] > 0])
-        if vals.size:
-            out[j] = 1.4826 * np.median(vals) * sigma[j]
+    stacked = (np.asarray(x)[None] for x in (r_scaled, w, sigma))
+    return _robust_sigmas(*stacked)[0]
+
+
+def _robust_sigmas(r_scaled: np.ndarray, w: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """`_robust_sigma` of D fits at once (`fit_batch`'s wave of devices): `r_scaled` and `w`
+    (D, ..., n_y), `sigma` (D, n_y); one sort of every (fit, output) row, each row's median
+    as np.median gives it (`_sorted_median`), so a fit alone and in a batch get the same."""
+    r = np.asarray(r_scaled, dtype=float)
+    d, n_y = r.shape[0], r.shape[-1]
+    rows = np.swapaxes(r.reshape(d, -1, n_y), 1, 2).reshape(d * n_y, -1)
+    used = np.swapaxes((np.asarray(w) > 0).reshape(d, -1, n_y), 1, 2).reshape(d * n_y, -1)
+    count = used.sum(axis=1)
+    median = _sorted_median(np.sort(np.where(used, np.abs(rows), np.inf), axis=1), count)
+    sigma = np.asarray(sigma, dtype=float).reshape(d, n_y)
+    out = np.where((count > 0).reshape(d, n_y), 1.4826 * median.reshape(d, n_y) * sigma, sigma)
     return np.maximum(out, 1e-300)
 
 

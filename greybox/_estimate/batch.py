@@ -750,6 +750,7 @@ def _fit_output_error(
                     solved = _solve_wave(prepared, wave, chunk, opts, say, label, counter)
                     solved_devices += len(wave)
                     assembled.append(host.submit(_assemble_wave, prepared, wave, *solved))
+                group.on_device = None  # its waves are solved: no second copy kept to the end
         say(f"{len(plan)} devices solved")
         for future in assembled:
             results.update(future.result())

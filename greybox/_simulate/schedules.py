@@ -66,10 +66,7 @@ def schedule_runs(model, experiments) -> list:
 def _of_model(model, runs) -> list:
     """Runs ((inputs, t_s, t_start_s) each) with `model`'s readout quadrature and input
     channels."""
-    readout = model.readout
-    # the method from the class: a method looked up on an equinox Module instance is wrapped
-    # in a new Module at every lookup (~20 us; a batch plans this for every device)
-    offsets, _ = type(readout).quadrature(readout)
+    offsets, _ = model.readout.quadrature()
     return [(*r, offsets, model.n_inputs) for r in runs]
 
 

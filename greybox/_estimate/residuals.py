@@ -333,9 +333,14 @@ ORDER_CACHE_ELEMENTS = 1 << 22  # a stream's B x n orders above this are drawn b
 _orders = _Cache(64 << 20)  # shuffle orders kept for reuse (a batch's devices share them)
 
 
-def _stream(key: tuple) -> np.random.Generator:
-    """The random stream of the shuffles of `key` (seed, run, output): `default_rng(list(key))`."""
-    return np.random.default_rng(list(key))
+def _stream(key: tuple, skip: int = 0, n: int = 0) -> np.random.Generator:
+    """The random stream of the shuffles of `key` (seed, run, output): `default_rng(list(key))`,
+    past its first `skip` shuffles of `n` values (drawn and dropped: a later stage of
+    `_shuffle_tests` continues the stream where the first stopped)."""
+    rng = np.random.default_rng(list(key))
+    if skip:
+        rng.random((skip, n))
+    return rng
 
 
 def _drawn_orders(rng: np.random.Generator, rows: int, n: int) -> np.ndarray:
@@ -415,10 +420,7 @@ def _pieces(jobs, shuffles: range):
         _, slots_n = job.order_key
         rows = max(1, LAG_BLOCK // max(job.g.size, 1))
         cached = _shuffle_orders(job.key, slots_n, job.out.shape[0] - 1)
-        rng = None
-        if cached is None:
-            rng = _stream(job.key)
-            rng.random((shuffles.start, slots_n))  # the stream's earlier shuffles, skipped
+        rng = None if cached is not None else _stream(job.key, shuffles.start, slots_n)
         for start in range(shuffles.start, shuffles.stop, rows):
             stop = min(start + rows, shuffles.stop)
             if cached is not None:
@@ -536,9 +538,7 @@ def _orders_of(shuffles: range, total: int):
         cached = _shuffle_orders(key, n, total)
         if cached is not None:
             return cached[shuffles.start : shuffles.stop]
-        rng = _stream(key)
-        rng.random((shuffles.start, n))  # the stream's earlier shuffles, skipped
-        return _drawn_orders(rng, len(shuffles), n)
+        return _drawn_orders(_stream(key, shuffles.start, n), len(shuffles), n)
 
     return orders
 

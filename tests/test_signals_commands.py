@@ -179,3 +179,31 @@ def test_a_signal_landing_inside_the_unraisable_hook_still_stops(sig, stop, monk
         monkeypatch.setattr(threading.Thread, "start", start)
         time.sleep(5)
     assert time.monotonic() - _RAISED_AT[-1] < 2 and received_signal() == sig
+
+
+class _RaisesOnSetName:
+    def __init__(self, sig):
+        self.sig = sig
+
+    def __set_name__(self, owner, name):
+        _raise(self.sig)
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_during_class_creation_is_an_interrupt_not_a_bug(sig, code, capsys):
+    """Python wraps what a descriptor's `__set_name__` raises in "RuntimeError: Error calling
+    __set_name__": a signal landing while greybox imports a module that defines an
+    `eqx.Module` (fit-many at +0.5 s) must still read as the user's interrupt (exit 130/143,
+    "no result was written", no traceback), not as an internal error (exit 3)."""
+    from types import SimpleNamespace
+
+    from greybox.cli import _run
+
+    def command(args):
+        type("Defined", (), {"field": _RaisesOnSetName(sig)})
+        time.sleep(5)  # not reached: the class creation raised
+
+    rc = _run(SimpleNamespace(func=command, command="fit-many"))
+    err = capsys.readouterr().err
+    assert rc == code, err
+    assert "no result was written" in err and "Traceback" not in err, err

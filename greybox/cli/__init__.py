@@ -114,6 +114,7 @@ def _run(args, *, program: bool = False) -> int:
 
 def _failure(args, err, InputError, blame_user) -> int:
     """The exit status of a command that raised `err` (after saying why on stderr)."""
+    err = _signal_behind(err)
     if isinstance(err, (Exception, SystemExit)) and not isinstance(err, InputError):
         blamed = blame_user(err)  # the user's device code, not greybox, failed
         if blamed is not None:
@@ -151,6 +152,19 @@ def _failure(args, err, InputError, blame_user) -> int:
             file=sys.stderr,
         )
         return 3
+
+
+def _signal_behind(err: BaseException) -> BaseException:
+    """The KeyboardInterrupt/Terminated that `err` wraps, else `err`. A signal that lands
+    while a class is being created surfaces as Python's "RuntimeError: Error calling
+    __set_name__" with the interrupt as its cause: that is the user's interrupt, not a bug."""
+    seen, link = set(), err
+    while link is not None and id(link) not in seen:
+        if isinstance(link, (KeyboardInterrupt, Terminated)):
+            return link
+        seen.add(id(link))
+        link = link.__cause__ or link.__context__
+    return err
 
 
 def _version() -> str:

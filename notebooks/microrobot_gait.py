@@ -228,7 +228,8 @@ plt.show()
 # several spot positions the turning.
 #
 # The fit is what `greybox fit experiments/microrobot` does (simulation error at the camera
-# frames, Huber loss), with the device's standard free parameters: the left absorptance
+# frames, Huber loss, four starts; in CI mode only the first, which is the one that reaches
+# the optimum), with the device's standard free parameters: the left absorptance
 # (the thermal gain), the frame heat capacity (the time constant), the foot friction
 # capacity and the leg stiffness (log-normal priors), the turning gain, and one image
 # offset pair per run. The gain starts low on purpose (0.30, `default_free_parameters`): a
@@ -239,7 +240,10 @@ plt.show()
 fitset = load_experiment_set(DATA)
 truth = json.loads((DATA / "truth.json").read_text())
 t0 = time.perf_counter()
-result = fit(fitset.model, fitset.estimation, fitset.free, **fitset.fit_options)
+options = dict(fitset.fit_options)
+if CI:  # the first of the folder's four starts is the one that reaches the optimum
+    options["n_starts"] = 1
+result = fit(fitset.model, fitset.estimation, fitset.free, **options)
 checked = validate(result, fitset.validation)
 print(f"fit + validation: {time.perf_counter() - t0:.1f} s, converged={result.converged}")
 print(

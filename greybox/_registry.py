@@ -107,8 +107,11 @@ def _users_code(what: str, path: Path | None):
             raise
         raise blamed from None
     except BaseException as err:
-        if type(err).__name__ == "Terminated":  # the CLI's SIGTERM: not the user's error
+        stop = _usercode.stop_behind(err)  # the CLI's SIGTERM or a Ctrl-C: not the user's
+        if stop is err:
             raise
+        if stop is not None:  # ... also where it landed while the user's class was created
+            raise stop from None
         blamed = _usercode.blame_user(err, what)
         if blamed is None:
             raise

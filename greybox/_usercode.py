@@ -107,6 +107,22 @@ def blame_user(err: BaseException, context: str = "") -> UserCodeError | None:
     )
 
 
+def stop_behind(err: BaseException | None) -> BaseException | None:
+    """The KeyboardInterrupt, SIGTERM (the CLI's `Terminated`) or `time_limit` alarm that
+    `err` is or wraps, else None: its causes, and its contexts unless suppressed (``raise
+    ... from None``). Raised by a signal handler while Python creates a class (inside a
+    descriptor's `__set_name__`, which every `eqx.Module` field has), such a stop surfaces
+    as "RuntimeError: Error calling __set_name__" with the stop as its cause: it is the
+    signal or the time limit, not an error of the code that was running."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, (KeyboardInterrupt, _TimedOut)) or type(err).__name__ == "Terminated":
+            return err
+        seen.add(id(err))
+        err = err.__cause__ or (None if err.__suppress_context__ else err.__context__)
+    return None
+
+
 def _timeout_s() -> float:
     try:
         v = float(os.environ.get("GREYBOX_DEVICE_TIMEOUT_S", DEVICE_TIMEOUT_S))
@@ -140,8 +156,11 @@ def time_limit(what: str, location: str | None = None, seconds: float | None = N
     signal.setitimer(signal.ITIMER_REAL, seconds)
     try:
         yield
-    except _TimedOut as err:
-        where = user_frame(err)  # the user's line that was running when time ran out
+    except BaseException as err:
+        stop = stop_behind(err)
+        if not isinstance(stop, _TimedOut):
+            raise
+        where = user_frame(stop)  # the user's line that was running when time ran out
         raise UserCodeError(
             f"{what} did not finish in {seconds:g} s (a loop that never ends, or waiting on "
             "something); fix the device code, or raise GREYBOX_DEVICE_TIMEOUT_S if it is "
@@ -164,6 +183,9 @@ def running_users_code(what: str, location: str | None = None):
     except UserCodeError:
         raise
     except (Exception, SystemExit) as err:
+        stop = stop_behind(err)
+        if stop is not None:  # a signal that landed while the user's class was created
+            raise stop from None
         blamed = blame_user(err, what)
         if blamed is None:
             raise

@@ -206,3 +206,44 @@ def test_describe_a_params_json_needs_the_same_consent(lab, capsys):
     assert main(["describe", str(params), "--trust-device", str(device.parent)]) == 0
     out = capsys.readouterr().out
     assert "device mass_spring_damper" in out and marker.exists()
+
+
+# a class whose creation is interrupted: Python wraps what a descriptor's `__set_name__`
+# raises (here the signal handler's exception) in "RuntimeError: Error calling __set_name__"
+_CLASS_CREATION = """
+import signal, time
+
+
+class _Field:
+    def __set_name__(self, owner, name):
+        {action}
+
+
+class _Calibration:
+    gain = _Field()
+"""
+
+
+@pytest.mark.parametrize(
+    "action, code, words",
+    [
+        ("signal.raise_signal(signal.SIGINT)", 130, "interrupted; no result was written"),
+        ("signal.raise_signal(signal.SIGTERM)", 143, "terminated (SIGTERM); no result was"),
+        ("time.sleep(30)", 2, "did not finish in 1 s"),
+    ],
+    ids=["SIGINT", "SIGTERM", "time limit"],
+)
+def test_a_stop_while_the_users_class_is_created_is_the_stop(
+    action, code, words, tmp_path, capsys, monkeypatch
+):
+    """A Ctrl-C, SIGTERM or the device time limit landing while the device file creates a
+    class is that stop (exit 130/143, or the time limit's message), not "the device code
+    raised RuntimeError: Error calling __set_name__" blamed on the user's line."""
+    monkeypatch.setenv("GREYBOX_DEVICE_TIMEOUT_S", "1")
+    exp = _experiment(tmp_path, _CLASS_CREATION.format(action=action) + _example())
+    out = tmp_path / "out"
+    rc = main(["fit", str(exp), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == code, err
+    assert words in err and "RuntimeError" not in err and "Traceback" not in err, err
+    assert not out.exists()

@@ -95,13 +95,13 @@ def _exit_now(code: int) -> None:
 
 def _run(args, *, program: bool = False) -> int:
     from greybox._model.errors import InputError
-    from greybox._usercode import blame_user
+    from greybox._usercode import blame_user, stop_behind
 
     with signal_handlers():
         try:
             code = int(args.func(args) or 0)
         except BaseException as err:
-            code = _failure(args, err, InputError, blame_user)
+            code = _failure(args, err, InputError, blame_user, stop_behind)
         if program:  # no signal may land between here and the exit
             signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
     late = received_signal()
@@ -112,9 +112,11 @@ def _run(args, *, program: bool = False) -> int:
     return code
 
 
-def _failure(args, err, InputError, blame_user) -> int:
+def _failure(args, err, InputError, blame_user, stop_behind) -> int:
     """The exit status of a command that raised `err` (after saying why on stderr)."""
-    err = _signal_behind(err)
+    stop = stop_behind(err)  # a Ctrl-C or SIGTERM, even where Python wrapped it
+    if isinstance(stop, (KeyboardInterrupt, Terminated)):
+        err = stop
     if isinstance(err, (Exception, SystemExit)) and not isinstance(err, InputError):
         blamed = blame_user(err)  # the user's device code, not greybox, failed
         if blamed is not None:
@@ -152,19 +154,6 @@ def _failure(args, err, InputError, blame_user) -> int:
             file=sys.stderr,
         )
         return 3
-
-
-def _signal_behind(err: BaseException) -> BaseException:
-    """The KeyboardInterrupt/Terminated that `err` wraps, else `err`. A signal that lands
-    while a class is being created surfaces as Python's "RuntimeError: Error calling
-    __set_name__" with the interrupt as its cause: that is the user's interrupt, not a bug."""
-    seen, link = set(), err
-    while link is not None and id(link) not in seen:
-        if isinstance(link, (KeyboardInterrupt, Terminated)):
-            return link
-        seen.add(id(link))
-        link = link.__cause__ or link.__context__
-    return err
 
 
 def _version() -> str:

@@ -378,3 +378,40 @@ def test_noise_objects_map_the_string_keywords_once(truth, start):
         fit(start, exps, free, noise=noise, loss="l2")
     with pytest.raises(ValueError, match="^sigma: applies to OutputError"):
         fit(start, exps, free, noise=greybox.ProcessNoise(), sigma=0.1)
+
+
+@pytest.mark.parametrize("loss", ["huber", "l2"])
+def test_the_end_point_reported_is_the_one_at_the_estimate(thesis_fit, start, loss):
+    """`_solve` reports the residuals, Jacobian, predictions and their Jacobian of the
+    optimiser's last accepted evaluation (no second simulation): they must be those at the
+    estimate it returns, recomputed here by `jax.jacfwd` of the problem's own residuals
+    (with Huber weights, where the loss's derivative enters the Jacobian, and without).
+    (tests/test_stall_stop.py covers a solve with rejected steps.)"""
+    import jax
+    import jax.numpy as jnp
+
+    from greybox._estimate import fit as fit_mod
+
+    exps, _ = thesis_fit
+    problem = fit_mod._Problem.build(
+        start, exps, default_free_parameters(), "zoh", loss, 1.5, 4.0, 1e-8, 1e-10, 16384
+    )
+    raw0 = fit_mod._initial_raw(problem, start)
+    sigma = np.full(1, fit_mod._initial_sigma_guess(exps))
+    settings = fit_mod.solver_settings(1e-6, 1e-6, 200)
+    out = jax.device_get(
+        fit_mod._solve(problem, jnp.asarray(raw0), jnp.asarray(sigma), *settings)
+    )
+    assert bool(out["ok"]) and int(out["steps"]) > 3
+
+    def at(r):
+        res, _, z, _ = problem.residuals(r, sigma)
+        return (res, z), (res, z)
+
+    (jac, jac_z), (res, z) = jax.device_get(jax.jacfwd(at, has_aux=True)(jnp.asarray(out["raw"])))
+    np.testing.assert_allclose(out["residuals"], res, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(out["predictions"], z, rtol=1e-12, atol=0)
+    scale = np.max(np.abs(jac), axis=0)  # per raw column: its offsets' columns are sparse
+    np.testing.assert_allclose(out["jacobian"] / scale, jac / scale, rtol=0, atol=1e-12)
+    scale_z = np.max(np.abs(jac_z), axis=(0, 1, 2))
+    np.testing.assert_allclose(out["prediction_jacobian"] / scale_z, jac_z / scale_z, atol=1e-12)

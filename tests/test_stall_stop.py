@@ -145,3 +145,40 @@ def test_a_stalled_start_with_nothing_left_to_gain_has_converged():
     ses = np.array([p.se for p in strict.parameters])
     vals = np.array([p.value for p in strict.parameters])
     assert np.all(np.abs(vals - [p.value for p in usual.parameters]) < 1e-3 * ses)
+
+
+@pytest.mark.parametrize("stall_window", [STALL_WINDOW, None])
+def test_the_end_point_is_the_evaluation_at_the_returned_estimate(stall_window):
+    """`end_point=True` returns the solver's last accepted evaluation: its residuals, its
+    linearisation and its aux must be those at the estimate returned, also when steps were
+    rejected (here one of 29, counted by optimistix itself), where the last point evaluated
+    is not the estimate. The truth: the residual function and `jax.jacfwd` at the estimate."""
+    import equinox as eqx
+    import optimistix as optx
+
+    from greybox._model.householder import lm_linear_solver
+
+    def residuals(y, a):  # Rosenbrock's valley, and a term that keeps its optimum off 0 cost
+        r = jnp.stack([a * (y[1] - y[0] ** 2), 1.0 - y[0], 0.1 * jnp.sin(3.0 * y[1])])
+        return r, (r, 2.0 * y)
+
+    y0 = jnp.array([-1.2, 1.0])
+    lm = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8, linear_solver=lm_linear_solver())
+    plain = optx.least_squares(residuals, lm, y0, args=10.0, has_aux=True, max_steps=200)
+    assert int(plain.state.num_accepted_steps) < int(plain.state.num_steps)  # a rejection
+
+    raw, ok, _, _, (res, jac, aux) = eqx.filter_jit(
+        lambda y: levenberg_marquardt(
+            residuals, y, 10.0, rtol=1e-8, atol=1e-8, max_steps=200,
+            stall_window=stall_window, has_aux=True, end_point=True,
+        )
+    )(y0)  # fmt: skip
+    assert bool(ok)
+    np.testing.assert_allclose(raw, plain.value, rtol=1e-12)
+    want, (want_aux, doubled) = residuals(raw, 10.0)
+    np.testing.assert_allclose(res, want, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(aux[0], want_aux, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(aux[1], doubled, rtol=1e-15)
+    np.testing.assert_allclose(
+        jac.as_matrix(), jax.jacfwd(lambda y: residuals(y, 10.0)[0])(raw), rtol=1e-12, atol=1e-15
+    )

@@ -499,6 +499,14 @@ class _Problem(eqx.Module):
         d = self.scaled_errors(z, solved, sigma)
         return self.loss_residuals(d, raw), d, z, solved
 
+    def residuals_and_sensitivities(self, raw, sigma):
+        """`residuals`, and the per-run sensitivities (d readings / d shared raw (E, N, n_y,
+        ns), d readings / d own row (E, N, n_y, P)) that its derivative is built from, for
+        the solver's last evaluation to serve the fit's end point (`_solve`)."""
+        z, solved, j_sh, j_pr = _block_predictions(self, raw, sensitivities=True)
+        d = self.scaled_errors(z, solved, sigma)
+        return self.loss_residuals(d, raw), (d, z, solved, j_sh, j_pr)
+
     def loss_residuals(self, data_residuals, raw):
         """The least-squares residual vector: robustified data residuals, then the priors."""
         r = _robust(data_residuals, self.loss, self.huber_c, self.student_nu)
@@ -508,13 +516,17 @@ class _Problem(eqx.Module):
         return jnp.concatenate(parts)
 
 
-def _block_predictions(problem: _Problem, raw):
+def _block_predictions(problem: _Problem, raw, sensitivities: bool = False):
     """`problem`'s predictions at `raw` with a block-structured forward derivative: per run,
     the Jacobian with respect to (shared, that run's row) by `jax.jacfwd` (ns + P tangents
     through its simulation), assembled into the product with the tangent. The Jacobian
     depends on the primal only, so under `jax.jacfwd` over all ns + E P raw values (the
     optimiser's) it is computed once, not once per raw direction: every simulation carries
-    ns + P tangents instead of ns + E P."""
+    ns + P tangents instead of ns + E P.
+
+    `sensitivities`: also return those per-run Jacobians (E, N, n_y, ns) and (E, N, n_y, P)
+    as outputs (their own derivative is not carried: zero), so that a derivative of the
+    predictions also yields them without simulating again."""
     ns, n_per, n_exp = len(problem.shared), len(problem.per_exp), problem.n_exp
 
     def split(r):
@@ -528,13 +540,7 @@ def _block_predictions(problem: _Problem, raw):
 
         return jax.vmap(run)(per, problem.settings, problem.sched)
 
-    @jax.custom_jvp
-    def predict(r):
-        return plain(r)
-
-    @predict.defjvp
-    def predict_jvp(primals, tangents):
-        (r,), (t,) = primals, tangents
+    def with_sensitivities(r):
         shared, per = split(r)
 
         def one(p, st, sc):
@@ -547,12 +553,33 @@ def _block_predictions(problem: _Problem, raw):
             )
             return z, ok, j_sh, j_pr
 
-        z, ok, j_sh, j_pr = jax.vmap(one)(per, problem.settings, problem.sched)
+        return jax.vmap(one)(per, problem.settings, problem.sched)
+
+    @jax.custom_jvp
+    def predict(r):
+        return with_sensitivities(r) if sensitivities else plain(r)
+
+    @predict.defjvp
+    def predict_jvp(primals, tangents):
+        (r,), (t,) = primals, tangents
+        z, ok, j_sh, j_pr = with_sensitivities(r)
         t_sh, t_pr = split(t)
         dz = jnp.einsum("enys,s->eny", j_sh, t_sh) + jnp.einsum("enyp,ep->eny", j_pr, t_pr)
-        return (z, ok), (dz, np.zeros(ok.shape, dtype=jax.dtypes.float0))
+        d_ok = np.zeros(ok.shape, dtype=jax.dtypes.float0)
+        if not sensitivities:
+            return (z, ok), (dz, d_ok)
+        zero = lambda a: jnp.zeros_like(a)  # noqa: E731
+        return (z, ok, j_sh, j_pr), (dz, d_ok, zero(j_sh), zero(j_pr))
 
     return predict(raw)
+
+
+def _prediction_jacobian(j_sh, j_pr):
+    """d readings / d raw (E, N, n_y, ns + E P) from the per-run blocks of
+    `_block_predictions`: the shared columns, then run e's own row in its block only."""
+    n_exp = j_pr.shape[0]
+    own = jnp.einsum("enyp,ef->enyfp", j_pr, jnp.eye(n_exp, dtype=j_pr.dtype))
+    return jnp.concatenate([j_sh, own.reshape(*j_pr.shape[:3], -1)], axis=-1)
 
 
 def solver_settings(rtol: float, atol: float, max_steps: int) -> tuple:
@@ -584,12 +611,13 @@ def _solve(problem: _Problem, raw_start, sigma, rtol, atol, max_steps, bound: in
     ref = raw_start if raw_ref is None else raw_ref
     pinned = pinned_fn(problem.flat_free, ref)
 
-    # the model traced once into one jaxpr: the solver and the end point below differentiate
-    # that jaxpr, so the simulation's derivative (`_block_predictions`) is traced once and
-    # reused, not traced again for the end point (an adaptive TCLab fit: 2.96 -> 2.24 s)
-    residuals = eqx.filter_closure_convert(problem.residuals, raw_start, sigma)
-    raw, ok, steps, stalled = levenberg_marquardt(
-        lambda r, sig: residuals(r, sig)[0],
+    # the model traced once into one jaxpr, which the solver evaluates and differentiates
+    # (it traces its function more than once: its shapes, then each step's linearisation)
+    residuals = eqx.filter_closure_convert(
+        problem.residuals_and_sensitivities, raw_start, sigma
+    )
+    raw, ok, steps, stalled, end = levenberg_marquardt(
+        residuals,
         raw_start,
         sigma,
         rtol=rtol,
@@ -597,13 +625,16 @@ def _solve(problem: _Problem, raw_start, sigma, rtol, atol, max_steps, bound: in
         max_steps=bound,
         pinned=pinned,
         step_cap=max_steps,
+        has_aux=True,
+        end_point=True,
     )
-
-    def at_end(r):
-        res, d, z, solved = residuals(r, sigma)
-        return (res, z), (res, d, z, solved)
-
-    (jac, jac_z), (res, d, z, solved) = jax.jacfwd(at_end, has_aux=True)(raw)
+    # the end point is the solver's last accepted evaluation (at `raw`): its residuals, its
+    # linearisation and the sensitivities it was built from, not a second simulation with
+    # its derivative (whose compiled copy was a third of an adaptive structure's XLA
+    # compile: a chevron's first adaptive fit 5.1 -> 4.3 s, its XLA compile 2.3 -> 1.6 s)
+    res, jac_op, (d, z, solved, j_sh, j_pr) = end
+    jac = jac_op.as_matrix()
+    jac_z = _prediction_jacobian(j_sh, j_pr)
     # a start stopped by the stall test in the interior, with (almost) nothing left to gain,
     # has converged: its raw tolerances failed only on rounding or on an adaptive solver's
     # resolution of the cost (`SETTLED_DECREMENT`)

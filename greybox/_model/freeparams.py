@@ -403,9 +403,14 @@ def levenberg_marquardt(
     stall_rtol: float = STALL_RTOL,
     pinned=None,
     step_cap=None,
+    has_aux: bool = False,
+    end_point: bool = False,
 ):
     """The one least-squares engine: optimistix Levenberg-Marquardt on `residuals(raw, args)`
-    from `raw0`, never throwing. Returns (raw, solved flag, steps taken, stalled flag).
+    from `raw0`, never throwing. Returns (raw, solved flag, steps taken, stalled flag), and
+    with `end_point` also the solver's last accepted evaluation, which is at `raw`:
+    (residual vector, its linearisation as a lineax operator, aux or None); `has_aux`:
+    `residuals` returns (residual vector, aux).
 
     `stall_window`, `stall_rtol`, `pinned`: a start whose cost fell by no more than
     `stall_rtol` (relative; `STALL_RTOL_AT_BOUND` while `pinned(raw)` is true) over
@@ -423,9 +428,14 @@ def levenberg_marquardt(
         lm, int(stall_window), float(stall_rtol), STALL_RTOL_AT_BOUND, pinned, step_cap
     )
     sol = optx.least_squares(
-        residuals, solver, raw0, args=args, max_steps=max_steps, throw=False
+        residuals, solver, raw0, args=args, has_aux=has_aux, max_steps=max_steps, throw=False
     )
     ok = sol.result == optx.RESULTS.successful
-    inner_done = sol.state.terminate if stall_window is None else sol.state[0].terminate
-    stalled = jnp.array(False) if stall_window is None else sol.state[3] & ~inner_done
-    return sol.value, ok & ~stalled, sol.stats["num_steps"], stalled
+    inner = sol.state if stall_window is None else sol.state[0]
+    stalled = jnp.array(False) if stall_window is None else sol.state[3] & ~inner.terminate
+    out = (sol.value, ok & ~stalled, sol.stats["num_steps"], stalled)
+    if not end_point:
+        return out
+    # optimistix's Gauss-Newton state holds the point it returns with its evaluation
+    # (`f_info`, `aux`: replaced on each accepted step only)
+    return (*out, (inner.f_info.residual, inner.f_info.jac, inner.aux if has_aux else None))

@@ -17,6 +17,12 @@ estimated vs 0.37-0.39 GB measured; the base had shrunk with the lazy imports). 
 the child: 0.389, 0.563, 0.730, 0.940 and 1.096 GB for the five sizes; base 0.50 GB and
 factor 4.0 give ratios 1.29, 0.95, 0.97, 0.98 and 1.03.
 
+Measured (2026-11-29): the solve's end point is now the optimiser's last evaluation (no
+second simulation with its derivative), and the peaks fell to 0.377, 0.489, 0.673, 0.891 and
+1.110 GB (before, in the same session: 0.377, 0.546, 0.741, 0.958 and 1.196 GB); the
+smallest size had drifted to 1.33-1.34 (over 30 %) with the base of 0.50 GB, so the base is
+0.45 GB: ratios 1.20, 0.99, 0.98, 0.98 and 0.98.
+
 Usage (repository root):  .venv/bin/python benchmarks/memory.py [--frames 2000 ...]
 """
 

@@ -13,8 +13,10 @@ Levenberg-Marquardt keeps the Jacobian and copies of it:
 with p raw parameters, x states, u inputs, y outputs. `BASE_BYTES` and `FACTOR` are
 calibrated against the measured peak RSS of `greybox fit` child processes
 (benchmarks/memory.py, the figures drawn in the fitting process; its last line reports
-estimate / measured for five sizes: 0.95 to 1.29 for chevron-laser folders of 2,000 x 1 to
-150,000 x 2 frames, 0.50 to 1.13 GB estimated).
+estimate / measured for five sizes: 0.98 to 1.20 for chevron-laser folders of 2,000 x 1 to
+150,000 x 2 frames, 0.45 to 1.08 GB estimated; recalibrated when the solve stopped
+simulating its end point a second time: 0.38 to 1.12 GB measured, where the base of 0.50 GB
+had put the smallest size at 1.33).
 Pure: numbers in, numbers out.
 """
 
@@ -22,7 +24,7 @@ from __future__ import annotations
 
 import math
 
-BASE_BYTES = 0.50e9  # peak RSS of a tiny fit: Python, NumPy, JAX/XLA and the compiled solver
+BASE_BYTES = 0.45e9  # peak RSS of a tiny fit: Python, NumPy, JAX/XLA and the compiled solver
 FACTOR = 4.0  # XLA temporaries and copies per byte of the formula (benchmarks/memory.py)
 INTERVALS_PER_FRAME = 2  # ZOH intervals per frame when only the frame count is known
 

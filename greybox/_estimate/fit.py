@@ -491,18 +491,11 @@ class _Problem(eqx.Module):
         r = (z - self.y) / (sigma * self.noise) * self.w
         return jnp.where(ok[:, None, None], r, FAILED_SOLVE_RESIDUAL * self.w)
 
-    def residuals(self, raw, sigma):
-        """(least-squares residual vector, data residuals (E, N, n_y), predictions (E, N, n_y),
-        success flags (E,)) at `raw`: one simulation gives the solver's residuals and every
-        output of the fit's end point."""
-        z, solved = self.predictions(raw)
-        d = self.scaled_errors(z, solved, sigma)
-        return self.loss_residuals(d, raw), d, z, solved
-
     def residuals_and_sensitivities(self, raw, sigma):
-        """`residuals`, and the per-run sensitivities (d readings / d shared raw (E, N, n_y,
-        ns), d readings / d own row (E, N, n_y, P)) that its derivative is built from, for
-        the solver's last evaluation to serve the fit's end point (`_solve`)."""
+        """(least-squares residual vector, (data residuals (E, N, n_y), predictions (E, N,
+        n_y), success flags (E,), d predictions / d shared raw (E, N, n_y, ns), d predictions
+        / d own row (E, N, n_y, P))) at `raw`: one simulation gives the solver's residuals
+        and, at its last accepted point, every output of the fit's end point (`_solve`)."""
         z, solved, j_sh, j_pr = _block_predictions(self, raw, sensitivities=True)
         d = self.scaled_errors(z, solved, sigma)
         return self.loss_residuals(d, raw), (d, z, solved, j_sh, j_pr)

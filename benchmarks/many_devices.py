@@ -187,6 +187,11 @@ the machine's swings. With the wave's noise re-estimated in one stacked pass and
 stack sent to the device by the host thread (`_batch._build_ahead`): two full runs, 15,437
 and 15,700 fits/min, solve_share 0.826 and 0.803, compiled_alone_share 0.69 and 0.71,
 batch_vs_fit_max_rel 1.2e-14, 512/512 valid.
+With each solve's end point taken from the optimiser's last evaluation (4b6a7ea: no second
+simulation with its derivative), three alternating full runs against 42cf7c1 (2026-11-29):
+15,212, 15,166, 14,537 -> 15,505, 15,252, 14,921 fits/min; solve_s 1.49-1.58 -> 1.49-1.52 s;
+solve_share 0.789, 0.812, 0.807 -> 0.807, 0.796, 0.775 (the compiled part is the smaller
+one now, so the share falls at the same or a shorter wall); batch_vs_fit_max_rel 1.2e-14.
 """
 
 from __future__ import annotations

@@ -561,8 +561,7 @@ def _block_predictions(problem: _Problem, raw, sensitivities: bool = False):
         d_ok = np.zeros(ok.shape, dtype=jax.dtypes.float0)
         if not sensitivities:
             return (z, ok), (dz, d_ok)
-        zero = lambda a: jnp.zeros_like(a)  # noqa: E731
-        return (z, ok, j_sh, j_pr), (dz, d_ok, zero(j_sh), zero(j_pr))
+        return (z, ok, j_sh, j_pr), (dz, d_ok, jnp.zeros_like(j_sh), jnp.zeros_like(j_pr))
 
     return predict(raw)
 

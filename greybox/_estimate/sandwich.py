@@ -251,10 +251,8 @@ def _lagged_cross_sums(g, max_lag: int) -> list:
     flat[:, :, :w] = g
     flat = flat.reshape(d, r * (w + max_lag), p)
     n = flat.shape[1]
-    return [
-        np.matmul(flat[:, lag:].transpose(0, 2, 1), flat[:, : n - lag])
-        for lag in range(1, max_lag + 1)
-    ]
+    lags = range(1, max_lag + 1)
+    return [_cross_sum(flat[:, None, lag:], flat[:, None, : n - lag]) for lag in lags]
 
 
 def hac_meat(

@@ -4,7 +4,11 @@ call in one pass) against a per-run reference written plainly below: the ZOH gri
 must agree exactly (every array, shape and dtype) on random runs: irregular frames, one to
 three quadrature nodes, breakpoints before, between and on the instants, repeated levels,
 starts before or at the first instant, one or two channels, runs of different lengths
-stacked together. This reference was greybox's own implementation up to 2026-11-28."""
+stacked together. This reference was greybox's own implementation up to 2026-11-28.
+
+A batch stacks its devices' runs block by block to the widths of all of them
+(`schedule_widths`, `widths=`): every part must give, to the bit, the rows of stacking all at
+once, and the widths must be the joint stack's own."""
 
 import numpy as np
 import pytest
@@ -12,7 +16,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from greybox._model.waveforms import PiecewiseConstant
-from greybox._simulate.schedules import bucket_length, stacked_schedules
+from greybox._simulate.schedules import bucket_length, schedule_widths, stacked_schedules
 
 
 def reference_run(inputs, t, offsets, t_start_s):
@@ -116,6 +120,29 @@ def test_stacked_schedules_equal_the_per_run_reference(case):
         np.testing.assert_array_equal(got[key], want[key], err_msg=key)
 
 
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(runs(), st.integers(1, 3))
+def test_runs_stacked_in_parts_to_joint_widths_equal_the_joint_stack(case, n_parts):
+    rs, offsets, n_u = case
+    runs_ = [(w, t, t0, offsets, n_u) for w, t, t0 in rs]
+    joint = stacked_schedules(runs_, on_device=False)
+    widths = schedule_widths(runs_)
+    assert widths == {
+        "frames": joint["t_s"].shape[1],
+        "intervals": joint["dt"].shape[1],
+        "breaks": joint["breaks"].shape[1],
+        "jumps": joint["jump_ts"].shape[1],
+    }
+    cuts = np.linspace(0, len(runs_), n_parts + 1).astype(int)
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        if a == b:
+            continue
+        part = stacked_schedules(runs_[a:b], on_device=False, widths=widths)
+        for key in joint:
+            assert part[key].dtype == joint[key].dtype, key
+            np.testing.assert_array_equal(part[key], joint[key][a:b], err_msg=key)
+
+
 def test_bad_runs_are_refused_by_name():
     wave = PiecewiseConstant(np.array([0.0]), np.array([1.0]), 1.0)
     good = (wave, np.array([0.1, 0.2]), 0.0, OFFSETS[0], 1)
@@ -127,3 +154,5 @@ def test_bad_runs_are_refused_by_name():
         stacked_schedules([])
     with pytest.raises(ValueError, match="takes 2 input channel"):
         stacked_schedules([(wave, np.array([0.1]), 0.0, OFFSETS[0], 2)])
+    with pytest.raises(ValueError, match="takes 2 input channel"):  # the widths check as much
+        schedule_widths([good, (wave, np.array([0.1]), 0.0, OFFSETS[0], 2)])

@@ -70,12 +70,35 @@ def _of_model(model, runs) -> list:
     return [(*r, offsets, model.n_inputs) for r in runs]
 
 
-def stacked_schedules(runs, *, on_device: bool = True) -> dict:
+def stacked_schedules(runs, *, on_device: bool = True, widths: dict | None = None) -> dict:
     """The padded schedule arrays of runs ((inputs, t_s, t_start_s, quadrature offsets [s],
     input channels the device takes or None) each; every run's quadrature of one size),
     one row a run: `t_s`, `t_start`, `dt`, `u_grid`, `eval_index`, `eval_t`, `unsort`,
     `breaks`, `levels`, `jump_ts` (see the module docstring). `on_device=False` keeps numpy
-    arrays (for callers that stack many before one transfer)."""
+    arrays (for callers that stack many before one transfer). `widths`: pad to these
+    (`schedule_widths` of runs that include these), so that runs stacked in parts get the
+    rows, to the bit, that stacking them all at once gives."""
+    out = _stacked(*_checked(runs), widths)
+    return jax.device_put(out) if on_device else out
+
+
+def schedule_widths(runs) -> dict:
+    """The padded widths `stacked_schedules(runs)` gives (`frames`, `intervals`, `breaks`,
+    `jumps`), after the same checks, without building its arrays: a batch sets its compiled
+    shapes from every device's runs at once in a fraction of the time, then stacks each
+    block of devices to them (`widths=`) beside the solves of the blocks before."""
+    t, breaks, levels, offsets, t_start_s = _checked(runs)
+    g = _Grid(t, breaks, levels, offsets, t_start_s)
+    v = np.sort(g.rows(), axis=1)
+    distinct = np.isfinite(v)
+    distinct[:, 1:] &= v[:, 1:] != v[:, :-1]
+    n_l = distinct.sum(axis=1) - 1  # intervals between a run's distinct grid points
+    return _widths(g, int(n_l.max(initial=0)))
+
+
+def _checked(runs) -> tuple:
+    """(frame times, breakpoints, levels, quadrature offsets (runs, q), starts) of runs, each
+    checked: refused with the fault named unless they stack."""
     if not runs:
         raise ValueError("runs: none given; a schedule needs at least one run")
     t = _frame_times([r[1] for r in runs])
@@ -92,14 +115,13 @@ def stacked_schedules(runs, *, on_device: bool = True) -> dict:
     offsets = [np.asarray(r[3], dtype=float).reshape(-1) for r in runs]
     if len({o.size for o in offsets}) > 1:
         raise ValueError("schedules: their exposure quadratures differ; stack them apart")
-    out = _stacked(
+    return (
         t,
         [p.times_s for p in pw],
         levels,
         np.stack(offsets),
         np.array([float(r[2]) for r in runs]),
     )
-    return jax.device_put(out) if on_device else out
 
 
 def _frame_times(times) -> list[np.ndarray]:
@@ -143,36 +165,66 @@ def _stable_order(rows) -> np.ndarray:
     return np.argsort(rows, axis=1, kind="stable")
 
 
-def _stacked(t, breaks, levels, offsets, t_start_s) -> dict:
-    """`stacked_schedules` of checked runs: frame times `t`, input breakpoints `breaks` and
-    `levels` (of one channel count), quadrature `offsets` (runs, q), starts `t_start_s`.
-    Per run exactly as one run alone would give: instants t + offsets, the start min(t_start_s,
-    first instant, first breakpoint), the switching times inside (start, last instant)."""
-    n_runs, q = len(t), offsets.shape[1]
-    n_f = np.array([x.size for x in t])
-    n_q = n_f * q
-    rid_f, f0 = _run_ids(n_f)
-    rid_q, q0 = _run_ids(n_q)
-    quad = (np.concatenate(t)[:, None] + offsets[rid_f]).reshape(-1)
-    n_b = np.array([b.size for b in breaks])
-    rid_b, b0 = _run_ids(n_b)
-    b_all, lv_all = np.concatenate(breaks), np.concatenate(levels)
-    start = np.minimum(np.minimum(t_start_s, np.minimum.reduceat(quad, q0)), b_all[b0])
-    last = np.maximum.reduceat(quad, q0)
-    previous = np.empty_like(lv_all)  # a level switches where it differs from the one before
-    previous[1:] = lv_all[:-1]
-    previous[b0] = 0.0  # (0 before the first breakpoint)
-    switch = np.any(lv_all != previous, axis=1)
-    edges, rid_e = b_all[switch], rid_b[switch]
-    inside = (edges > start[rid_e]) & (edges < last[rid_e])
-    edges, rid_e = edges[inside], rid_e[inside]
-    n_e = np.bincount(rid_e, minlength=n_runs)
+class _Grid:
+    """What both `_stacked` and `schedule_widths` take from checked runs: the instants, each
+    run's start, last instant and switching times inside, and the counts of each."""
 
-    # the grid: each run's start, edges and instants in one row (padded with +inf, which
-    # sorts last), sorted, repeats dropped
-    n_qmax, n_emax = int(n_q.max()), int(n_e.max(initial=0))
-    q_rows = _padded(quad, n_q, n_qmax, np.inf)
-    rows = np.concatenate([start[:, None], _padded(edges, n_e, n_emax, np.inf), q_rows], axis=1)
+    def __init__(self, t, breaks, levels, offsets, t_start_s):
+        self.n_runs, self.q = len(t), offsets.shape[1]
+        self.n_f = np.array([x.size for x in t])
+        self.n_q = self.n_f * self.q
+        rid_f, self.f0 = _run_ids(self.n_f)
+        _, self.q0 = _run_ids(self.n_q)
+        self.quad = (np.concatenate(t)[:, None] + offsets[rid_f]).reshape(-1)
+        self.n_b = np.array([b.size for b in breaks])
+        rid_b, self.b0 = _run_ids(self.n_b)
+        self.b_all, self.lv_all = np.concatenate(breaks), np.concatenate(levels)
+        b0 = self.b0
+        self.start = np.minimum(
+            np.minimum(t_start_s, np.minimum.reduceat(self.quad, self.q0)), self.b_all[b0]
+        )
+        self.last = np.maximum.reduceat(self.quad, self.q0)
+        # a level switches where it differs from the one before (0 before the first breakpoint)
+        previous = np.empty_like(self.lv_all)
+        previous[1:] = self.lv_all[:-1]
+        previous[b0] = 0.0
+        switch = np.any(self.lv_all != previous, axis=1)
+        edges, rid_e = self.b_all[switch], rid_b[switch]
+        inside = (edges > self.start[rid_e]) & (edges < self.last[rid_e])
+        self.edges, rid_e = edges[inside], rid_e[inside]
+        self.n_e = np.bincount(rid_e, minlength=self.n_runs)
+        self.n_qmax, self.n_emax = int(self.n_q.max()), int(self.n_e.max(initial=0))
+        self.q_rows = _padded(self.quad, self.n_q, self.n_qmax, np.inf)
+
+    def rows(self) -> np.ndarray:
+        """Each run's start, edges and instants in one row, padded with +inf (sorts last)."""
+        edge_rows = _padded(self.edges, self.n_e, self.n_emax, np.inf)
+        return np.concatenate([self.start[:, None], edge_rows, self.q_rows], axis=1)
+
+
+def _widths(g: _Grid, n_lmax: int) -> dict:
+    """The padded widths of runs `g` whose longest grid has `n_lmax` intervals."""
+    return {
+        "frames": bucket_length(g.n_f.max()),
+        "intervals": bucket_length(n_lmax),
+        "breaks": bucket_length(g.n_b.max()),
+        "jumps": bucket_length(g.n_emax),
+    }
+
+
+def _stacked(t, breaks, levels, offsets, t_start_s, widths=None) -> dict:
+    """`stacked_schedules` of checked runs: frame times `t`, input breakpoints `breaks` and
+    `levels` (of one channel count), quadrature `offsets` (runs, q), starts `t_start_s`,
+    padded to `widths` (None: their own). Per run exactly as one run alone would give:
+    instants t + offsets, the start min(t_start_s, first instant, first breakpoint), the
+    switching times inside (start, last instant)."""
+    g = _Grid(t, breaks, levels, offsets, t_start_s)
+    n_runs, q, n_f, n_q, f0, q0 = g.n_runs, g.q, g.n_f, g.n_q, g.f0, g.q0
+    n_b, b0, b_all, lv_all, start, last = g.n_b, g.b0, g.b_all, g.lv_all, g.start, g.last
+    edges, n_e, n_qmax, n_emax, q_rows = g.edges, g.n_e, g.n_qmax, g.n_emax, g.q_rows
+
+    # the grid: each run's start, edges and instants in one row, sorted, repeats dropped
+    rows = g.rows()
     order = _stable_order(rows)
     v = np.take_along_axis(rows, order, axis=1)
     distinct = np.isfinite(v)
@@ -208,8 +260,13 @@ def _stacked(t, breaks, levels, offsets, t_start_s) -> dict:
 
     # padded for vmap: frames and instants repeat their run's last, intervals are empty,
     # breakpoints and jump times lie past the run's end (`last`, its latest instant)
-    n_frames, n_int = bucket_length(n_f.max()), bucket_length(n_lmax)
-    n_breaks, n_jumps = bucket_length(n_bmax), bucket_length(n_emax)
+    own = _widths(g, n_lmax)
+    if widths is not None:
+        if any(widths[k] < own[k] for k in own):
+            raise ValueError(f"widths: {widths} are narrower than these runs need ({own})")
+        own = widths
+    n_frames, n_int = own["frames"], own["intervals"]
+    n_breaks, n_jumps = own["breaks"], own["jumps"]
     t_all = np.concatenate(t)
 
     def past(width, sizes):  # t_end + 1, t_end + 2, ... after each run's own entries

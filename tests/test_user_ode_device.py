@@ -10,6 +10,7 @@ describe` must show the file device's parameters.
 import re
 from pathlib import Path
 
+import diffrax._integrate as integrate
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
@@ -76,11 +77,21 @@ def lab(tmp_path_factory):
         + "\n".join(runs)
     )
     es = load_experiment_set(exp)
-    return root, es, greybox.fit(es.model, es.estimation, es.free, **es.fit_options)
+    traced = []  # diffrax's integration loop, each time JAX runs it to trace it
+    loop = integrate.loop
+
+    def counted(*args, **kwargs):
+        traced.append(1)
+        return loop(*args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(integrate, "loop", counted)
+        result = greybox.fit(es.model, es.estimation, es.free, **es.fit_options)
+    return root, es, result, len(traced)
 
 
 def test_ode_device_recovers_both_areas(lab):
-    _, es, result = lab
+    _, es, result, _ = lab
     assert es.fit_options["method"] == "adaptive"  # a nonlinear device: the ODE solver
     assert result.valid and result.residuals.all_white
     for path, truth in (("tank_area_m2", AREA), ("outlet_area_m2", OUTLET)):
@@ -90,10 +101,22 @@ def test_ode_device_recovers_both_areas(lab):
         assert est.se < 0.02 * truth  # and the data pin it down
 
 
+def test_the_adaptive_solve_is_traced_once_for_the_simulation_and_its_derivative(lab):
+    """The fit traces the simulation twice, as it is and with its tangents, but diffrax's
+    `diffeqsolve` (a jitted function) only once for both: the vector field is a module of
+    the device and its input (`greybox._simulate.simulate._InputDriven`), equal from one call
+    to the next where a closure made at each call was not, and every greybox program is
+    traced in one mesh context (`greybox._compile._traced_once`), where the tangents' trace,
+    made as optimistix takes the shape of its first linearisation, ran in another. Twice
+    before 2026-11-29 (the stiff plate's first fit, tests/test_stiff_method.py: tracing 4.5
+    -> 2.8 s)."""
+    assert lab[3] == 1
+
+
 def test_describe_shows_a_file_device_and_its_physical_ranges(lab, capsys):
     from greybox.cli import main
 
-    root, _, _ = lab
+    root, _, _, _ = lab
     assert main(["describe", str(root / "my_devices" / "tank.py")]) == 0
     text = capsys.readouterr().out
     assert "device tank: Tank" in text
@@ -105,7 +128,7 @@ def test_option_error_hint_names_a_describe_command_that_works(lab, tmp_path, ca
     from greybox._model.errors import InputError
     from greybox.cli import main
 
-    root, _, _ = lab
+    root, _, _, _ = lab
     exp = tmp_path / "exp"
     exp.mkdir()
     (exp / "experiment.toml").write_text(

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -194,6 +195,19 @@ def input_at(breaks, levels, t):
 ADJOINTS = {"forward": "ForwardMode", "reverse": "RecursiveCheckpointAdjoint"}  # diffrax's
 
 
+class _InputDriven(eqx.Module):
+    """The device's vector field under its piecewise-constant input: a module, not a closure,
+    so that two solves of one structure are the same function to `diffeqsolve`'s own jit,
+    whose trace is then made once."""
+
+    model: AbstractDevice
+    breaks: jax.Array
+    levels: jax.Array
+
+    def __call__(self, t, x, args):
+        return self.model.vector_field(t, x, input_at(self.breaks, self.levels, t))
+
+
 def _adaptive_states(
     model: AbstractDevice,
     x0,
@@ -214,14 +228,11 @@ def _adaptive_states(
 
     import diffrax as dfx  # here: a device simulated by ZOH never imports it (0.13 s)
 
-    def vector_field(t, x, args):
-        return model.vector_field(t, x, input_at(breaks, levels, t))
-
     controller = dfx.ClipStepSizeController(
         dfx.PIDController(rtol=rtol, atol=atol), jump_ts=jump_ts
     )
     sol = dfx.diffeqsolve(
-        dfx.ODETerm(vector_field),
+        dfx.ODETerm(_InputDriven(model, breaks, levels)),
         dfx.Kvaerno5() if stiff else dfx.Tsit5(),
         t_start,
         eval_t[-1],

@@ -256,7 +256,8 @@ def test_prior_dominated_parameter_is_reported(tmp_path):
 
 def test_posterior_from_the_fit_equals_the_one_loaded_from_params_json(result, tmp_path):
     """One posterior object: what a fit returns and what params.json gives back are the same
-    model, free set, raw estimate, covariance and method, so they predict the same band."""
+    model, free set, raw estimate, covariance, method and solver settings, so they predict
+    the same band."""
     from greybox.cli._fit import fit_experiment_dir
     from greybox.io import load_params
 
@@ -267,6 +268,8 @@ def test_posterior_from_the_fit_equals_the_one_loaded_from_params_json(result, t
     np.testing.assert_allclose(loaded.covariance_raw, live.covariance_raw, rtol=1e-9, atol=1e-300)
     assert [p.path for p in loaded.free] == [p.path for p in live.free]
     assert loaded.method == live.method
+    assert loaded.solver == live.solver == outcome.result.solver
+    assert set(live.solver) == {"solver_rtol", "solver_atol", "solver_max_steps"}
     wave = greybox.PulseTrain(0.02, 0.3, 0.5, 3, delay_s=0.1)
     t = np.linspace(0.0, 1.2, 25)
     a, b = live.band(wave, t), loaded.band(wave, t)

@@ -213,7 +213,8 @@ GOOD = {
     "device": {"name": "chevron_laser", "ref": "chevron_laser", "source": "builtin",
                "location": "chevron_laser", "options": {}},
     "model": {"camera": {"m_per_px": 6.45e-7, "exposure_s": 0.01}, "fixed": {},
-              "fitted": {"absorptance": 0.55}, "method": "zoh"},
+              "fitted": {"absorptance": 0.55}, "method": "zoh",
+              "solver": {"rtol": 1e-8, "atol": 1e-10, "max_steps": 16384}},
     "free": [{"path": "absorptance", "unit": "1", "lower": 0.4, "upper": 0.7}],
     "raw": [0.0],  # logit((0.55 - 0.4) / 0.3): the fitted value, raw
     "covariance_raw": [[0.01]],
@@ -236,7 +237,8 @@ GOOD_PROCESS = {
 @given(
     path=st.sampled_from(
         [("schema",), ("device", "name"), ("device", "options"), ("model", "camera"),
-         ("model", "fitted"), ("model", "fixed"), ("model", "method"), ("free",), ("raw",),
+         ("model", "fitted"), ("model", "fixed"), ("model", "method"), ("model", "solver"),
+         ("model", "solver", "max_steps"), ("model", "solver", "rtol"), ("free",), ("raw",),
          ("covariance_raw",), ("sigma", "value"), ("sigma",), ("null_directions_raw",),
          ("free", 0, "path"), ("free", 0, "lower"), ("covariance_raw", 0, 0), ("raw", 0),
          ("device", "ref"), ("device", "source"), ("device", "location"),

@@ -51,6 +51,9 @@ def _truth(t, level0, scale):
     return out
 
 
+STEP_BUDGET = 4000  # the adaptive solver's, set in [fit]: not the default (16384)
+
+
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory):
     root = tmp_path_factory.mktemp("lab")
@@ -73,7 +76,8 @@ def lab(tmp_path_factory):
             f"end_s = {END} }}\n"
         )
     (exp / "experiment.toml").write_text(
-        '[experiment]\ndevice = "../my_devices/tank.py:SPEC"\n\n[fit]\nloss = "l2"\n\n'
+        '[experiment]\ndevice = "../my_devices/tank.py:SPEC"\n\n[fit]\nloss = "l2"\n'
+        f"solver_max_steps = {STEP_BUDGET}\n\n"
         + "\n".join(runs)
     )
     es = load_experiment_set(exp)
@@ -111,6 +115,50 @@ def test_the_adaptive_solve_is_traced_once_for_the_simulation_and_its_derivative
     before 2026-11-29 (the stiff plate's first fit, tests/test_stiff_method.py: tracing 4.5
     -> 2.8 s)."""
     assert lab[3] == 1
+
+
+def test_validation_predictions_and_bands_simulate_with_the_fit_s_solver_settings(
+    lab, monkeypatch
+):
+    """The fit's adaptive-solver settings (here its step budget from [fit]) are the ones its
+    validation, its predictions and its bands simulate with, in the library as in the
+    command: each call is stopped where it hands them to the simulation."""
+    import greybox._estimate.fit as fit_module
+    import greybox._estimate.prediction as prediction_module
+    import greybox._simulate.simulate as simulate_module
+
+    _, es, result, _ = lab
+    want = {"solver_rtol": 1e-8, "solver_atol": 1e-10, "solver_max_steps": STEP_BUDGET}
+    assert result.solver == want
+    handed = []
+
+    class Handed(Exception):
+        pass
+
+    def response(problem, raw):
+        handed.append(dict(problem.solver_opts))
+        raise Handed
+
+    def simulate(*args, rtol, atol, max_steps, **kwargs):
+        handed.append({"rtol": rtol, "atol": atol, "max_steps": max_steps})
+        raise Handed
+
+    def response_and_jacobian(base, shared, raw, row, method, solver):
+        handed.append(dict(zip(("rtol", "atol", "max_steps"), solver)))
+        raise Handed
+
+    monkeypatch.setattr(fit_module, "_response", response)
+    monkeypatch.setattr(simulate_module, "simulate", simulate)
+    monkeypatch.setattr(prediction_module, "_response_and_jacobian", response_and_jacobian)
+    run = es.estimation[0]
+    for call in (
+        lambda: greybox.validate(result, [run]),
+        lambda: result.predict(0),
+        lambda: result.posterior.band(run.inputs, run.t_s),
+    ):
+        with pytest.raises(Handed):
+            call()
+    assert handed == [{k.removeprefix("solver_"): v for k, v in want.items()}] * 3
 
 
 def test_describe_shows_a_file_device_and_its_physical_ranges(lab, capsys):

@@ -236,6 +236,9 @@ class FitResult:
     prediction_sd: dict = dataclasses.field(default_factory=dict)  # run -> {horizon: (N, q)}
     whiteness: dict = dataclasses.field(default_factory=dict)  # run -> (LjungBox per output)
     runs: tuple = ()  # process noise: `RunDiagnostics` per estimation run
+    # least squares: the adaptive solver's settings the fit simulated with (`solver_rtol`,
+    # `solver_atol`, `solver_max_steps`); its validation, predictions and bands use them too
+    solver: dict = dataclasses.field(default_factory=dict)
 
     @property
     def process_noise(self) -> bool:
@@ -275,6 +278,7 @@ class FitResult:
             self.sigma,
             self.method,
             self.noise,
+            dict(self.solver),
         )
 
     @property
@@ -351,6 +355,7 @@ class FitResult:
             exp.t_s,
             method=method or self.method,
             t_start_s=exp.t_start_s,
+            **simulate_settings(self.solver),
         )
         return np.asarray(z).reshape(exp.n_frames, -1)
 
@@ -983,6 +988,11 @@ def fit(
     return dataclasses.replace(result, noise=noise)
 
 
+def simulate_settings(solver: dict) -> dict:
+    """`greybox.simulate`'s `rtol`, `atol`, `max_steps` from a fit's `solver` settings."""
+    return {k.removeprefix("solver_"): v for k, v in solver.items()}
+
+
 def jacobian_size_bound(experiments, n_free: int) -> int:
     """An upper bound on the elements of a fit's Jacobian (readings x raw parameters, with
     every free parameter counted once per run): what `small_blas` is sized by."""
@@ -1367,6 +1377,7 @@ def _assemble(
         n_observations=problem.n_data,
         predictions={e.name: {"simulation": zi} for e, zi in zip(experiments, preds)},
         prediction_sd={e.name: {"simulation": band_sd[i]} for i, e in enumerate(experiments)},
+        solver={f"solver_{k}": v for k, v in problem.solver_opts},
     )
 
 
@@ -1638,11 +1649,14 @@ def validate(
     result: FitResult, experiments: Sequence[Experiment], **fit_kwargs
 ) -> ValidationResult:
     """Score fitted physics on new runs: re-fit only per-experiment parameters, then simulate
-    (process noise: also filter, scoring the innovations and every horizon in `runs`)."""
+    (process noise: also filter, scoring the innovations and every horizon in `runs`), with
+    the fit's adaptive-solver settings (`FitResult.solver`) unless `fit_kwargs` give others."""
     per_exp = [p for p in result.free if p.per_experiment]
     experiments = tuple(experiments)
     if not experiments:
         raise ValueError("experiments: no validation runs given")
+    for key, value in result.solver.items():  # the fit's own, unless given here
+        fit_kwargs.setdefault(key, value)
     if result.process_noise:
         from greybox._estimate.likelihood import validate_runs
 

@@ -23,7 +23,9 @@ class Posterior:
     - `null_directions`: (k, n_raw) raw directions the data did not determine;
     - `sigma`: noise sd per output [SI]; `method`: the simulation path of the fit;
     - `noise`: the fit's noise-model object (`model` is a `StochasticDevice` for
-      `ProcessNoise`).
+      `ProcessNoise`);
+    - `solver`: the adaptive solver's settings the fit simulated with (`solver_rtol`,
+      `solver_atol`, `solver_max_steps`; empty: the defaults), which its bands use too.
     """
 
     model: object
@@ -34,6 +36,7 @@ class Posterior:
     sigma: np.ndarray
     method: str
     noise: object = None  # the fit's noise model (OutputError / ProcessNoise)
+    solver: dict = dataclasses.field(default_factory=dict)
 
     def band(self, inputs, t_s, *, noise: bool = False, level: float = 0.95, t_start_s=0.0):
         """The response to `inputs` at `t_s` with its pointwise band (`greybox.Band`): a
@@ -42,6 +45,7 @@ class Posterior:
         With process noise (`model` a `StochasticDevice`: a `ProcessNoise` fit) the band is
         that of sample paths (`greybox._estimate.prediction.process_band`): process noise and
         parameter draws, with `noise` measurement noise too; its `kind` says so."""
+        from greybox._estimate.fit import simulate_settings
         from greybox._estimate.prediction import prediction_band, process_band
         from greybox.stochastic._sde_device import StochasticDevice
 
@@ -70,6 +74,7 @@ class Posterior:
             level=level,
             method=self.method,
             t_start_s=t_start_s,
+            **simulate_settings(self.solver),
         )
 
     def draws(self, n: int, *, seed: int = 0) -> np.ndarray:

@@ -107,6 +107,9 @@ def prediction_band(
     level: float = 0.95,
     method: str | None = None,
     t_start_s: float = 0.0,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 16384,
 ) -> Band:
     """Simulate `inputs` at times `t_s` with a pointwise band from the parameter covariance.
 
@@ -120,6 +123,8 @@ def prediction_band(
     - `null_directions`: (k, n_raw) directions nothing determined (see
       `greybox._estimate.identifiability`), if the covariance leaves them out.
     - `level`: coverage of the pointwise band (default 0.95).
+    - `method`, `rtol`, `atol`, `max_steps`: the simulation path and the adaptive solver's
+      settings (a fit's: `FitResult.posterior.band` passes them).
 
     **Returns:** a `Band`. **Raises:** `ValueError` for non-finite fitted values (a fit that
     diverged) or a failed simulation.
@@ -148,7 +153,12 @@ def prediction_band(
     sched = schedule_for(model, inputs, t, t_start_s=t_start_s)
     row = {k: v[0] for k, v in sched.items()}
     z, ok, jac = _response_and_jacobian(
-        as_arrays(model), as_leaves(shared), jnp.asarray(raw[:n_shared]), row, method
+        as_arrays(model),
+        as_leaves(shared),
+        jnp.asarray(raw[:n_shared]),
+        row,
+        method,
+        (float(rtol), float(atol), int(max_steps)),
     )
     if not bool(ok):
         raise ValueError(
@@ -171,16 +181,26 @@ def prediction_band(
 
 
 @jit
-def _response_and_jacobian(base, shared, raw, row, method):
+def _response_and_jacobian(base, shared, raw, row, method, solver):
     """The response to one run's schedule `row` of `base` with the `shared` free parameters at
-    `raw`, its success flag, and d response / d raw (None without shared parameters). One
-    compiled function per structure (model, free paths, method, bucketed schedule shapes):
+    `raw`, its success flag, and d response / d raw (None without shared parameters), the
+    adaptive solver at `solver` (rtol, atol, max_steps). One compiled function per structure
+    (model, free paths, method and solver settings, bucketed schedule shapes):
     the model's values, the parameters' numbers, the raw vector and the waveform are its
     inputs, so the bands of every run of a result, of a new waveform or of another device of
     the structure compile nothing new."""
 
+    rtol, atol, max_steps = solver
+
     def observe(r):
-        return observe_schedule(with_shared(base, shared, r), row, method=method)
+        return observe_schedule(
+            with_shared(base, shared, r),
+            row,
+            method=method,
+            rtol=rtol,
+            atol=atol,
+            max_steps=max_steps,
+        )
 
     z, ok = observe(raw)
     jac = jax.jacfwd(lambda r: observe(r)[0])(raw) if len(shared) else None

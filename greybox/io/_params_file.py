@@ -14,7 +14,9 @@ previous version, is read as well: it is /3 without ``noise_model``):
   (absolute path of a device file, else the module or name), ``options`` (every structural
   option, defaults filled in). ``model``: what rebuilds the fitted model: ``camera``
   (m_per_px, exposure_s), ``fixed`` ({path: SI value} from [experiment] settings), ``fitted``
-  ({path: SI value} for every shared free parameter, noise parameters included), ``method``.
+  ({path: SI value} for every shared free parameter, noise parameters included), ``method``
+  and ``solver`` (the adaptive solver's ``rtol``, ``atol``, ``max_steps`` the fit simulated
+  with, which a simulation of the file uses too; absent in older files: the defaults).
 - ``noise_model``: ``kind`` ("output error": least squares on the simulation error, with its
   ``loss``; "process noise": maximum likelihood through a Kalman filter, with ``likelihood``,
   ``filter``, ``structure`` (the checked [noise] table: process groups, disturbances,
@@ -107,6 +109,7 @@ def _common_document(fitset, result) -> dict:
     """What every params.json holds, whatever the noise model: the device and how to rebuild
     it, every fitted value with its uncertainty, the raw estimate and its covariance."""
     import greybox
+    from greybox._estimate.fit import simulate_settings
     from greybox._estimate.verdict import fit_headline
 
     shared = [p for p in result.free if not p.per_experiment]
@@ -135,6 +138,7 @@ def _common_document(fitset, result) -> dict:
             "fixed": dict(fitset.fixed),
             "fitted": fitted,
             "method": result.method,
+            "solver": simulate_settings(result.solver),
         },
         "parameters": [parameter_record(p) for p in result.parameters],
         # the headline verdict and every fitted value outside its physical range
@@ -383,7 +387,8 @@ class FittedModel:
       camera; per-run nuisance values (camera offset, drift) stay at the device default (0).
     - `free`: the free-parameter specs; `raw`, `covariance_raw`, `null_directions`: as
       fitted (all parameters; see `greybox._estimate.prediction.prediction_band`).
-    - `sigma`: noise scale per output [SI]; `method`: simulation path used by the fit.
+    - `sigma`: noise scale per output [SI]; `method`: simulation path used by the fit;
+      `solver`: the fit's adaptive-solver settings (`solver_rtol`, ...; empty: defaults).
     """
 
     device: object  # greybox._registry.ResolvedDevice
@@ -397,6 +402,7 @@ class FittedModel:
     method: str
     document: dict
     noise: object = None  # the `NoiseTable` of a process-noise fit (`model` is stochastic)
+    solver: dict = dataclasses.field(default_factory=dict)
 
     @property
     def noise_model(self) -> str:
@@ -420,6 +426,7 @@ class FittedModel:
             self.null_directions,
             self.sigma,
             self.method,
+            solver=dict(self.solver),
         )
 
     @property
@@ -594,6 +601,7 @@ def load_params(path, trust_device=()) -> FittedModel:
     fixed = need(spec, "fixed", dict, "model.")
     fitted = need(spec, "fitted", dict, "model.")
     method = need(spec, "method", str, "model.")
+    solver = _solver_settings(spec.get("solver", {}), file)
     free_docs = need(doc, "free", list, "")
     try:
         raw = _finite_vector(need(doc, "raw", list, ""), "raw", file)
@@ -682,4 +690,36 @@ def load_params(path, trust_device=()) -> FittedModel:
             field="free",
         )
     _check_covariance(cov, file)
-    return FittedModel(device, options, model, free, raw, cov, nulls, sigma, method, doc, noise)
+    return FittedModel(
+        device, options, model, free, raw, cov, nulls, sigma, method, doc, noise, solver
+    )
+
+
+MAX_SOLVER_STEPS = 10_000_000  # as [fit] solver_max_steps allows
+
+
+def _solver_settings(doc, file) -> dict:
+    """`model.solver` ({rtol, atol, max_steps}, each optional) as a fit's `solver` dict."""
+    kinds = {"rtol": float, "atol": float, "max_steps": int}
+    if not isinstance(doc, dict) or set(doc) - set(kinds):
+        raise InputError(
+            f"{doc!r} is not the adaptive solver's settings; give a table of "
+            f"{', '.join(kinds)} (or leave it out for the defaults)",
+            file=file,
+            field="model.solver",
+        )
+    out = {}
+    for key, kind in kinds.items():
+        if key not in doc:
+            continue
+        value = doc[key]
+        most = MAX_SOLVER_STEPS if key == "max_steps" else 1.0
+        number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if not (number and math.isfinite(value) and 0 < value <= most):
+            raise InputError(
+                f"{value!r} must be a number in (0, {most:g}]",
+                file=file,
+                field=f"model.solver.{key}",
+            )
+        out[f"solver_{key}"] = kind(value)
+    return out

@@ -31,7 +31,10 @@ constant are drawn from a known log-normal population. It measures
     HAC meats of each wave, stacked; `scores_s`: the fit %, outliers and noise ceilings of
     each wave's runs, stacked; `assemble_s`: the per-device `_fit._assemble`). These run in
     `fit_batch`'s host thread while the next wave solves, so the phases add up to more than
-    the wall time; `host_overlap_s` is by how much;
+    the wall time; `host_overlap_s` is by how much. The plan is all that precedes the first
+    solve (2026-11-29, alternating runs: `plan_s` 0.13 -> 0.075 and `solve_share`
+    0.785-0.802 -> 0.798-0.852 once it found the schedules' widths and left their stacking to
+    the blocks, the first block a quarter);
 (c') `compiled_alone_s`: the same compiled calls run alone (`compiled_alone`: every wave's
     starts, re-fits and models back to back, problems built beforehand, no host work), and
     `compiled_alone_share` = that over the batch's wall time: beside the host thread the

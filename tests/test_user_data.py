@@ -129,7 +129,8 @@ def fitted(tmp_path_factory):
     jax.config.update("jax_enable_x64", True)
     root = tmp_path_factory.mktemp("userdata")
     truth = _write_folder(root / "exp")
-    outcome = fit_experiment_dir(root / "exp", root / "result", lambda m: None)
+    # the tests read the numbers written (predictions, metrics), not the figures
+    outcome = fit_experiment_dir(root / "exp", root / "result", lambda m: None, figure_format=None)
     return root, outcome, truth
 
 

@@ -50,6 +50,7 @@ ROLES = ("estimation", "validation")
 MAX_RUNS = 1000
 MAX_STARTS = 1000
 MAX_FIT_STEPS = 100_000
+MAX_SOLVER_STEPS = 10_000_000  # [fit] solver_max_steps (and params.json's model.solver)
 MAX_PROBLEM_BYTES = 4e9  # estimated working memory of a fit (GREYBOX_MAX_PROBLEM_GB overrides)
 _TOP_KEYS = {"experiment", "model", "camera", "fit", "runs", "columns", "data", "candidates"}
 _TOP_KEYS |= {"noise"}  # [noise]: the process-noise structure (greybox/io/_noise_table.py)
@@ -1376,7 +1377,7 @@ def _fit_table(doc: TomlDocument, fitopt: dict, model, *where) -> dict:
     for key, cap, fix in (
         ("n_starts", MAX_STARTS, "a few starts (3-20) are enough; more only cost time"),
         ("max_steps", MAX_FIT_STEPS, "the optimiser's step budget; 200-2000 is usual"),
-        ("solver_max_steps", 10_000_000, "the ODE solver's step budget per run"),
+        ("solver_max_steps", MAX_SOLVER_STEPS, "the ODE solver's step budget per run"),
     ):
         if (out.get(key) or 0) > cap:
             raise doc.error(f"{out[key]} is more than {cap}; {fix}", *where, key)

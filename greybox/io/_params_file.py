@@ -695,16 +695,17 @@ def load_params(path, trust_device=()) -> FittedModel:
     )
 
 
-MAX_SOLVER_STEPS = 10_000_000  # as [fit] solver_max_steps allows
-
-
 def _solver_settings(doc, file) -> dict:
     """`model.solver` ({rtol, atol, max_steps}, each optional) as a fit's `solver` dict."""
+    from greybox.io._experiment_set import MAX_SOLVER_STEPS
+
     kinds = {"rtol": float, "atol": float, "max_steps": int}
-    if not isinstance(doc, dict) or set(doc) - set(kinds):
+    unknown = sorted(map(str, set(doc) - set(kinds)))[:3] if isinstance(doc, dict) else []
+    if not isinstance(doc, dict) or unknown:
+        what = f"unknown keys {unknown}" if unknown else f"a {type(doc).__name__}"
         raise InputError(
-            f"{doc!r} is not the adaptive solver's settings; give a table of "
-            f"{', '.join(kinds)} (or leave it out for the defaults)",
+            f"{what}: the adaptive solver's settings are a table of {', '.join(kinds)} "
+            "(or leave it out for the defaults)",
             file=file,
             field="model.solver",
         )

@@ -32,7 +32,7 @@ from greybox._compile import jit
 from greybox._estimate.band import Band, SampledBand
 from greybox._model.device import check_method
 from greybox._model.freeparams import apply_raw, as_leaves
-from greybox._simulate.schedules import schedule_for
+from greybox._simulate.schedules import schedule_row
 from greybox._simulate.simulate import as_arrays, observe_schedule, require_x64
 
 NEGLIGIBLE_SENSITIVITY = 1e-6  # relative |dy/d direction| treated as "does not depend"
@@ -150,8 +150,7 @@ def prediction_band(
             if np.linalg.norm(v[:n_shared]) > NEGLIGIBLE_SENSITIVITY
         ]
     t = np.asarray(t_s, dtype=float)
-    sched = schedule_for(model, inputs, t, t_start_s=t_start_s)
-    row = {k: v[0] for k, v in sched.items()}
+    row = schedule_row(model, inputs, t, t_start_s=t_start_s)
     z, ok, jac = _response_and_jacobian(
         as_arrays(model),
         as_leaves(shared),

@@ -42,9 +42,17 @@ def fine_bucket_length(n: int) -> int:
     return -(-n // (1 << e)) << e  # ceil(n / 2^e) * 2^e
 
 
-def schedule_for(model, inputs, t_s, *, t_start_s: float = 0.0) -> dict:
+def schedule_for(model, inputs, t_s, *, t_start_s: float = 0.0, on_device: bool = True) -> dict:
     """`model_schedules` of one run (`inputs`, frame times `t_s`, start `t_start_s`)."""
-    return model_schedules(model, [(inputs, t_s, t_start_s)])
+    return model_schedules(model, [(inputs, t_s, t_start_s)], on_device=on_device)
+
+
+def schedule_row(model, inputs, t_s, *, t_start_s: float = 0.0) -> dict:
+    """`schedule_for`'s arrays of the one run, unstacked, in numpy: what one simulation takes
+    as its input (taken row by row from device arrays, each key was an operation of its own
+    to compile and dispatch: ten small programs compiled at a first `greybox.simulate`)."""
+    sched = schedule_for(model, inputs, t_s, t_start_s=t_start_s, on_device=False)
+    return {k: v[0] for k, v in sched.items()}
 
 
 def schedules_for(model, experiments, *, on_device: bool = True) -> dict:

@@ -40,7 +40,7 @@ from greybox._model.device import (
     check_method,
 )
 from greybox._platform import on_accelerator
-from greybox._simulate.schedules import schedule_for
+from greybox._simulate.schedules import schedule_row
 
 
 def require_x64(where: str) -> None:
@@ -328,8 +328,7 @@ def simulate(
     """
     require_x64("simulate")
     method = check_method(model, method)
-    sched = schedule_for(model, inputs, t_s, t_start_s=t_start_s)
-    row = {k: v[0] for k, v in sched.items()}
+    row = schedule_row(model, inputs, t_s, t_start_s=t_start_s)
     zoh_scan_kind(0, zoh_scan)  # a clear error for a misspelt scan before compiling
     z, ok = _observe_jit(as_arrays(model), row, method, rtol, atol, max_steps, zoh_scan)
     if not bool(ok):

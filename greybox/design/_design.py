@@ -70,7 +70,7 @@ from greybox._model.device import check_method, with_camera
 from greybox._model.freeparams import FreeParameter, as_leaves
 from greybox._model.parameters import get_value, set_values
 from greybox._model.waveforms import PiecewiseConstant, PulseTrain
-from greybox._simulate.schedules import model_schedules, schedule_for
+from greybox._simulate.schedules import model_schedules, schedule_for, schedule_row
 from greybox._simulate.simulate import as_arrays, observe_schedule, require_x64
 
 CRITERIA = ("D", "A", "E")
@@ -924,7 +924,7 @@ def _design_multilevel(problem, c: LabConstraints, kind, hold_s, n_iter, seed, s
     k = times.size
     t = c.frame_times()
     template = _template(times, c.run_duration_s)
-    one = schedule_for(problem.model, template, t)  # every run holds the same template
+    one = schedule_for(problem.model, template, t, on_device=False)  # every run: this one
     seg = _segment_index({key: v[0] for key, v in one.items()}, times)
     sched = jax.tree.map(lambda x: jnp.repeat(x, c.n_runs, axis=0), one)
     n_int = sched["dt"].shape[1]
@@ -1152,8 +1152,7 @@ def track_target(
     t = np.arange(1, int(round(duration_s / dt_s)) + 1) * dt_s
     t = t[t <= duration_s + 1e-12]
     template = _template(times, duration_s)
-    sched = schedule_for(model, template, t)
-    row = {key: v[0] for key, v in sched.items()}
+    row = schedule_row(model, template, t)
     seg = _segment_index(row, times)
     seg_pad = np.full(row["dt"].shape[0], k)
     seg_pad[: seg.size] = seg

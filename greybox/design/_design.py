@@ -926,7 +926,7 @@ def _design_multilevel(problem, c: LabConstraints, kind, hold_s, n_iter, seed, s
     template = _template(times, c.run_duration_s)
     one = schedule_for(problem.model, template, t, on_device=False)  # every run: this one
     seg = _segment_index({key: v[0] for key, v in one.items()}, times)
-    sched = jax.tree.map(lambda x: jnp.repeat(x, c.n_runs, axis=0), one)
+    sched = jax.tree.map(lambda x: np.repeat(x, c.n_runs, axis=0), one)
     n_int = sched["dt"].shape[1]
     seg_pad = np.full(n_int, k)
     seg_pad[: seg.size] = seg

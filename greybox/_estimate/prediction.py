@@ -23,6 +23,7 @@ does depend on them, the band is infinite rather than falsely narrow.
 from __future__ import annotations
 
 import functools
+from statistics import NormalDist
 
 import jax
 import jax.numpy as jnp
@@ -90,7 +91,7 @@ def process_band(
         f"{pct} band of {n_paths} sample paths: process noise ({how}) and {what}"
         + ("; measurement noise added" if measurement_noise else "")
     )
-    sd = (hi - lo) / (2 * _normal_quantile(0.5 + level / 2))
+    sd = (hi - lo) / (2 * NormalDist().inv_cdf(0.5 + level / 2))
     return SampledBand(t, y, lo, hi, sd, sd, level, measurement_noise, kind)
 
 
@@ -175,16 +176,8 @@ def prediction_band(
         np.broadcast_to(np.asarray(sigma, dtype=float), y.shape[1:]) ** 2 if includes_noise else 0.0
     )
     sd = np.sqrt(total)
-    zq = _normal_quantile((1.0 + level) / 2.0)
+    zq = NormalDist().inv_cdf((1.0 + level) / 2.0)  # on the host, as the residual tests' bands
     return Band(t, y, y - zq * sd, y + zq * sd, sd_model, sd, float(level), includes_noise)
-
-
-def _normal_quantile(p: float) -> float:
-    """The standard normal quantile of `p`, on the host (JAX's, called here, compiled a
-    dozen small programs at a band's first call)."""
-    from scipy.stats import norm
-
-    return float(norm.ppf(p))
 
 
 @jit

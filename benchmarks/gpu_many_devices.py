@@ -112,14 +112,37 @@ a result, 15 workers would be past 50,000 /min; not yet shown. Then (2026-11-28,
 lent): a batch's residual shuffles run as one compiled kernel on an accelerator
 (`shuffle_pass`; the 7.9 ms above were numpy's pass), not yet timed there either.
 
+Then (2026-11-29, H200 box, jax 0.11.2, MPS started, `--devices 32768 --complete 2048 --check
+4 --workers 15 --worker-platforms default,cpu --skip-qr`, main at 6177155): fifteen workers
+sharing the card, 32,768 complete fits in 69.4 s on the first call and 60.2 s warm (32,634
+/min), all valid, the CPU's estimates to 3.0e-15; fifteen CPU-only workers 24,865 /min warm;
+one process's complete `fit_batch` of 2,048 15,815 /min (warm 7.8 s). The workers were busy
+36 % of the time (9.85 ms of worker time a device): the client bounded the cluster, at 1.8
+ms a result. On the 2-core CPU, with tasks that return a fixed pickle of 256 results in
+place of fitting (the client alone, py-spy), a fifth of its gathering was the collector's
+full collections (the collector, back on between tasks, walked every result gathered so far,
+again and again) and a sixth the payloads' by-value pickler (cloudpickle); protocol 5 made a
+memoryview and a buffer per array (397 objects the collector tracks per result, 139 with
+protocol 4; unpickling 0.40 against 0.34 ms), and a quarter of each result's bytes were its
+device's runs, which the client holds already. After the collector paused over the whole
+gathering (each task's new objects examined once), protocol 4, the standard pickler
+(cloudpickle only for what refers to a `__main__`), results without their devices' runs
+(the client's own objects put back, as `fit_batch` gives them) and results fetched from the
+workers straight: 0.93 -> 0.54-0.57 ms a result on that stand-in. The same call on the box
+(`--complete 256`, a second device window of the same day): **32,768 complete fits in 24.8 s
+warm, 79,177 /min** (first call 43.9 s, 44,745 /min), all valid, the CPU's estimates to
+3.0e-15, workers busy 61 % (6.94 ms a device); fifteen CPU-only workers 49,863 /min warm
+(first call 56.0 s); the 64 solves alone vs in the big batch 2.9e-10 (6 step counts differ).
+
 Usage: .venv/bin/python benchmarks/gpu_many_devices.py [--devices 32768] [--workers 15] [--smoke]
 On a lent GPU machine (no package registry there; its image holds jax, equinox, diffrax,
 optimistix, lineax, numpy, scipy and matplotlib): carry as wheels dask and distributed
 2026.8.0, tornado 6.6.1, tblib 3.2.2, zict 3.0.0, locket 1.0.0, partd 1.4.2, pint 0.25.3,
 flexcache 0.3, flexparser 0.4 and platformdirs 4.14.8, install them with `pip install
---no-index --no-deps --target /tmp/site`, then `PYTHONPATH=/tmp/site:$PWD
-XLA_PYTHON_CLIENT_PREALLOCATE=false python3 benchmarks/gpu_many_devices.py --devices 32768
---complete 256 --check 4 --workers 15 --skip-qr` (about 6 minutes); before it,
+--no-index --no-deps --target /tmp/site`, start MPS (`nvidia-cuda-mps-control -d`, as in the
+runs above), then `PYTHONPATH=/tmp/site:$PWD XLA_PYTHON_CLIENT_PREALLOCATE=false python3
+benchmarks/gpu_many_devices.py --devices 32768 --complete 256 --check 4 --workers 15
+--worker-platforms default,cpu --skip-qr` (about 4 minutes); before it,
 `benchmarks/shuffle_pass.py` (seconds) times the shuffle kernel against numpy on the box.
 Last line: one JSON object.
 """

@@ -217,6 +217,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import greybox  # noqa: E402
+from greybox._collector import collector_paused  # noqa: E402
 from greybox._estimate import batch as _batch  # noqa: E402
 from greybox._estimate import fit as _fit  # noqa: E402
 
@@ -380,22 +381,24 @@ def compiled_alone(devices, free, chunk) -> float:
     return time.perf_counter() - t0
 
 
-def gather_figures(results, copies=24) -> dict:
+def gather_figures(results, devices, copies=24) -> dict:
     """Milliseconds a result that a client spends gathering results from a worker: `copies`
-    times `results`, held on one worker of a local cluster, gathered back (a) as
-    `fit_distributed` ships them (one pickle a task, unpickled as it arrives with the
-    garbage collector paused: `dask_gather_ms_per_result`) and (b) as Dask ships Python
-    objects of its own accord (each array a frame of its own, the collector on:
-    `dask_gather_objects_ms_per_result`, the baseline). With many workers this gathering,
-    not the fitting, bounded the cluster (benchmarks/gpu_many_devices.py)."""
+    times `results` (of `devices`), held on one worker of a local cluster, gathered back (a)
+    as `fit_distributed` ships them (one pickle a task without the devices' own runs,
+    unpickled as it arrives with the garbage collector paused: `dask_gather_ms_per_result`)
+    and (b) as Dask ships Python objects of its own accord (each array a frame of its own,
+    the collector on: `dask_gather_objects_ms_per_result`, the baseline). With many workers
+    this gathering, not the fitting, bounded the cluster (benchmarks/gpu_many_devices.py)."""
     from greybox._estimate import distributed as dist
 
     client, cluster = dist.start_client("local", 1, platform="cpu")
     try:
-        blob = pickle.dumps(results, protocol=pickle.HIGHEST_PROTOCOL)
+        blob = dist._encoded_results(results, devices)
+        runs = {d.name: d.experiments for d in devices}
         held = client.scatter([(blob, 0.0)] * copies, direct=True, hash=False)
         t0 = time.perf_counter()
-        got = [dist._unpickled_results(part) for part in client.gather(held)]
+        with collector_paused():
+            got = [dist._unpickled_results(part, runs) for part in client.gather(held)]
         ours = time.perf_counter() - t0
         held = client.scatter([results] * copies, direct=True, hash=False)
         t0 = time.perf_counter()
@@ -621,7 +624,7 @@ def main(argv=None):
         dask_s = time.perf_counter() - t0
         out["dask_fits_per_min"] = round(60.0 * args.devices / dask_s, 1)
         out["dask_vs_batch_max_rel"] = max_rel_diff(dask_res.results, batch.results)
-        out.update(gather_figures(dict(batch.results)))
+        out.update(gather_figures(dict(batch.results), batch_devs))
         out.update(dask_again(batch_devs, free, args.workers, say))
     if args.process:
         out.update(process_noise_batch(args.process, say)[2])

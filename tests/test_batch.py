@@ -346,10 +346,31 @@ def test_a_cluster_returns_what_the_batch_returns(batch):
         cluster.close()
     assert list(dist.results) == [d.name for d in devices[:6]]
     assert len(dist.worker_s) > 1 and all(s > 0 for s in dist.worker_s)  # several tasks
+    # each result holds its device's own runs, as the batch's do (they do not travel back)
+    assert all(dist.results[d.name].experiments is d.experiments for d in devices[:6])
     for name, r in dist.results.items():
         np.testing.assert_allclose(r.raw, out.results[name].raw, rtol=1e-9)
         assert r.status == out.results[name].status
         np.testing.assert_allclose(r.predict(0), out.results[name].predict(0), rtol=1e-9)
+
+
+def test_a_class_of_the_clients_main_travels_by_value(monkeypatch):
+    # a notebook's or script's model class lives in its __main__, which a worker cannot
+    # import: a payload that refers to it is pickled by value; anything else by reference
+    import pickle
+    import sys
+    import types
+
+    from greybox._estimate.distributed import _pickled
+
+    main = types.ModuleType("__main__")
+    monkeypatch.setitem(sys.modules, "__main__", main)
+    main.NotebookDevice = type("NotebookDevice", (), {"__module__": "__main__", "k": 2.0})
+    data = _pickled([main.NotebookDevice(), 1.0])
+    del main.NotebookDevice  # as in a worker's own __main__
+    device, x = pickle.loads(data)
+    assert type(device).__name__ == "NotebookDevice" and device.k == 2.0 and x == 1.0
+    assert _pickled((1.0, "x")) == pickle.dumps((1.0, "x"), protocol=4)
 
 
 def test_a_worker_keeps_its_host_work_to_one_core(monkeypatch):

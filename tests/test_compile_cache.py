@@ -115,7 +115,7 @@ def test_only_a_local_cluster_is_sent_the_clients_cache(monkeypatch):
     monkeypatch.setattr(dist, "start_client", lambda *a, **k: (Client(), None))
     monkeypatch.setattr(dist, "plan", lambda devices, free, **kw: (1, 1, 1))
     monkeypatch.setattr(dist, "_check_on_client", lambda *a: None)  # a stand-in device
-    devices = [type("D", (), {"name": "d0", "model": 0.0})()]
+    devices = [type("D", (), {"name": "d0", "model": 0.0, "experiments": ()})()]
     for scheduler, expected in (("local", dist.compile_cache_settings()), ("tcp://x:1", {})):
         sent.clear()
         try:

@@ -35,6 +35,15 @@ same bytes): writing 1.53-1.57 -> 0.92-1.00 s, total 9.75-10.30 -> 9.09-9.26 s, 
 drawing process that imports no JAX (d98fa04 against 2c36d26, two alternating runs, the
 machine slower that hour: totals 11.3-11.6 and 11.9-12.2 s): writing 1.86-1.92 -> 1.11-1.14
 s, write_share 0.156-0.157 -> 0.099.
+Then (2026-11-29, four alternating runs of 6177155 and this change, load under 0.6, a drawing
+process each time): the fit had become faster again (5.6-6.0 s with its validation) and
+writing was 1.16-1.28 s, write_share 0.163-0.176. The drawing process now draws the
+estimation's figures (the estimation run's, the residual tests, the correlation: those the
+validation cannot change) while the validation runs, into a folder of their own, and the
+writer moves them in (`greybox.io._drawing.drawing_ahead`; a job whose data differs from the
+writer's own is drawn again; the same bytes in every file): writing 0.62-0.68 s,
+write_share 0.094-0.099, total 6.93-7.43 -> 6.57-6.82 s (the validation takes ~0.2 s longer
+beside the drawing).
 
 Run: .venv/bin/python benchmarks/write_share.py [--smoke] [--folder DIR]
 

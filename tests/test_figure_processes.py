@@ -3,8 +3,9 @@ byte: the jobs carry plain data only (arrays, waveforms, labels, the residual an
 Agg draws deterministically. Both ways are checked: `greybox.io._drawing.draw_many` (what
 `greybox fit-many` does with its devices' figures, a folder per process) and
 `drawing_process` (what `greybox fit` does: one process started before the fit draws half of
-its figures). A job that cannot be sent to another process is drawn here instead, and a
-drawing error in another process is raised here, as it is without processes."""
+its figures, the estimation's while the validation runs). A job that cannot be sent to
+another process is drawn here instead, and a drawing error in another process is raised
+here, as it is without processes."""
 
 import os
 from pathlib import Path
@@ -177,6 +178,42 @@ def test_a_figure_drawn_beside_the_writing_is_the_one_drawn_here(tmp_path, monke
     with _drawing.drawing_beside(tmp_path / "alone", [_band_job()]):  # no process: here
         (tmp_path / "alone").mkdir()
     assert len(drawn_here) == 1 and _files(tmp_path / "alone") == _files(tmp_path / "here")
+
+
+def test_figures_drawn_ahead_are_moved_in_unless_their_data_changed(tmp_path, monkeypatch):
+    """`greybox fit`: the estimation's figures are drawn by the drawing process while the
+    validation runs, into a folder of their own, then moved into the result folder, the
+    same bytes as drawn here; a job whose data changed meanwhile is left to be drawn; the
+    temporary folder goes with the block, also on an error."""
+    jobs = _jobs(0)
+    (tmp_path / "here").mkdir()
+    _drawing.draw_figures(tmp_path / "here", jobs)
+    here = _files(tmp_path / "here")
+    with _drawing.drawing_ahead(jobs) as ahead:
+        assert ahead is None  # no drawing process: nothing is drawn ahead
+    monkeypatch.setattr(_drawing, "spare_core", lambda: True)
+    drawn_here = []
+    draw = _drawing._draw_one
+    monkeypatch.setattr(
+        _drawing, "_draw_one", lambda p, f, j: drawn_here.append(j) or draw(p, f, j)
+    )
+    final = _jobs(0)  # the writer's own jobs, made again from the same data
+    rel, function, (names, corr), kwargs = final[3]
+    final[3] = (rel, function, (names, 0.5 * corr + 0.5 * np.eye(2)), kwargs)
+    with _drawing.drawing_process():
+        with _drawing.drawing_ahead(jobs) as ahead:
+            staging = ahead.folder
+            (tmp_path / "result").mkdir()
+            left = ahead.take(tmp_path / "result", final)
+        assert [job[0] for job in left] == ["figures/correlation.png"]
+        assert len(drawn_here) <= len(jobs) - 2  # it was handed two at once
+        assert not staging.exists()
+        assert _files(tmp_path / "result") == {k: here[k] for k in here if "correlation" not in k}
+        with pytest.raises(RuntimeError, match="validation failed"):
+            with _drawing.drawing_ahead(jobs) as ahead:
+                staging = ahead.folder
+                raise RuntimeError("validation failed")
+        assert not staging.exists()
 
 
 def test_no_drawing_process_without_an_idle_core(monkeypatch):

@@ -69,15 +69,21 @@ def fit_loaded(fs, say, *, start=None, validate_runs: bool = True):
             file=str(fs.directory / "experiment.toml"),
             field=where,
         ) from err
-    validation = None
-    if fs.validation and validate_runs:
-        per_run = sorted({p.path for p in fs.free if p.per_experiment})
-        say(
-            f"validating on {len(fs.validation)} runs (physics fixed"
-            + (f"; per-run {', '.join(per_run)} re-fitted)" if per_run else ")")
-        )
-        validation = validate_loaded(fs, result)
+    validation = validate_with_progress(fs, result, say) if validate_runs else None
     return result, validation
+
+
+def validate_with_progress(fs, result, say):
+    """`validate_loaded` on the folder's validation runs, said first; None where it has
+    none."""
+    if not fs.validation:
+        return None
+    per_run = sorted({p.path for p in fs.free if p.per_experiment})
+    say(
+        f"validating on {len(fs.validation)} runs (physics fixed"
+        + (f"; per-run {', '.join(per_run)} re-fitted)" if per_run else ")")
+    )
+    return validate_loaded(fs, result)
 
 
 def validate_loaded(fs, result):
@@ -144,7 +150,8 @@ def fit_experiment_dir(
 
 
 def _fit_and_write(fs, out, say, force, candidate, figure_format) -> FitOutcome:
-    from greybox.io._results import write_fit_result
+    from greybox.io._drawing import drawing_ahead
+    from greybox.io._results import estimation_figure_jobs, write_fit_result
 
     n_est = sum(e.n_frames for e in fs.estimation)
     n_val = sum(e.n_frames for e in fs.validation)
@@ -157,9 +164,17 @@ def _fit_and_write(fs, out, say, force, candidate, figure_format) -> FitOutcome:
         + ("" if fs.noise is None else " and the noise parameters")
     )
     say("fitting (the first solve includes compiling the model, a few seconds)")
-    result, validation = fit_loaded(fs, say)
-    say(f"writing {out}")
-    written = write_fit_result(out, fs, result, validation, force=force, fmt=figure_format)
+    result, _ = fit_loaded(fs, say, validate_runs=False)
+    # the drawing process draws the estimation's figures while the validation runs
+    early = []
+    if figure_format and fs.validation:
+        early = estimation_figure_jobs(fs, result, figure_format)
+    with drawing_ahead(early) as ahead:
+        validation = validate_with_progress(fs, result, say)
+        say(f"writing {out}")
+        written = write_fit_result(
+            out, fs, result, validation, force=force, fmt=figure_format, ahead=ahead
+        )
     return FitOutcome(fs, result, validation, Path(out), written.document, written.metrics)
 
 

@@ -311,6 +311,21 @@ def figure_jobs(fs, runs, sigma, fit_percent, *, result=None, fmt: str = "png") 
     return jobs
 
 
+def estimation_figure_jobs(fs, result, fmt: str = "png") -> list:
+    """The jobs of `figure_jobs` that a least-squares fit's validation cannot change (each
+    estimation run's figure, the residual tests, the parameter correlation), as the result
+    folder's writing makes them, so that they can be drawn while the validation runs
+    (`greybox.io._drawing.drawing_ahead`); none for a process-noise fit, whose figures'
+    scale depends on the validation runs too."""
+    if _is_process(result):
+        return []
+    runs = run_outputs(fs, result, None)
+    jobs = figure_jobs(fs, runs, result.sigma, dict(result.fit_percent), result=result, fmt=fmt)
+    keep = {f"figures/fit_{r.experiment.name}.{fmt}" for r in runs}
+    keep |= {f"figures/residual_tests.{fmt}", f"figures/correlation.{fmt}"}
+    return [job for job in jobs if job[0] in keep]
+
+
 # --------------------------------------------------------------------------------------------
 # From the fit's results to the runs of the result folder
 
@@ -495,11 +510,14 @@ def write_fit_files(
     tables: bool = True,
     fmt: str = "png",
     defer: list | None = None,
+    ahead=None,
 ) -> WrittenFit:
     """Write a fit's files into the existing `folder`: params.json and report.md, with
     `figures` figures/ (in `fmt`: png, svg or pdf), with `tables` predictions/, metrics.csv
     and validation_runs.json. `defer`: a list that receives (folder, `figure_jobs`) instead
-    of the figures being drawn here (report.md names them all the same)."""
+    of the figures being drawn here (report.md names them all the same); `ahead`: figures
+    drawn already (`greybox.io._drawing.drawing_ahead` of `estimation_figure_jobs`), moved
+    in rather than drawn again."""
     from greybox.io._params_file import params_document, write_params
 
     folder = Path(folder)
@@ -528,7 +546,7 @@ def write_fit_files(
         if defer is None:
             from greybox.io._drawing import draw_figures
 
-            draw_figures(folder, jobs)
+            draw_figures(folder, jobs if ahead is None else ahead.take(folder, jobs))
         else:  # the caller draws them (`draw_many`: many devices' figures side by side)
             defer.append((folder, jobs))
     write_params(folder / "params.json", document)
@@ -569,18 +587,18 @@ def report_text(fs, result, validation, figures=(), metrics=None) -> str:
 
 
 def write_fit_result(
-    out, fs, result, validation, *, force: bool = False, fmt: str | None = "png"
+    out, fs, result, validation, *, force: bool = False, fmt: str | None = "png", ahead=None
 ) -> WrittenFit:
     """The result folder of a fit, written atomically (it appears complete or not at all):
     params.json, report.md, predictions/, metrics.csv, validation_runs.json, figures/ (in
-    `fmt`; none when `fmt` is None)."""
+    `fmt`; none when `fmt` is None; `ahead`: those drawn already, `write_fit_files`)."""
     from greybox.io._atomic import atomic_output_dir
 
     check_finite_result(fs, result)  # before the folder is touched
     with atomic_output_dir(out, kind="fit", force=force) as tmp:
         usual_permissions(tmp)
         written = write_fit_files(
-            tmp, fs, result, validation, figures=fmt is not None, fmt=fmt or "png"
+            tmp, fs, result, validation, figures=fmt is not None, fmt=fmt or "png", ahead=ahead
         )
     return dataclasses.replace(written, out=Path(out))
 

@@ -45,7 +45,9 @@ constant are drawn from a known log-normal population. It measures
     and the client's gathering of results from a worker (`gather_figures`): as
     `fit_distributed` ships them against Dask's own way with objects (2026-11-27, 128
     devices x 24 copies: 0.77-0.83 against 1.41-1.42 ms a result, `dask_gather_speedup`
-    1.70-1.85);
+    1.70-1.85; 2026-11-29, 64 devices x 24, alternating with 6177155: 0.79-0.81 -> 0.42 ms
+    a result, with the collector paused over the whole gathering, protocol 4 and results
+    without their devices' own runs: `greybox._estimate.distributed`);
 
 (d') with `--dask`, a call made again (`dask_again`): its new workers compiling every
     program again against loading them from the client's compile cache (2026-11-29, 64
@@ -387,7 +389,9 @@ def gather_figures(results, devices, copies=24) -> dict:
     as `fit_distributed` ships them (one pickle a task without the devices' own runs,
     unpickled as it arrives with the garbage collector paused: `dask_gather_ms_per_result`)
     and (b) as Dask ships Python objects of its own accord (each array a frame of its own,
-    the collector on: `dask_gather_objects_ms_per_result`, the baseline). With many workers
+    through the scheduler, the collector on: `dask_gather_objects_ms_per_result`, the
+    baseline; gathered straight from the worker, as `fit_distributed`'s client does, Dask's
+    many frames took 3.5x as long). With many workers
     this gathering, not the fitting, bounded the cluster (benchmarks/gpu_many_devices.py)."""
     from greybox._estimate import distributed as dist
 
@@ -402,7 +406,7 @@ def gather_figures(results, devices, copies=24) -> dict:
         ours = time.perf_counter() - t0
         held = client.scatter([results] * copies, direct=True, hash=False)
         t0 = time.perf_counter()
-        plain = client.gather(held)
+        plain = client.gather(held, direct=False)  # as a client gathers by default
         objects = time.perf_counter() - t0
     finally:
         client.close()

@@ -302,7 +302,8 @@ def start_client(
             env=worker_environment(platform),
         )
         # results come from the workers straight, not through the scheduler, which a local
-        # cluster runs in this process: each result would cross this process's sockets twice
+        # cluster runs in this process, so they cross its sockets once (a task's results are
+        # one frame, `_encoded_results`: 0.44 -> 0.42 ms a result to gather)
         return distributed.Client(cluster, direct_to_workers=True), cluster
     return distributed.Client(scheduler, timeout="10s"), None
 

@@ -169,10 +169,9 @@ def _encoded_results(results: dict, devices) -> bytes:
     states = {}
     for name, result in results.items():
         _, (state,) = result.__reduce__()
-        own = runs.get(name)
-        if own is not None and len(own) == len(state["experiments"]):
-            if all(a is b for a, b in zip(own, state["experiments"], strict=True)):
-                state["experiments"] = None  # the client's own: `_unpickled_results`
+        own, sent = runs.get(name, ()), state["experiments"]
+        if len(own) == len(sent) and all(a is b for a, b in zip(own, sent, strict=True)):
+            state["experiments"] = None  # the client's own: `_unpickled_results`
         states[name] = state
     return _pickled(states)
 

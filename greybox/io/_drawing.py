@@ -160,9 +160,9 @@ class Ahead:
         from greybox.report import _plots as plots
 
         with plots.png_writes_in_background():
-            while (k := self._pending.take_back()) is not None:
-                _draw_one(plots, self.folder, self.jobs[k])
-        failed = _not_drawn([self.helper])
+            failed = _drawn_from_the_back(
+                self._pending, [self.helper], lambda k: _draw_one(plots, self.folder, self.jobs[k])
+            )
         if failed:  # it failed or is gone: its jobs are drawn (or raise) here
             _draw_here(self.folder, [self.jobs[k] for k in failed])
 
@@ -232,6 +232,14 @@ def _share(helpers, payloads, draw_here) -> list:
     pending = _Pending(payloads)
     for helper in helpers:
         helper.start(pending.hand_out)
+    return _drawn_from_the_back(pending, helpers, draw_here)
+
+
+def _drawn_from_the_back(pending, helpers, draw_here) -> list:
+    """The items `pending` still holds drawn here from the back (`draw_here(index)`) while
+    the `helpers` it was given to take them from the front; returns the indices a helper did
+    not draw. On an error here no item is handed out any more, and the helpers' items are
+    waited for."""
     try:
         while (k := pending.take_back()) is not None:
             draw_here(k)

@@ -321,9 +321,7 @@ def estimation_figure_jobs(fs, result, fmt: str = "png") -> list:
         return []
     runs = run_outputs(fs, result, None)
     jobs = figure_jobs(fs, runs, result.sigma, dict(result.fit_percent), result=result, fmt=fmt)
-    keep = {f"figures/fit_{r.experiment.name}.{fmt}" for r in runs}
-    keep |= {f"figures/residual_tests.{fmt}", f"figures/correlation.{fmt}"}
-    return [job for job in jobs if job[0] in keep]
+    return [job for job in jobs if job[1] != "residuals_figure"]  # those pool every run
 
 
 # --------------------------------------------------------------------------------------------

@@ -29,13 +29,23 @@ import tempfile
 import pytest
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+# one OpenBLAS thread a process (the workers, and every notebook kernel, benchmark smoke run
+# and command they start inherit it): the suite runs a process per core, and OpenBLAS's
+# threads wait for work by spinning, on the core the other process needs. perf over the
+# whole suite on a 2-core machine: 23 s of CPU in numpy's and scipy's OpenBLAS threads
+# waiting (`blas_thread_server`, `exec_blas_async_wait`), against ~3 s of their arithmetic;
+# with one thread the suite took 242 s (user + sys CPU 468 s), against 254-260 s (490-501 s)
+# the same hour. A value already set is left as it is.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 # full collections rarer (after 100 collections of the middle generation, not 10): a
 # worker's heap grows with every compiled program (the jaxprs and executables JAX keeps),
 # and each full collection walks all of it (31 a worker, 0.4 s each: 25 s of the suite's CPU;
-# with this 9-11 a worker, 12.5 s); the young generations, where short-lived cyclic garbage
-# dies, are collected as usual
-gc.set_threshold(*gc.get_threshold()[:2], 100)
+# with this 9-11 a worker, 12.5 s). Young collections rarer too (after 10,000 net
+# allocations, not 700): tracing makes millions of short-lived objects, few of them in
+# cycles (tests/test_stochastic_device.py and test_electrothermal.py in one process: 2,575
+# collections taking 1.2 s -> 305 taking 0.53 s)
+gc.set_threshold(10_000, 10, 100)
 
 _OWN_CACHE = "GREYBOX_TEST_JAX_CACHE" not in os.environ and "PYTEST_XDIST_WORKER" not in os.environ
 if _OWN_CACHE:  # the controlling process: the workers inherit this variable

@@ -37,6 +37,13 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 # with one thread the suite took 242 s (user + sys CPU 468 s), against 254-260 s (490-501 s)
 # the same hour. A value already set is left as it is.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# For the same reason, one thread in XLA's CPU pool (it runs the compiled programs and waits
+# for work by spinning too: 12 s of the suite's CPU in `GlobalSteal` and `PopBack`). XLA
+# sizes the pool from PJRT_NPROC where it is set (`DefaultThreadPoolSize`, the knob by which
+# Google's CI reserves cores for a test), else from the cores. Two compile-heavy test files
+# in one process: CPU 46.0 -> 39.8 s, spinning 1.45 -> 0.03 s; the suite: 233-248 s (CPU
+# 451-480 s) -> 224.8 s (436 s).
+os.environ.setdefault("PJRT_NPROC", "1")
 
 # full collections rarer (after 100 collections of the middle generation, not 10): a
 # worker's heap grows with every compiled program (the jaxprs and executables JAX keeps),

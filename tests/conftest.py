@@ -42,7 +42,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 # sizes the pool from PJRT_NPROC where it is set (`DefaultThreadPoolSize`, the knob by which
 # Google's CI reserves cores for a test), else from the cores. Two compile-heavy test files
 # in one process: CPU 46.0 -> 39.8 s, spinning 1.45 -> 0.03 s; the suite: 233-248 s (CPU
-# 451-480 s) -> 224.8 s (436 s).
+# 451-480 s) -> 221.5-232.0 s (430-448 s), a fresh clone with the README's command 228.1 s.
 os.environ.setdefault("PJRT_NPROC", "1")
 
 # full collections rarer (after 100 collections of the middle generation, not 10): a
